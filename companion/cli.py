@@ -1,0 +1,45 @@
+"""`companion` command line: one entry point, argparse subcommands.
+
+Each subcommand's implementation lives next to the code it drives and is imported lazily, so
+`companion gnss` does not pay for MAVLink imports and vice versa.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+
+def _add_gnss(sub) -> None:
+    p = sub.add_parser("gnss", help="post-process RINEX observations (SPP or DGPS), RTKLIB-style")
+    p.add_argument("--rover", required=True, help="rover RINEX observation file (2.x or 3.x)")
+    p.add_argument("--nav", required=True, action="append",
+                   help="RINEX navigation file (GPS broadcast ephemeris); may be repeated")
+    p.add_argument("--base", help="base station RINEX observation file (for --mode dgps)")
+    p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header)")
+    p.add_argument("--mode", choices=["spp", "dgps"], default="spp")
+    p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
+    p.add_argument("--elevation-mask-deg", type=float, default=10.0)
+    p.add_argument("--json", help="write statistics and per-epoch solutions as JSON here")
+    p.add_argument("--pos", help="write per-epoch solutions as a text table here")
+    p.set_defaults(func=lambda a: __import__("companion.gnss.postprocess", fromlist=["run"]).run(a))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="companion", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="count", default=0)
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_gnss(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
