@@ -1,0 +1,418 @@
+"""The fusion engine: IMU-rate mechanization and covariance propagation, GPS-time interpolation of
+the INS to each GNSS epoch, measurement selection, gating, closed-loop feedback, solution status.
+
+Pure and synchronous: messages in, solutions out, no clocks, sockets or asyncio.  The same
+sequence of inputs gives the same outputs bit for bit.
+
+Timing.  A GNSS epoch is tagged with its GPS time ``t_gps``, which falls between IMU samples.  The
+engine keeps a short history of the INS state at every IMU sample and evaluates the measurement
+model at the INS state *linearly interpolated to t_gps* (seed 000 eqs 31-32), never at the nearest
+sample.  An epoch that arrives before the IMU has passed its time waits in a queue; one that
+arrives late (the usual case in the field: receivers report 20-100 ms after the epoch) is
+interpolated from the history.  The correction is applied at the current IMU time, treating the
+error state as constant over the latency (it changes by ~v_err * latency, far below the noise).
+"""
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..gnss.ephemeris_store import EphemerisStore
+from ..gnss.prepare import prepare_epoch
+from ..messages import BaseStationPosition, GnssEpoch, GnssFix, GpsEphemeris, ImuSample, NavSolution
+from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
+from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
+from .measurements import (InsPoint, PhaseRecord, antenna_state, doppler_batch, line_of_sight,
+                           position_fix_batch, pseudorange_batch, tdcp_batch, velocity_fix_batch)
+from .strapdown import strapdown_step
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EngineConfig:
+    """Everything that tunes the engine.  Units in the names."""
+
+    noise: ProcessNoise
+    lever_arm_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # which measurements
+    use_pseudorange: bool = True
+    use_dgps: bool = True            # pseudoranges need a DGPS correction (else standalone models)
+    use_tdcp: bool = True
+    use_doppler: bool = False
+    use_loose: bool = False          # position/velocity from the receiver's own (SPP) fix instead
+    elevation_mask_deg: float = 10.0
+    gate_probability: float = 0.999
+    # measurement noise
+    sigma_doppler_mps: float = 0.1
+    sigma_phase_m: float = 0.005
+    sigma_tdcp_floor_mps: float = 0.01
+    sigma_pseudorange_floor_m: float = 0.0
+    tdcp_max_interval_s: float = 1.5
+    # bookkeeping
+    history_s: float = 2.0
+    coasting_after_s: float = 3.0
+    untrusted_sigma_h_m: float = 50.0
+    clock_reset_threshold_m: float = 300.0
+    gravity_gradient_refresh_m: float = 200.0
+    klobuchar: tuple | None = None
+
+
+@dataclass
+class EpochReport:
+    """The outcome of one GNSS epoch."""
+
+    t_gps: float
+    reports: list[UpdateReport] = field(default_factory=list)
+    rejected: dict = field(default_factory=dict)
+    dx: np.ndarray | None = None
+    applied: bool = False
+
+
+class NavEngine:
+    """Tightly coupled INS/GNSS fusion.  Feed it with :meth:`process` (any message) in arrival order."""
+
+    def __init__(self, config: EngineConfig):
+        self.cfg = config
+        self.lever_arm_b = np.asarray(config.lever_arm_b_m, float)
+        self.ephemerides = EphemerisStore()
+        self.dgps = None
+        self.base: BaseStationPosition | None = None
+        self.counters: Counter = Counter()
+        self.initialized = False
+        self.kf: ErrorStateKalmanFilter | None = None
+        self.t_gps = math.nan
+        self.r_e = self.v_e = self.C_b_e = None
+        self.b_a = np.zeros(3)
+        self.b_g = np.zeros(3)
+        self.clock_bias_m = 0.0
+        self.clock_drift_mps = 0.0
+        self.clock_initialized = False
+        self.omega_ib_b = np.zeros(3)
+        self._history: deque = deque()
+        self._history_t: deque = deque()
+        self._pending: list[GnssEpoch] = []
+        self._phase: dict[str, PhaseRecord] = {}
+        self._grad = None
+        self._grad_r = None
+        self.last_gnss_update_t = math.nan
+        self.reset_counter = 0
+        self.epoch_reports: deque = deque(maxlen=16)
+        self.on_epoch = None  # optional callback(EpochReport)
+
+    # ------------------------------------------------------------------ set-up
+    def initialize(self, t_gps: float, r_e, v_e, C_b_e, P0_sigmas: dict, *,
+                   clock_bias_m: float | None = None, clock_drift_mps: float = 0.0,
+                   b_a=None, b_g=None) -> None:
+        """Start navigating from a known state.  ``P0_sigmas`` keys: att_rad, pos_m, vel_mps,
+        ba_mps2, bg_radps, clk_m, drift_mps (1-sigma, isotropic)."""
+        L = LAYOUT
+        d = np.zeros(L.n)
+        d[L.att] = P0_sigmas["att_rad"] ** 2
+        d[L.pos] = P0_sigmas["pos_m"] ** 2
+        d[L.vel] = P0_sigmas["vel_mps"] ** 2
+        d[L.ba] = P0_sigmas["ba_mps2"] ** 2
+        d[L.bg] = P0_sigmas["bg_radps"] ** 2
+        d[L.clk] = P0_sigmas.get("clk_m", 1e3) ** 2
+        d[L.drift] = P0_sigmas.get("drift_mps", 10.0) ** 2
+        self.kf = ErrorStateKalmanFilter(np.diag(d), self.cfg.noise, self.cfg.gate_probability)
+        self.t_gps = float(t_gps)
+        self.r_e = np.array(r_e, float)
+        self.v_e = np.array(v_e, float)
+        self.C_b_e = np.array(C_b_e, float)
+        self.b_a = np.zeros(3) if b_a is None else np.array(b_a, float)
+        self.b_g = np.zeros(3) if b_g is None else np.array(b_g, float)
+        self.clock_initialized = clock_bias_m is not None
+        self.clock_bias_m = float(clock_bias_m or 0.0)
+        self.clock_drift_mps = float(clock_drift_mps)
+        self._history.clear()
+        self._history_t.clear()
+        self._push_history()
+        self._phase.clear()
+        self.initialized = True
+        self.reset_counter += 1
+
+    def process(self, msg):
+        """Dispatch any core message.  Returns an EpochReport for GNSS epochs, else None."""
+        if isinstance(msg, ImuSample):
+            return self.process_imu(msg)
+        if isinstance(msg, GnssEpoch):
+            return self.process_base(msg) if msg.source == "base" else self.process_gnss(msg)
+        if isinstance(msg, GpsEphemeris):
+            self.ephemerides.add(msg)
+            return None
+        if isinstance(msg, BaseStationPosition):
+            self.base = msg
+            return None
+        if isinstance(msg, GnssFix):
+            return self.process_fix(msg)
+        self.counters["unknown message"] += 1
+        return None
+
+    def process_base(self, epoch: GnssEpoch):
+        if self.base is None:
+            self.counters["base epoch without station position"] += 1
+            return None
+        if self.dgps is None:
+            from ..gnss.dgps import DgpsCorrector
+            self.dgps = DgpsCorrector()
+        self.dgps.update_base(epoch, self.base, self.ephemerides)
+        self.counters["base epochs"] += 1
+        return None
+
+    # ------------------------------------------------------------------ IMU
+    def process_imu(self, s: ImuSample):
+        if not self.initialized:
+            self.counters["imu before init"] += 1
+            return None
+        tau = s.dt_s
+        if not (s.t_gps > self.t_gps):
+            self.counters["imu sample not after previous (dropped)"] += 1
+            return None
+        if not (0.0 < tau < 0.1) or not (np.all(np.isfinite(s.dtheta_b)) and np.all(np.isfinite(s.dv_b))):
+            self.counters["imu sample invalid (dropped)"] += 1
+            return None
+        gap = s.t_gps - self.t_gps - tau
+        if abs(gap) > 0.5 * tau:
+            # a lost sample or a clock jump: integrate what we have, widen the covariance for the gap
+            self.counters["imu time gap"] += 1
+        dtheta = s.dtheta_b - self.b_g * tau
+        dv = s.dv_b - self.b_a * tau
+        C0 = self.C_b_e
+        r0 = self.r_e
+        if self._grad is None or float(np.sum((r0 - self._grad_r) ** 2)) > self.cfg.gravity_gradient_refresh_m ** 2:
+            self._grad = gravity_gradient_ecef(r0)
+            self._grad_r = r0
+        self.r_e, self.v_e, self.C_b_e = strapdown_step(r0, self.v_e, C0, dtheta, dv, tau, gravity_ecef(r0))
+        self.kf.propagate(C0, C0 @ (dv / tau), self._grad, max(tau, tau + gap) if gap > 0.5 * tau else tau)
+        self.omega_ib_b = dtheta / tau
+        self.clock_bias_m += self.clock_drift_mps * (s.t_gps - self.t_gps)
+        self.t_gps = s.t_gps
+        self._push_history()
+        if self._pending and self._pending[0].t_gps <= self.t_gps:
+            ready = [e for e in self._pending if e.t_gps <= self.t_gps]
+            self._pending = [e for e in self._pending if e.t_gps > self.t_gps]
+            for e in ready:
+                self._process_epoch(e)
+        return None
+
+    def _push_history(self):
+        self._history.append((self.t_gps, self.r_e, self.v_e, self.C_b_e))
+        self._history_t.append(self.t_gps)
+        while self._history_t[-1] - self._history_t[0] > self.cfg.history_s:
+            self._history.popleft()
+            self._history_t.popleft()
+
+    def ins_at(self, t_gps: float) -> InsPoint | None:
+        """INS state linearly interpolated to ``t_gps`` between the bracketing IMU samples."""
+        ts = self._history_t
+        if not ts or t_gps > ts[-1] or t_gps < ts[0]:
+            return None
+        k = bisect.bisect_left(ts, t_gps)
+        t1, r1, v1, C1 = self._history[k]
+        if k == 0 or t1 == t_gps:
+            r, v, C = r1, v1, C1
+        else:
+            t0, r0, v0, C0 = self._history[k - 1]
+            a = (t_gps - t0) / (t1 - t0)
+            r = r0 * (1.0 - a) + r1 * a
+            v = v0 * (1.0 - a) + v1 * a
+            C = C0 if a < 0.5 else C1
+        clk = self.clock_bias_m - self.clock_drift_mps * (self.t_gps - t_gps)
+        return InsPoint(t_gps, r, v, C, self.omega_ib_b, clk, self.clock_drift_mps)
+
+    # ------------------------------------------------------------------ GNSS
+    def process_gnss(self, epoch: GnssEpoch):
+        if not self.initialized:
+            self.counters["gnss before init"] += 1
+            return None
+        if epoch.t_gps > self.t_gps:
+            bisect.insort(self._pending, epoch, key=lambda e: e.t_gps)
+            if len(self._pending) > 20:
+                self._pending.pop(0)
+                self.counters["gnss epoch dropped: waiting queue full"] += 1
+            return None
+        return self._process_epoch(epoch)
+
+    def _process_epoch(self, epoch: GnssEpoch) -> EpochReport:
+        rep = EpochReport(epoch.t_gps)
+        ins = self.ins_at(epoch.t_gps)
+        if ins is None:
+            self.counters["gnss epoch older than INS history"] += 1
+            rep.rejected["epoch"] = "older than INS history"
+            return rep
+        self.counters["gnss epochs"] += 1
+        r_ant, _, _ = antenna_state(ins, self.lever_arm_b)
+        cfg = self.cfg
+        prep = prepare_epoch(epoch, self.ephemerides, r_ant,
+                             dgps=self.dgps if cfg.use_dgps else None,
+                             elevation_mask_rad=math.radians(cfg.elevation_mask_deg),
+                             klobuchar=cfg.klobuchar)
+        rep.rejected.update(prep.rejected)
+        for reason in prep.rejected.values():
+            self.counters[f"satellite rejected: {reason}"] += 1
+        if cfg.use_dgps and self.dgps is None:
+            self.counters["epoch without DGPS base"] += 1
+        batches: list[MeasurementBatch] = []
+        if cfg.use_loose:
+            batches += self._loose_batches(ins, prep)
+        else:
+            if cfg.use_pseudorange and len(prep.sats):
+                pr = pseudorange_batch(ins, prep, self.lever_arm_b, sigma_floor_m=cfg.sigma_pseudorange_floor_m)
+                if len(pr):
+                    self._check_clock(ins, pr)
+                    batches.append(pr)
+            if cfg.use_doppler and len(prep.sats):
+                batches.append(doppler_batch(ins, prep, self.lever_arm_b, cfg.sigma_doppler_mps))
+            if cfg.use_tdcp:
+                batches.append(tdcp_batch(ins, prep, self._phase, self.lever_arm_b, cfg.sigma_phase_m,
+                                          cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s))
+        batches = [b for b in batches if len(b)]
+        reports = [self.kf.gate(b) for b in batches]
+        for r in reports:
+            self.counters[f"{r.kind} used"] += r.n_accepted
+            for reason in r.rejected_reason.values():
+                self.counters[f"{r.kind} rejected: {reason}"] += 1
+        rep.reports = reports
+        dx = self.kf.update(batches, reports)
+        if any(r.n_accepted for r in reports):
+            self._feedback(dx)
+            rep.applied = True
+            rep.dx = dx
+            self.last_gnss_update_t = epoch.t_gps
+        self._remember_phase(ins, dx, prep)
+        self.epoch_reports.append(rep)
+        if self.on_epoch is not None:
+            self.on_epoch(rep)
+        return rep
+
+    def _check_clock(self, ins: InsPoint, pr: MeasurementBatch) -> None:
+        """First epoch: take the clock from the data.  Later: a common jump of all pseudorange
+        innovations (receiver clock reset, millisecond jump) re-seeds the clock state."""
+        common = float(np.median(pr.z))
+        if not self.clock_initialized or abs(common) > self.cfg.clock_reset_threshold_m:
+            if self.clock_initialized:
+                self.counters["receiver clock jump re-seeded"] += 1
+                log.warning("receiver clock jump of %.1f m re-seeded", common)
+            self.clock_bias_m += common
+            pr.z = pr.z - common
+            L = LAYOUT
+            P = self.kf.P
+            P[L.clk, :] = 0.0
+            P[:, L.clk] = 0.0
+            P[L.clk, L.clk] = 100.0 ** 2
+            self.clock_initialized = True
+
+    def _loose_batches(self, ins, prep):
+        from ..gnss.spp import solve_spp
+        sol = solve_spp(prep, r_init_e=antenna_state(ins, self.lever_arm_b)[0])
+        if sol is None:
+            self.counters["loose: no SPP solution"] += 1
+            return []
+        lat, lon, _ = ecef_to_geodetic(sol.r_e)
+        Cne = C_n_e(lat, lon)
+        sig = np.median(prep.sigma_pseudorange_m) if len(prep.sats) else 5.0
+        cov_n = np.diag([(sig * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sig * sol.vdop) ** 2])
+        out = [position_fix_batch(ins, sol.r_e, Cne @ cov_n @ Cne.T, self.lever_arm_b)]
+        if sol.v_e is not None:
+            sv = self.cfg.sigma_doppler_mps
+            cov_v = np.diag([(sv * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sv * sol.vdop) ** 2])
+            out.append(velocity_fix_batch(ins, sol.v_e, Cne @ cov_v @ Cne.T, self.lever_arm_b))
+        return out
+
+    def process_fix(self, fix: GnssFix):
+        """Loose coupling of a receiver's own fix (GPS_RAW_INT / NAV-PVT)."""
+        if not self.initialized:
+            self.counters["fix before init"] += 1
+            return None
+        ins = self.ins_at(min(fix.t_gps, self.t_gps))
+        if ins is None or fix.fix_type < 3:
+            self.counters["fix unusable"] += 1
+            return None
+        lat, lon, _ = ecef_to_geodetic(fix.r_e)
+        Cne = C_n_e(lat, lon)
+        cov = Cne @ np.diag([fix.sigma_h_m ** 2 / 2, fix.sigma_h_m ** 2 / 2, fix.sigma_v_m ** 2]) @ Cne.T
+        batches = [position_fix_batch(ins, fix.r_e, cov, self.lever_arm_b)]
+        if fix.v_e is not None:
+            batches.append(velocity_fix_batch(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2, self.lever_arm_b))
+        reports = [self.kf.gate(b) for b in batches]
+        dx = self.kf.update(batches, reports)
+        if any(r.n_accepted for r in reports):
+            self._feedback(dx)
+            self.last_gnss_update_t = fix.t_gps
+        return reports
+
+    def _feedback(self, dx: np.ndarray) -> None:
+        """Closed loop: fold the estimated errors into the nominal state (error state back to zero)."""
+        L = LAYOUT
+        self.C_b_e = rotation_from_rotvec(dx[L.att]) @ self.C_b_e
+        self.r_e = self.r_e + dx[L.pos]
+        self.v_e = self.v_e + dx[L.vel]
+        self.b_a = self.b_a + dx[L.ba]
+        self.b_g = self.b_g + dx[L.bg]
+        self.clock_bias_m += dx[L.clk]
+        self.clock_drift_mps += dx[L.drift]
+        # the newest history sample is "now": keep it consistent with the corrected state
+        self._history[-1] = (self.t_gps, self.r_e, self.v_e, self.C_b_e)
+
+    def _remember_phase(self, ins: InsPoint, dx: np.ndarray, prep) -> None:
+        """Store each satellite's carrier and its geometric range from the *corrected* INS state,
+        for the next epoch's TDCP.  A slip flag, a lock-time reset or a half-cycle ambiguity
+        restarts the satellite's bookkeeping."""
+        if not self.cfg.use_tdcp:
+            return
+        L = LAYOUT
+        C = rotation_from_rotvec(dx[L.att]) @ ins.C_b_e
+        fixed = InsPoint(ins.t_gps, ins.r_e + dx[L.pos], ins.v_e + dx[L.vel], C, ins.omega_ib_b,
+                         ins.clock_bias_m + dx[L.clk], ins.clock_drift_mps + dx[L.drift])
+        r_ant, _, _ = antenna_state(fixed, self.lever_arm_b)
+        seen = set()
+        finite = np.isfinite(prep.carrier_cycles)
+        if np.any(finite):
+            rho, u = line_of_sight(prep.r_sat_e[finite], r_ant)
+            for j, i in enumerate(np.flatnonzero(finite)):
+                sat = prep.sats[i]
+                prev = self._phase.get(sat)
+                lock = float(prep.lock_time_s[i])
+                slipped = bool(prep.loss_of_lock[i]) or bool(prep.half_cycle[i]) or (
+                    prev is not None and math.isfinite(lock) and math.isfinite(prev.lock_time_s)
+                    and lock < prev.lock_time_s)
+                if slipped:
+                    self.counters["carrier bookkeeping restarted (slip flag / lock time)"] += 1
+                    self._phase.pop(sat, None)
+                    if bool(prep.half_cycle[i]):
+                        continue
+                self._phase[sat] = PhaseRecord(ins.t_gps, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]),
+                                               float(rho[j]), float(prep.sat_clock_bias_m[i]), u[j], lock)
+                seen.add(sat)
+        for sat in [s for s in self._phase if s not in seen]:
+            del self._phase[sat]
+
+    # ------------------------------------------------------------------ output
+    def solution(self) -> NavSolution:
+        if not self.initialized:
+            nan3 = np.full(3, np.nan)
+            return NavSolution(math.nan, nan3, nan3, np.full((3, 3), np.nan), nan3, nan3, nan3, "init")
+        L = LAYOUT
+        lat, lon, _ = ecef_to_geodetic(self.r_e)
+        Cen = C_n_e(lat, lon).T
+        P = self.kf.P
+        sig_r = np.sqrt(np.maximum(np.diag(Cen @ P[L.pos, L.pos] @ Cen.T), 0.0))
+        sig_v = np.sqrt(np.maximum(np.diag(Cen @ P[L.vel, L.vel] @ Cen.T), 0.0))
+        sig_a = np.sqrt(np.maximum(np.diag(P[L.att, L.att]), 0.0))
+        healthy = bool(np.all(np.isfinite(self.r_e)) and np.all(np.isfinite(P)))
+        if not healthy or math.hypot(sig_r[0], sig_r[1]) > self.cfg.untrusted_sigma_h_m:
+            status = "untrusted"
+        elif not (self.t_gps - self.last_gnss_update_t <= self.cfg.coasting_after_s):
+            status = "coasting"
+        else:
+            status = "nav"
+        return NavSolution(self.t_gps, self.r_e.copy(), self.v_e.copy(), self.C_b_e.copy(), sig_r, sig_v, sig_a,
+                           status, self.last_gnss_update_t, self.reset_counter,
+                           {"clock_bias_m": self.clock_bias_m, "clock_drift_mps": self.clock_drift_mps,
+                            "b_a": self.b_a.copy(), "b_g": self.b_g.copy()})

@@ -1,0 +1,209 @@
+"""Error-state EKF: state layout, IMU-rate covariance propagation, gated Joseph-form update.
+
+Error-state convention ("correction" form, truth = estimate + error):
+
+* attitude ``psi`` (rad, ECEF axes):  C_b_e(true) = (I + [psi x]) C_b_e(est)
+* position ``dr`` (m, ECEF), velocity ``dv`` (m/s, ECEF)
+* accelerometer bias ``dba`` (m/s^2, body), gyro bias ``dbg`` (rad/s, body): b(true) = b(est) + db
+* receiver clock bias ``dclk`` (m) and drift ``ddrift`` (m/s)
+
+Continuous error dynamics (derived from the ECEF mechanization in :mod:`.strapdown`):
+
+    psi'  = -Omega_ie psi - C_b_e dbg
+    dr'   = dv
+    dv'   = -[(C_b_e f_b) x] psi + G(r) dr - 2 Omega_ie dv - C_b_e dba
+    dclk' = ddrift
+
+with G the gravity gradient (its horizontal part is what makes the Schuler oscillation).
+Discretisation: Phi = I + F tau (tau = one IMU interval, 2.5-20 ms, where the first-order form is
+accurate to ~1e-7).  The layout leaves room for more states (carrier ambiguities for RTK,
+inter-system biases) appended after the clock.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+from scipy.stats import chi2
+
+from .earth import OMEGA_IE_RADPS
+
+
+class StateLayout:
+    """Indices of the error-state vector (class attributes: slices are not dataclass-friendly)."""
+
+    n = 17
+    att = slice(0, 3)
+    pos = slice(3, 6)
+    vel = slice(6, 9)
+    ba = slice(9, 12)
+    bg = slice(12, 15)
+    clk = 15
+    drift = 16
+
+
+LAYOUT = StateLayout()
+
+
+@dataclass(frozen=True)
+class ProcessNoise:
+    """Continuous-time noise densities (one-sided PSD square roots) of the error model."""
+
+    gyro_arw_rad_per_sqrt_s: float          # angle random walk
+    accel_vrw_mps_per_sqrt_s: float         # velocity random walk
+    gyro_bias_rw_radps_per_sqrt_s: float    # gyro bias random walk
+    accel_bias_rw_mps2_per_sqrt_s: float    # accelerometer bias random walk
+    clock_bias_psd_m2ps: float = 0.1        # receiver clock phase noise, m^2/s
+    clock_drift_psd_m2ps3: float = 0.01     # receiver clock frequency random walk, m^2/s^3
+
+
+@dataclass
+class MeasurementBatch:
+    """Innovations of one measurement kind at one epoch: z = measured - predicted ~ H dx + noise."""
+
+    kind: str
+    labels: list[str]
+    z: np.ndarray           # (m,)
+    H: np.ndarray           # (m, n)
+    r_var: np.ndarray       # (m,) measurement noise variances (uncorrelated)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+@dataclass
+class UpdateReport:
+    """What an update did, per measurement: for integrity monitoring and the health report."""
+
+    kind: str
+    labels: list[str]
+    innovation: np.ndarray
+    innovation_var: np.ndarray
+    test_ratio: np.ndarray          # z^2 / (S * gate): > 1 means rejected by the gate
+    accepted: np.ndarray            # bool
+    rejected_reason: dict = field(default_factory=dict)
+
+    @property
+    def n_accepted(self) -> int:
+        return int(np.count_nonzero(self.accepted))
+
+
+class ErrorStateKalmanFilter:
+    """Covariance bookkeeping of the error-state EKF.  The nominal state lives in the engine;
+    this class owns P, builds Phi from the current nominal quantities and computes corrections."""
+
+    def __init__(self, P0: np.ndarray, noise: ProcessNoise, gate_probability: float = 0.999,
+                 layout: StateLayout = LAYOUT):
+        self.layout = layout
+        self.P = np.array(P0, dtype=float)
+        self.noise = noise
+        self.gate_chi2_1dof = float(chi2.ppf(gate_probability, 1))
+        n = layout.n
+        self._phi = np.eye(n)   # constant entries stay; the rest is rewritten every step
+        self._qd_template = np.zeros(n)
+        self._qd_offdiag = 0.0
+        self._last_tau = -1.0
+
+    # ------------------------------------------------------------------ propagation
+    def _discrete_noise(self, tau: float) -> np.ndarray:
+        if tau != self._last_tau:
+            L, q = self.layout, self.noise
+            d = np.zeros(self.layout.n)
+            d[L.att] = q.gyro_arw_rad_per_sqrt_s ** 2 * tau
+            d[L.vel] = q.accel_vrw_mps_per_sqrt_s ** 2 * tau
+            d[L.ba] = q.accel_bias_rw_mps2_per_sqrt_s ** 2 * tau
+            d[L.bg] = q.gyro_bias_rw_radps_per_sqrt_s ** 2 * tau
+            d[L.clk] = q.clock_bias_psd_m2ps * tau + q.clock_drift_psd_m2ps3 * tau ** 3 / 3.0
+            d[L.drift] = q.clock_drift_psd_m2ps3 * tau
+            self._qd_template = d
+            self._qd_offdiag = q.clock_drift_psd_m2ps3 * tau ** 2 / 2.0
+            self._last_tau = tau
+        return self._qd_template
+
+    def propagate(self, C_b_e: np.ndarray, f_e: np.ndarray, gravity_gradient: np.ndarray, tau: float) -> None:
+        """P <- Phi P Phi^T + Qd over one IMU interval.
+
+        ``f_e`` is the specific force in ECEF (C_b_e f_b) over the interval, ``C_b_e`` the attitude.
+        Isotropic sensor noises make C Q C^T = Q, so Qd is diagonal (plus the clock cross term).
+        """
+        L = self.layout
+        phi = self._phi
+        w_tau = OMEGA_IE_RADPS * tau
+        # attitude rows
+        phi[0, 1] = w_tau
+        phi[1, 0] = -w_tau
+        phi[L.att, L.bg] = -tau * C_b_e
+        # position rows
+        phi[3, 6] = phi[4, 7] = phi[5, 8] = tau
+        # velocity rows
+        fx, fy, fz = f_e[0] * tau, f_e[1] * tau, f_e[2] * tau
+        phi[6:9, 0:3] = ((0.0, fz, -fy), (-fz, 0.0, fx), (fy, -fx, 0.0))
+        phi[L.vel, L.pos] = gravity_gradient * tau
+        phi[6, 7] = 2.0 * w_tau
+        phi[7, 6] = -2.0 * w_tau
+        phi[L.vel, L.ba] = -tau * C_b_e
+        phi[L.clk, L.drift] = tau
+        P = phi @ self.P @ phi.T
+        P[np.diag_indices_from(P)] += self._discrete_noise(tau)
+        P[L.clk, L.drift] += self._qd_offdiag
+        P[L.drift, L.clk] += self._qd_offdiag
+        self.P = P
+
+    # ------------------------------------------------------------------ update
+    def gate(self, batch: MeasurementBatch) -> UpdateReport:
+        """Per-measurement chi-square test (1 dof) of the innovation against its predicted variance."""
+        P, H = self.P, batch.H
+        S = np.einsum("ij,jk,ik->i", H, P, H) + batch.r_var
+        finite = np.isfinite(batch.z) & np.isfinite(S) & (S > 0)
+        ratio = np.full(len(batch), np.inf)
+        ratio[finite] = batch.z[finite] ** 2 / (S[finite] * self.gate_chi2_1dof)
+        accepted = finite & (ratio <= 1.0)
+        reasons = {}
+        for i, lab in enumerate(batch.labels):
+            if not finite[i]:
+                reasons[lab] = "non-finite"
+            elif not accepted[i]:
+                reasons[lab] = "innovation gate"
+        return UpdateReport(batch.kind, list(batch.labels), batch.z.copy(), S, ratio, accepted, reasons)
+
+    def update(self, batches: list[MeasurementBatch], reports: list[UpdateReport]) -> np.ndarray:
+        """Joseph-form update with the accepted rows of all batches at once.  Returns dx."""
+        rows_H, rows_z, rows_r = [], [], []
+        for b, rep in zip(batches, reports):
+            if rep.n_accepted:
+                rows_H.append(b.H[rep.accepted])
+                rows_z.append(b.z[rep.accepted])
+                rows_r.append(b.r_var[rep.accepted])
+        n = self.layout.n
+        if not rows_H:
+            return np.zeros(n)
+        H = np.vstack(rows_H)
+        z = np.concatenate(rows_z)
+        r = np.concatenate(rows_r)
+        P = self.P
+        PHt = P @ H.T
+        S = H @ PHt
+        S[np.diag_indices_from(S)] += r
+        # K = P H^T S^-1 via a Cholesky solve (S is symmetric positive definite)
+        c, low = _cho_factor(S)
+        K = _cho_solve((c, low), PHt.T).T
+        dx = K @ z
+        IKH = np.eye(n) - K @ H
+        P = IKH @ P @ IKH.T + (K * r) @ K.T
+        self.P = 0.5 * (P + P.T)
+        return dx
+
+
+def _cho_factor(S):
+    return cho_factor(S, lower=True, check_finite=False)
+
+
+def _cho_solve(cf, b):
+    return cho_solve(cf, b, check_finite=False)
+
+
+def nees(error: np.ndarray, P: np.ndarray) -> float:
+    """Normalised estimation error squared of an error vector against its covariance."""
+    return float(error @ np.linalg.solve(P, error))
+

@@ -1,0 +1,172 @@
+"""Measurement models: each turns the predicted INS state at the measurement time and a raw
+measurement into a :class:`~companion.nav.filter.MeasurementBatch` (innovation z, Jacobian H,
+noise variances).  Adding a sensor means adding one function here, not editing the filter.
+
+Conventions: ``u`` is the unit line-of-sight vector from the antenna to the satellite (ECEF), so
+d(range)/d(r_antenna) = -u^T.  The antenna is at r_ant = r_imu + C_b_e l_b; with the attitude error
+convention C(true) = (I + [psi x]) C(est), d(r_ant)/d(psi) = -[(C_b_e l_b) x].
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .earth import OMEGA_IE_RADPS, skew
+from .filter import LAYOUT, MeasurementBatch
+
+
+@dataclass
+class InsPoint:
+    """Nominal (INS) state at one instant, usually interpolated to a GNSS epoch's GPS time."""
+
+    t_gps: float
+    r_e: np.ndarray
+    v_e: np.ndarray
+    C_b_e: np.ndarray
+    omega_ib_b: np.ndarray      # body angular rate over the last IMU interval, rad/s
+    clock_bias_m: float
+    clock_drift_mps: float
+
+
+@dataclass
+class PhaseRecord:
+    """What a TDCP measurement needs from the previous epoch of one satellite's carrier."""
+
+    t_gps: float
+    carrier_cycles: float
+    wavelength_m: float
+    geometric_range_m: float     # |r_sat - r_ant| at that epoch, from the *updated* INS state
+    sat_clock_bias_m: float
+    los_e: np.ndarray
+    lock_time_s: float
+
+
+def antenna_state(ins: InsPoint, lever_arm_b: np.ndarray):
+    """(r_ant_e, v_ant_e, lever_arm_e) from the IMU state (seed 004 lever-arm equations)."""
+    l_e = ins.C_b_e @ lever_arm_b
+    w = ins.omega_ib_b
+    wxl = np.array([w[1] * lever_arm_b[2] - w[2] * lever_arm_b[1],
+                    w[2] * lever_arm_b[0] - w[0] * lever_arm_b[2],
+                    w[0] * lever_arm_b[1] - w[1] * lever_arm_b[0]])
+    earth_term = np.array([-OMEGA_IE_RADPS * l_e[1], OMEGA_IE_RADPS * l_e[0], 0.0])
+    return ins.r_e + l_e, ins.v_e + ins.C_b_e @ wxl - earth_term, l_e
+
+
+def line_of_sight(r_sat_e: np.ndarray, r_ant_e: np.ndarray):
+    """(ranges (n,), unit vectors antenna->satellite (n,3))."""
+    d = r_sat_e - r_ant_e
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    return rho, d / rho[:, None]
+
+
+def pseudorange_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, layout=LAYOUT,
+                      sigma_floor_m: float = 0.0) -> MeasurementBatch:
+    """Corrected pseudoranges (standalone-modelled or DGPS-corrected, see gnss.prepare):
+    model rho = |r_sat - r_ant| + clock_bias + noise."""
+    ok = np.isfinite(prep.pseudorange_m)
+    r_ant, _, l_e = antenna_state(ins, lever_arm_b)
+    rho, u = line_of_sight(prep.r_sat_e[ok], r_ant)
+    z = prep.pseudorange_m[ok] - (rho + ins.clock_bias_m)
+    H = np.zeros((len(z), layout.n))
+    H[:, layout.pos] = -u
+    H[:, layout.att] = u @ skew(l_e)
+    H[:, layout.clk] = 1.0
+    sig = np.maximum(prep.sigma_pseudorange_m[ok], sigma_floor_m)
+    labels = [s for s, k in zip(prep.sats, ok) if k]
+    return MeasurementBatch("pseudorange", labels, z, H, sig * sig)
+
+
+def doppler_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, sigma_mps: float,
+                  layout=LAYOUT) -> MeasurementBatch:
+    """Pseudorange rate from Doppler: -lambda*D + c*sat_clock_drift = u.(v_sat - v_ant) + drift."""
+    ok = np.isfinite(prep.doppler_hz)
+    r_ant, v_ant, _ = antenna_state(ins, lever_arm_b)
+    _, u = line_of_sight(prep.r_sat_e[ok], r_ant)
+    rate_meas = -prep.wavelength_m[ok] * prep.doppler_hz[ok] + prep.sat_clock_drift_mps[ok]
+    rate_pred = np.einsum("ij,ij->i", u, prep.v_sat_e[ok] - v_ant) + ins.clock_drift_mps
+    H = np.zeros((len(rate_meas), layout.n))
+    H[:, layout.vel] = -u
+    H[:, layout.drift] = 1.0
+    labels = [s for s, k in zip(prep.sats, ok) if k]
+    return MeasurementBatch("doppler", labels, rate_meas - rate_pred, H, np.full(len(labels), sigma_mps ** 2))
+
+
+def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_b: np.ndarray,
+               sigma_phase_m: float, sigma_rate_floor_mps: float, max_interval_s: float,
+               layout=LAYOUT, phase_correction_m: dict[str, float] | None = None) -> MeasurementBatch:
+    """Pseudorange rate from time-differenced carrier phase (seed 000 eqs 2-7, 14).
+
+    Over one epoch interval the integer ambiguity cancels.  The *prediction* uses the INS
+    displacement between the two epochs (not the current velocity times the interval), so
+    vehicle acceleration inside the interval costs nothing:
+
+        z = [lambda (phi_k - phi_k-1) + c (dt_sat,k - dt_sat,k-1) + corr]/T
+            - [ |r_sat,k - r_ant,k| - range_k-1 + drift T ] / T
+
+    The error of the INS displacement is modelled as dv_k T (the velocity error over the
+    interval), giving the paper's range-rate Jacobian H_v = -u plus the receiver clock drift.
+    ``phase_correction_m`` optionally removes common errors (e.g. a base station's time-differenced
+    carrier, see :mod:`companion.gnss.dgps`).
+    """
+    r_ant, _, _ = antenna_state(ins, lever_arm_b)
+    rows, labels, zs, rvar = [], [], [], []
+    for i, sat in enumerate(prep.sats):
+        prev = previous.get(sat)
+        phi = prep.carrier_cycles[i]
+        if prev is None or not math.isfinite(phi):
+            continue
+        T = prep.t_gps - prev.t_gps
+        if not (0.0 < T <= max_interval_s) or prep.wavelength_m[i] != prev.wavelength_m:
+            continue
+        corr = 0.0
+        if phase_correction_m is not None:
+            c = phase_correction_m.get(sat)
+            if c is None:
+                continue
+            corr = c
+        d = prep.r_sat_e[i] - r_ant
+        rho = math.sqrt(float(d @ d))
+        u = d / rho
+        dphase_m = prep.wavelength_m[i] * (phi - prev.carrier_cycles)
+        meas = (dphase_m + prep.sat_clock_bias_m[i] - prev.sat_clock_bias_m + corr) / T
+        pred = (rho - prev.geometric_range_m) / T + ins.clock_drift_mps
+        u_mid = u + prev.los_e
+        u_mid /= math.sqrt(float(u_mid @ u_mid))
+        h = np.zeros(layout.n)
+        h[layout.vel] = -u_mid
+        h[layout.pos] = (prev.los_e - u) / T
+        h[layout.drift] = 1.0
+        rows.append(h)
+        labels.append(sat)
+        zs.append(meas - pred)
+        rvar.append(2.0 * sigma_phase_m ** 2 / (T * T) + sigma_rate_floor_mps ** 2)
+    H = np.array(rows) if rows else np.zeros((0, layout.n))
+    return MeasurementBatch("tdcp", labels, np.array(zs), H, np.array(rvar))
+
+
+def position_fix_batch(ins: InsPoint, r_fix_e: np.ndarray, cov_e: np.ndarray, lever_arm_b: np.ndarray,
+                       layout=LAYOUT) -> MeasurementBatch:
+    """Loose coupling: antenna position from a GNSS fix.  ``cov_e`` is its 3x3 ECEF covariance;
+    it is decorrelated (whitened) so the filter's per-row gating and diagonal noise apply."""
+    r_ant, _, l_e = antenna_state(ins, lever_arm_b)
+    H = np.zeros((3, layout.n))
+    H[:, layout.pos] = np.eye(3)
+    H[:, layout.att] = -skew(l_e)
+    return _whitened("position", ["x", "y", "z"], r_fix_e - r_ant, H, cov_e)
+
+
+def velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, cov_e: np.ndarray, lever_arm_b: np.ndarray,
+                       layout=LAYOUT) -> MeasurementBatch:
+    """Loose coupling: antenna velocity from a GNSS fix."""
+    _, v_ant, _ = antenna_state(ins, lever_arm_b)
+    H = np.zeros((3, layout.n))
+    H[:, layout.vel] = np.eye(3)
+    return _whitened("velocity", ["vx", "vy", "vz"], v_fix_e - v_ant, H, cov_e)
+
+
+def _whitened(kind, labels, z, H, cov):
+    L = np.linalg.cholesky(cov)
+    Li = np.linalg.inv(L)
+    return MeasurementBatch(kind, labels, Li @ z, Li @ H, np.ones(len(labels)))
