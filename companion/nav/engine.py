@@ -29,7 +29,7 @@ from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef,
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .measurements import (InsPoint, PhaseRecord, antenna_state, doppler_batch, line_of_sight,
                            position_fix_batch, pseudorange_batch, tdcp_batch, velocity_fix_batch)
-from .strapdown import strapdown_step
+from .strapdown import strapdown_step_with_force
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,9 @@ class EngineConfig:
     sigma_tdcp_floor_mps: float = 0.01
     sigma_pseudorange_floor_m: float = 0.0
     tdcp_max_interval_s: float = 1.5
+    # 'auto': difference TDCP against the base station's own TDCP when the base has carrier phase
+    # at both epochs (removes satellite clock dither, orbit and atmosphere rates); 'off': never
+    tdcp_base_correction: str = "auto"
     # bookkeeping
     history_s: float = 2.0
     coasting_after_s: float = 3.0
@@ -93,13 +96,18 @@ class NavEngine:
         self.clock_bias_m = 0.0
         self.clock_drift_mps = 0.0
         self.clock_initialized = False
-        self.omega_ib_b = np.zeros(3)
+        self._last_dtheta = (0.0, 0.0, 0.0)
+        self._last_tau = 1.0
+        self._b_a_list = [0.0, 0.0, 0.0]
+        self._b_g_list = [0.0, 0.0, 0.0]
         self._history: deque = deque()
         self._history_t: deque = deque()
         self._pending: list[GnssEpoch] = []
         self._phase: dict[str, PhaseRecord] = {}
+        self._base_phase: dict[str, deque] = {}
         self._grad = None
         self._grad_r = None
+        self._g_ref = None
         self.last_gnss_update_t = math.nan
         self.reset_counter = 0
         self.epoch_reports: deque = deque(maxlen=16)
@@ -127,6 +135,7 @@ class NavEngine:
         self.C_b_e = np.array(C_b_e, float)
         self.b_a = np.zeros(3) if b_a is None else np.array(b_a, float)
         self.b_g = np.zeros(3) if b_g is None else np.array(b_g, float)
+        self._b_a_list, self._b_g_list = self.b_a.tolist(), self.b_g.tolist()
         self.clock_initialized = clock_bias_m is not None
         self.clock_bias_m = float(clock_bias_m or 0.0)
         self.clock_drift_mps = float(clock_drift_mps)
@@ -163,7 +172,47 @@ class NavEngine:
             self.dgps = DgpsCorrector()
         self.dgps.update_base(epoch, self.base, self.ephemerides)
         self.counters["base epochs"] += 1
+        if self.cfg.use_tdcp and self.cfg.tdcp_base_correction != "off":
+            self._remember_base_phase(epoch)
         return None
+
+    def _remember_base_phase(self, epoch: GnssEpoch) -> None:
+        """Keep a few seconds of the base's carrier with its geometric range and satellite clock,
+        so that a rover TDCP interval can be corrected by the base's TDCP over the same interval."""
+        prep = prepare_epoch(epoch, self.ephemerides, self.base.r_e, dgps=None, elevation_mask_rad=0.0)
+        finite = np.isfinite(prep.carrier_cycles)
+        if not np.any(finite):
+            return
+        rho, _ = line_of_sight(prep.r_sat_e[finite], self.base.r_e)
+        for j, i in enumerate(np.flatnonzero(finite)):
+            sat = prep.sats[i]
+            hist = self._base_phase.setdefault(sat, deque(maxlen=8))
+            if prep.loss_of_lock[i] or prep.half_cycle[i]:
+                hist.clear()
+                if prep.half_cycle[i]:
+                    continue
+            hist.append((prep.t_gps, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]),
+                         float(rho[j]), float(prep.sat_clock_bias_m[i])))
+
+    def _base_tdcp_corrections(self, t_a: float, t_b: float, tol_s: float = 0.005) -> dict[str, float]:
+        """Per-satellite correction (m) of a rover TDCP over (t_a, t_b) from the base's TDCP over the
+        same interval: minus the base's unexplained carrier change, with the base clock change (the
+        mean over satellites) removed, so only per-satellite common errors are taken out."""
+        resid = {}
+        for sat, hist in self._base_phase.items():
+            a = b = None
+            for rec in hist:
+                if abs(rec[0] - t_a) <= tol_s:
+                    a = rec
+                elif abs(rec[0] - t_b) <= tol_s:
+                    b = rec
+            if a is None or b is None or a[2] != b[2]:
+                continue
+            resid[sat] = b[2] * (b[1] - a[1]) + (b[4] - a[4]) - (b[3] - a[3])
+        if len(resid) < 2:
+            return {}
+        common = float(np.median(list(resid.values())))
+        return {sat: -(e - common) for sat, e in resid.items()}
 
     # ------------------------------------------------------------------ IMU
     def process_imu(self, s: ImuSample):
@@ -174,23 +223,34 @@ class NavEngine:
         if not (s.t_gps > self.t_gps):
             self.counters["imu sample not after previous (dropped)"] += 1
             return None
-        if not (0.0 < tau < 0.1) or not (np.all(np.isfinite(s.dtheta_b)) and np.all(np.isfinite(s.dv_b))):
+        th = s.dtheta_b.tolist()
+        dvl = s.dv_b.tolist()
+        if not (0.0 < tau < 0.1) or not math.isfinite(th[0] + th[1] + th[2] + dvl[0] + dvl[1] + dvl[2]):
             self.counters["imu sample invalid (dropped)"] += 1
             return None
         gap = s.t_gps - self.t_gps - tau
         if abs(gap) > 0.5 * tau:
             # a lost sample or a clock jump: integrate what we have, widen the covariance for the gap
             self.counters["imu time gap"] += 1
-        dtheta = s.dtheta_b - self.b_g * tau
-        dv = s.dv_b - self.b_a * tau
+        bg, ba = self._b_g_list, self._b_a_list
+        dtheta = (th[0] - bg[0] * tau, th[1] - bg[1] * tau, th[2] - bg[2] * tau)
+        dv = (dvl[0] - ba[0] * tau, dvl[1] - ba[1] * tau, dvl[2] - ba[2] * tau)
         C0 = self.C_b_e
         r0 = self.r_e
-        if self._grad is None or float(np.sum((r0 - self._grad_r) ** 2)) > self.cfg.gravity_gradient_refresh_m ** 2:
+        # gravity: exact model at a reference point, first-order Taylor expansion around it
+        # (second-order error < 1e-7 m/s^2 within the refresh distance)
+        d = r0 - self._grad_r if self._grad is not None else None
+        if d is None or float(d @ d) > self.cfg.gravity_gradient_refresh_m ** 2:
             self._grad = gravity_gradient_ecef(r0)
             self._grad_r = r0
-        self.r_e, self.v_e, self.C_b_e = strapdown_step(r0, self.v_e, C0, dtheta, dv, tau, gravity_ecef(r0))
-        self.kf.propagate(C0, C0 @ (dv / tau), self._grad, max(tau, tau + gap) if gap > 0.5 * tau else tau)
-        self.omega_ib_b = dtheta / tau
+            self._g_ref = gravity_ecef(r0)
+            g = self._g_ref
+        else:
+            g = self._g_ref + self._grad @ d
+        self.r_e, self.v_e, self.C_b_e, dv_e = strapdown_step_with_force(r0, self.v_e, C0, dtheta, dv, tau, g)
+        self.kf.propagate(C0, dv_e, self._grad, tau + gap if gap > 0.5 * tau else tau)
+        self._last_dtheta = dtheta
+        self._last_tau = tau
         self.clock_bias_m += self.clock_drift_mps * (s.t_gps - self.t_gps)
         self.t_gps = s.t_gps
         self._push_history()
@@ -225,6 +285,11 @@ class NavEngine:
             C = C0 if a < 0.5 else C1
         clk = self.clock_bias_m - self.clock_drift_mps * (self.t_gps - t_gps)
         return InsPoint(t_gps, r, v, C, self.omega_ib_b, clk, self.clock_drift_mps)
+
+    @property
+    def omega_ib_b(self) -> np.ndarray:
+        """Body angular rate over the last IMU interval (bias-corrected), rad/s."""
+        return np.array(self._last_dtheta) / self._last_tau
 
     # ------------------------------------------------------------------ GNSS
     def process_gnss(self, epoch: GnssEpoch):
@@ -270,8 +335,14 @@ class NavEngine:
             if cfg.use_doppler and len(prep.sats):
                 batches.append(doppler_batch(ins, prep, self.lever_arm_b, cfg.sigma_doppler_mps))
             if cfg.use_tdcp:
+                corr = None
+                if cfg.tdcp_base_correction != "off" and self._phase:
+                    t_prev = max(p.t_gps for p in self._phase.values())
+                    corr = self._base_tdcp_corrections(t_prev, epoch.t_gps) or None
+                    self.counters["tdcp base-corrected epochs" if corr else "tdcp uncorrected epochs"] += 1
                 batches.append(tdcp_batch(ins, prep, self._phase, self.lever_arm_b, cfg.sigma_phase_m,
-                                          cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s))
+                                          cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s,
+                                          phase_correction_m=corr))
         batches = [b for b in batches if len(b)]
         reports = [self.kf.gate(b) for b in batches]
         for r in reports:
@@ -316,7 +387,7 @@ class NavEngine:
             return []
         lat, lon, _ = ecef_to_geodetic(sol.r_e)
         Cne = C_n_e(lat, lon)
-        sig = np.median(prep.sigma_pseudorange_m) if len(prep.sats) else 5.0
+        sig = max(float(np.median(prep.sigma_pseudorange_m)), self.cfg.sigma_pseudorange_floor_m)
         cov_n = np.diag([(sig * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sig * sol.vdop) ** 2])
         out = [position_fix_batch(ins, sol.r_e, Cne @ cov_n @ Cne.T, self.lever_arm_b)]
         if sol.v_e is not None:
@@ -355,6 +426,7 @@ class NavEngine:
         self.v_e = self.v_e + dx[L.vel]
         self.b_a = self.b_a + dx[L.ba]
         self.b_g = self.b_g + dx[L.bg]
+        self._b_a_list, self._b_g_list = self.b_a.tolist(), self.b_g.tolist()
         self.clock_bias_m += dx[L.clk]
         self.clock_drift_mps += dx[L.drift]
         # the newest history sample is "now": keep it consistent with the corrected state

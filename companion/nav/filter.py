@@ -101,53 +101,59 @@ class ErrorStateKalmanFilter:
         self.gate_chi2_1dof = float(chi2.ppf(gate_probability, 1))
         n = layout.n
         self._phi = np.eye(n)   # constant entries stay; the rest is rewritten every step
-        self._qd_template = np.zeros(n)
-        self._qd_offdiag = 0.0
+        self._Qd = np.zeros((n, n))
+        self._grad_tau = None
         self._last_tau = -1.0
 
     # ------------------------------------------------------------------ propagation
-    def _discrete_noise(self, tau: float) -> np.ndarray:
-        if tau != self._last_tau:
-            L, q = self.layout, self.noise
-            d = np.zeros(self.layout.n)
-            d[L.att] = q.gyro_arw_rad_per_sqrt_s ** 2 * tau
-            d[L.vel] = q.accel_vrw_mps_per_sqrt_s ** 2 * tau
-            d[L.ba] = q.accel_bias_rw_mps2_per_sqrt_s ** 2 * tau
-            d[L.bg] = q.gyro_bias_rw_radps_per_sqrt_s ** 2 * tau
-            d[L.clk] = q.clock_bias_psd_m2ps * tau + q.clock_drift_psd_m2ps3 * tau ** 3 / 3.0
-            d[L.drift] = q.clock_drift_psd_m2ps3 * tau
-            self._qd_template = d
-            self._qd_offdiag = q.clock_drift_psd_m2ps3 * tau ** 2 / 2.0
-            self._last_tau = tau
-        return self._qd_template
+    def _set_interval(self, tau: float) -> None:
+        """Entries of Phi and Qd that depend only on the interval length (constant at a fixed IMU rate)."""
+        L, q, phi = self.layout, self.noise, self._phi
+        w_tau = OMEGA_IE_RADPS * tau
+        phi[0, 1], phi[1, 0] = w_tau, -w_tau                 # -Omega_ie psi
+        phi[3, 6] = phi[4, 7] = phi[5, 8] = tau              # dr' = dv
+        phi[6, 7], phi[7, 6] = 2.0 * w_tau, -2.0 * w_tau     # -2 Omega_ie dv
+        phi[L.clk, L.drift] = tau
+        d = np.zeros(L.n)
+        d[L.att] = q.gyro_arw_rad_per_sqrt_s ** 2 * tau
+        d[L.vel] = q.accel_vrw_mps_per_sqrt_s ** 2 * tau
+        d[L.ba] = q.accel_bias_rw_mps2_per_sqrt_s ** 2 * tau
+        d[L.bg] = q.gyro_bias_rw_radps_per_sqrt_s ** 2 * tau
+        d[L.clk] = q.clock_bias_psd_m2ps * tau + q.clock_drift_psd_m2ps3 * tau ** 3 / 3.0
+        d[L.drift] = q.clock_drift_psd_m2ps3 * tau
+        Qd = np.diag(d)
+        Qd[L.clk, L.drift] = Qd[L.drift, L.clk] = q.clock_drift_psd_m2ps3 * tau ** 2 / 2.0
+        self._Qd = Qd
+        self._last_tau = tau
+        self._grad_tau = None  # the gravity-gradient block scales with tau: rewrite it
 
-    def propagate(self, C_b_e: np.ndarray, f_e: np.ndarray, gravity_gradient: np.ndarray, tau: float) -> None:
+    def propagate(self, C_b_e: np.ndarray, dv_e: np.ndarray, gravity_gradient: np.ndarray, tau: float) -> None:
         """P <- Phi P Phi^T + Qd over one IMU interval.
 
-        ``f_e`` is the specific force in ECEF (C_b_e f_b) over the interval, ``C_b_e`` the attitude.
-        Isotropic sensor noises make C Q C^T = Q, so Qd is diagonal (plus the clock cross term).
+        ``dv_e`` is the specific-force velocity increment over the interval in ECEF (f_e * tau,
+        i.e. C_b_e times the compensated body increment); ``C_b_e`` the attitude at its start.
+        Isotropic sensor noises make C Q C^T = Q, so Qd is constant for a fixed interval.
+        ``gravity_gradient`` is re-entered only when a new array object is passed (it is refreshed
+        every few hundred metres by the engine).
         """
-        L = self.layout
+        if tau != self._last_tau:
+            self._set_interval(tau)
         phi = self._phi
-        w_tau = OMEGA_IE_RADPS * tau
-        # attitude rows
-        phi[0, 1] = w_tau
-        phi[1, 0] = -w_tau
-        phi[L.att, L.bg] = -tau * C_b_e
-        # position rows
-        phi[3, 6] = phi[4, 7] = phi[5, 8] = tau
-        # velocity rows
-        fx, fy, fz = f_e[0] * tau, f_e[1] * tau, f_e[2] * tau
-        phi[6:9, 0:3] = ((0.0, fz, -fy), (-fz, 0.0, fx), (fy, -fx, 0.0))
-        phi[L.vel, L.pos] = gravity_gradient * tau
-        phi[6, 7] = 2.0 * w_tau
-        phi[7, 6] = -2.0 * w_tau
-        phi[L.vel, L.ba] = -tau * C_b_e
-        phi[L.clk, L.drift] = tau
+        if gravity_gradient is not self._grad_tau:
+            phi[6:9, 3:6] = gravity_gradient * tau
+            self._grad_tau = gravity_gradient
+        m_tau_C = C_b_e * -tau
+        phi[0:3, 12:15] = m_tau_C                            # -C dbg
+        phi[6:9, 9:12] = m_tau_C                             # -C dba
+        fx, fy, fz = dv_e                                    # -[f x] psi, times tau
+        phi[6, 1] = fz
+        phi[6, 2] = -fy
+        phi[7, 0] = -fz
+        phi[7, 2] = fx
+        phi[8, 0] = fy
+        phi[8, 1] = -fx
         P = phi @ self.P @ phi.T
-        P[np.diag_indices_from(P)] += self._discrete_noise(tau)
-        P[L.clk, L.drift] += self._qd_offdiag
-        P[L.drift, L.clk] += self._qd_offdiag
+        P += self._Qd
         self.P = P
 
     # ------------------------------------------------------------------ update

@@ -13,6 +13,7 @@ next; the simulator uses it so that an error-free IMU reproduces the truth to ro
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -20,15 +21,18 @@ import numpy as np
 from .earth import OMEGA_IE_RADPS, gravity_ecef, skew
 
 
+@functools.lru_cache(maxsize=8)
 def earth_rotation_transform(tau_s: float) -> np.ndarray:
-    """Maps ECEF coordinates at t to ECEF coordinates at t + tau (frame turned by omega*tau)."""
+    """Maps ECEF coordinates at t to ECEF coordinates at t + tau (frame turned by omega*tau).
+    Cached: an IMU runs at a handful of fixed intervals.  The returned array must not be modified."""
     a = OMEGA_IE_RADPS * tau_s
     c, s = math.cos(a), math.sin(a)
-    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    out.flags.writeable = False
+    return out
 
 
-def _rodrigues(dtheta) -> np.ndarray:
-    x, y, z = float(dtheta[0]), float(dtheta[1]), float(dtheta[2])
+def _rodrigues(x: float, y: float, z: float) -> np.ndarray:
     a2 = x * x + y * y + z * z
     if a2 < 1e-12:  # series to 4th order: exact to rounding for IMU-size increments
         s = 1.0 - a2 / 6.0
@@ -46,26 +50,34 @@ def _rodrigues(dtheta) -> np.ndarray:
 
 
 def strapdown_step(r_e: np.ndarray, v_e: np.ndarray, C_b_e: np.ndarray,
-                   dtheta_b: np.ndarray, dv_b: np.ndarray, tau_s: float,
-                   g_e: np.ndarray | None = None):
+                   dtheta_b, dv_b, tau_s: float, g_e: np.ndarray | None = None):
     """Advance (r_e, v_e, C_b_e) over one IMU interval.  Returns new arrays (inputs untouched).
 
-    ``dtheta_b`` and ``dv_b`` must already be corrected for the estimated sensor biases.
-    ``g_e`` may be passed when the caller already has gravity at ``r_e``.
+    ``dtheta_b`` and ``dv_b`` (any 3-sequence) must already be corrected for the estimated sensor
+    biases.  ``g_e`` may be passed when the caller already has gravity at ``r_e``.
     """
+    r_new, v_new, C_new, _ = strapdown_step_with_force(r_e, v_e, C_b_e, dtheta_b, dv_b, tau_s, g_e)
+    return r_new, v_new, C_new
+
+
+def strapdown_step_with_force(r_e, v_e, C_b_e, dtheta_b, dv_b, tau_s: float, g_e=None):
+    """:func:`strapdown_step` that also returns the specific-force velocity increment in ECEF
+    (C_b_e (dv + dtheta x dv / 2)), which the covariance propagation needs as f_e * tau."""
     if g_e is None:
         g_e = gravity_ecef(r_e)
-    ax, ay, az = float(dtheta_b[0]), float(dtheta_b[1]), float(dtheta_b[2])
-    bx, by, bz = float(dv_b[0]), float(dv_b[1]), float(dv_b[2])
+    ax, ay, az = dtheta_b
+    bx, by, bz = dv_b
     dv_comp = np.array([bx + 0.5 * (ay * bz - az * by),
                         by + 0.5 * (az * bx - ax * bz),
                         bz + 0.5 * (ax * by - ay * bx)])
-    w = OMEGA_IE_RADPS
-    coriolis = np.array([-2.0 * w * v_e[1], 2.0 * w * v_e[0], 0.0])  # -2 Omega x v
-    v_new = v_e + C_b_e @ dv_comp + (g_e + coriolis) * tau_s
-    r_new = r_e + 0.5 * tau_s * (v_e + v_new)
-    C_new = earth_rotation_transform(tau_s) @ (C_b_e @ _rodrigues(dtheta_b))
-    return r_new, v_new, C_new
+    w2t = 2.0 * OMEGA_IE_RADPS * tau_s
+    # gravity and Coriolis (-2 Omega x v) over the interval
+    gc = np.array([g_e[0] * tau_s + w2t * v_e[1], g_e[1] * tau_s - w2t * v_e[0], g_e[2] * tau_s])
+    dv_e = C_b_e @ dv_comp
+    v_new = v_e + dv_e + gc
+    r_new = r_e + (v_e + v_new) * (0.5 * tau_s)
+    C_new = earth_rotation_transform(tau_s) @ (C_b_e @ _rodrigues(ax, ay, az))
+    return r_new, v_new, C_new, dv_e
 
 
 def _log_rotation(R: np.ndarray) -> np.ndarray:

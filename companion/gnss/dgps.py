@@ -1,0 +1,142 @@
+"""Code DGPS: RTCM-style pseudorange corrections (PRC/RRC) computed from a base station's observations.
+
+For each satellite i seen by the base (same signal as the rover will use)::
+
+    raw_i = |r_sat,i - r_base| (Sagnac-rotated) - (P_base,i + c dt_sat,i)
+    base_clock = robust weighted mean of raw_i   (weights 1/sigma_i^2 from elevation; iteratively
+                 drop values more than max(3 x 1.4826 MAD, 3 m) from the weighted mean; this value is
+                 -c x base receiver clock plus the atmosphere common to all satellites)
+    PRC_i = raw_i - base_clock
+
+so the rover gets P_rover + c dt_sat + PRC ~= |r_sat - r_rover| + c dt_rover + residual.
+TGD, ionosphere and troposphere are all inside the PRC (the rover applies none of them).
+The range-rate correction RRC is the least-squares slope of the PRC history of the satellite over
+the last ``rrc_window_s`` (same IODE, no loss of lock); 0 until two epochs exist.
+``correction(sat, t, iode)`` returns PRC + RRC (t - t_base); corrections older than ``max_age_s``
+are refused and counted.
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+
+import numpy as np
+
+from ..messages import BaseStationPosition, GnssEpoch
+from .ephemeris_store import EphemerisStore
+from .prepare import prepare_epoch
+
+BASE_ELEVATION_MASK_RAD = math.radians(5.0)   # corrections are produced down to this elevation
+CLOCK_MIN_ELEVATION_RAD = math.radians(10.0)  # satellites used for the base clock estimate
+CLOCK_OUTLIER_FLOOR_M = 3.0
+
+
+class DgpsCorrector:
+    """Holds the latest base-station corrections.  See module docstring."""
+
+    def __init__(self, max_age_s: float = 30.0, signal: str = "L1C", rrc_window_s: float = 30.0):
+        self.max_age_s = max_age_s
+        self.signal = signal
+        self.rrc_window_s = rrc_window_s
+        self.t_base_gps: float | None = None
+        self.base_clock_m: float = float("nan")
+        self._prc: dict[str, tuple[float, float, float, int]] = {}   # sat -> (t, prc, rrc, iode)
+        self._hist: dict[str, deque] = {}
+        self._phase: dict[str, tuple[float, float, float]] = {}
+        self.counters: Counter = Counter()
+
+    # ----------------------------------------------------------------------- base side
+    def update_base(self, base_epoch: GnssEpoch, base: BaseStationPosition, store: EphemerisStore) -> int:
+        """Compute corrections from one base epoch; returns the number of satellites corrected."""
+        r_base = np.asarray(base.r_e, dtype=float)
+        prep = prepare_epoch(base_epoch, store, r_base, elevation_mask_rad=BASE_ELEVATION_MASK_RAD,
+                             signal=self.signal, apply_models=False)
+        t = base_epoch.t_gps
+        for sat, why in prep.rejected.items():
+            self.counters["base: " + why] += 1
+        for i, sat in enumerate(prep.sats):
+            if prep.carrier_cycles[i] == prep.carrier_cycles[i]:
+                self._phase[sat] = (t, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]))
+            else:
+                self._phase.pop(sat, None)
+        ok = np.isfinite(prep.pseudorange_m)
+        if not np.any(ok):
+            self.counters["base epoch without pseudoranges"] += 1
+            return 0
+        rho = np.linalg.norm(prep.r_sat_e - r_base, axis=1)
+        raw = rho - prep.pseudorange_m
+        w = 1.0 / prep.sigma_pseudorange_m ** 2
+        use = ok & (prep.elevation_rad >= CLOCK_MIN_ELEVATION_RAD)
+        if not np.any(use):
+            use = ok.copy()
+        for _ in range(5):
+            clk = float(np.sum(w[use] * raw[use]) / np.sum(w[use]))
+            dev = np.abs(raw - clk)
+            mad = 1.4826 * float(np.median(dev[use]))
+            new_use = use & (dev <= max(3.0 * mad, CLOCK_OUTLIER_FLOOR_M))
+            if new_use.sum() == use.sum() or new_use.sum() < 2:
+                break
+            use = new_use
+        self.base_clock_m = clk
+        self.t_base_gps = t
+        n = 0
+        new_prc = {}
+        for i, sat in enumerate(prep.sats):
+            if not ok[i]:
+                continue
+            prc = float(raw[i] - clk)
+            iode = int(prep.iode[i])
+            h = self._hist.get(sat)
+            if h is None or (h and (h[-1][2] != iode or prep.loss_of_lock[i])):
+                h = deque()
+                self._hist[sat] = h
+            h.append((t, prc, iode))
+            while h and t - h[0][0] > self.rrc_window_s + 1e-6:
+                h.popleft()
+            rrc = 0.0
+            if len(h) >= 2:
+                ts = np.array([x[0] for x in h]) - t
+                ps = np.array([x[1] for x in h])
+                tm = ts.mean()
+                den = float(np.sum((ts - tm) ** 2))
+                if den > 0:
+                    rrc = float(np.sum((ts - tm) * (ps - ps.mean())) / den)
+            new_prc[sat] = (t, prc, rrc, iode)
+            n += 1
+        for sat in list(self._hist):
+            if sat not in new_prc:
+                del self._hist[sat]
+        self._prc = new_prc
+        self.counters["base epochs"] += 1
+        return n
+
+    # ----------------------------------------------------------------------- rover side
+    def iode(self, sat: str) -> int | None:
+        """IODE the correction for ``sat`` was computed with, or None if there is none."""
+        c = self._prc.get(sat)
+        return None if c is None else c[3]
+
+    def correction(self, sat: str, t_gps: float, iode: int) -> tuple[float, float, str]:
+        """(PRC m extrapolated with RRC, age s, '') or (NaN, NaN|age, reason) with reason in
+        'no DGPS correction', 'IODE mismatch', 'DGPS correction too old'."""
+        c = self._prc.get(sat)
+        if c is None:
+            self.counters["no DGPS correction"] += 1
+            return float("nan"), float("nan"), "no DGPS correction"
+        t_b, prc, rrc, iode_c = c
+        age = t_gps - t_b
+        if iode_c != iode:
+            self.counters["IODE mismatch"] += 1
+            return float("nan"), age, "IODE mismatch"
+        if abs(age) > self.max_age_s:
+            self.counters["DGPS correction too old"] += 1
+            return float("nan"), age, "DGPS correction too old"
+        return prc + rrc * age, age, ""
+
+    def base_phase(self, sat: str) -> tuple[float, float, float] | None:
+        """(t_gps, carrier cycles, wavelength m) of the latest base carrier phase of ``sat``, or None."""
+        return self._phase.get(sat)
+
+    @property
+    def sats(self) -> list[str]:
+        return sorted(self._prc)

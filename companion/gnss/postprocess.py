@@ -1,0 +1,205 @@
+"""`companion gnss`: RTKLIB-style post-processing of RINEX files (SPP or code DGPS).
+
+Pipeline per rover epoch: (optional) divergence-free carrier smoothing of rover and base code
+(:class:`CarrierSmoother`), base corrections from the latest base epoch at or before the rover
+epoch (+0.5 s), then :func:`spp_epoch` (WLS + RAIM FDE) on the L1 C/A code.
+
+Defaults (measured on the GEONET 0759/3040 data, see tests/test_spp_dgps_geonet.py): signal L1C
+with Klobuchar + Saastamoinen standalone (the C1/P2 iono-free combination was worse on these files:
+its noise is x3 and C1-P1 biases enter it amplified), carrier smoothing on (600 s window).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..messages import BaseStationPosition
+from ..nav.earth import ecef_to_geodetic, ecef_to_ned
+from .dgps import DgpsCorrector
+from .ephemeris_store import EphemerisStore
+from .prepare import CarrierSmoother
+from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
+from .spp import SppSolution, spp_epoch
+
+log = logging.getLogger(__name__)
+
+
+class GnssProcessingError(Exception):
+    """A user-facing error: bad input files or no usable data."""
+
+
+@dataclass
+class ProcessOptions:
+    mode: str = "spp"                     # 'spp' | 'dgps'
+    signal: str = "L1C"                   # 'L1C' | 'IF'
+    elevation_mask_rad: float = math.radians(10.0)
+    smoothing: bool = True
+    smoothing_window_s: float = 600.0
+    dgps_max_age_s: float = 30.0
+    raim: bool = True
+
+
+def process(rover_epochs, store: EphemerisStore, opts: ProcessOptions, *, klobuchar=None, base_epochs=None,
+            base: BaseStationPosition | None = None, progress=None) -> list[SppSolution | None]:
+    """One solution (or None) per rover epoch.  ``progress(i, n)`` is called after each epoch."""
+    sm_r = CarrierSmoother(window_s=opts.smoothing_window_s) if opts.smoothing else None
+    sm_b = CarrierSmoother(window_s=opts.smoothing_window_s) if opts.smoothing else None
+    dg = None
+    if opts.mode == "dgps":
+        if base_epochs is None or base is None:
+            raise GnssProcessingError("DGPS needs base observations and a base position")
+        dg = DgpsCorrector(max_age_s=opts.dgps_max_age_s, signal=opts.signal)
+    out: list[SppSolution | None] = []
+    bi = 0
+    r_prev = None
+    n = len(rover_epochs)
+    for k, ep in enumerate(rover_epochs):
+        if sm_r is not None:
+            ep = sm_r.apply(ep)
+        if dg is not None:
+            while bi < len(base_epochs) and base_epochs[bi].t_gps <= ep.t_gps + 0.5:
+                b = base_epochs[bi]
+                bi += 1
+                if sm_b is not None:
+                    b = sm_b.apply(b)
+                dg.update_base(b, base, store)
+        sol = spp_epoch(ep, store, dgps=dg, klobuchar=klobuchar, r_init_e=r_prev,
+                        elevation_mask_rad=opts.elevation_mask_rad, signal=opts.signal, raim=opts.raim)
+        if sol is None and r_prev is not None:   # retry cold: the previous position may be the problem
+            sol = spp_epoch(ep, store, dgps=dg, klobuchar=klobuchar, elevation_mask_rad=opts.elevation_mask_rad,
+                            signal=opts.signal, raim=opts.raim)
+        if sol is not None:
+            r_prev = sol.r_e
+        out.append(sol)
+        if progress is not None:
+            progress(k + 1, n)
+    return out
+
+
+def statistics(solutions, truth_e) -> dict:
+    """rms_3d_m, rms_h_m, rms_v_m, p95_3d_m, max_3d_m, mean_ned_m over the solved epochs."""
+    err = np.array([ecef_to_ned(s.r_e, truth_e) for s in solutions if s is not None])
+    if len(err) == 0:
+        return {}
+    e3 = np.linalg.norm(err, axis=1)
+    eh = np.linalg.norm(err[:, :2], axis=1)
+    return {"rms_3d_m": float(np.sqrt(np.mean(e3 ** 2))), "rms_h_m": float(np.sqrt(np.mean(eh ** 2))),
+            "rms_v_m": float(np.sqrt(np.mean(err[:, 2] ** 2))), "p95_3d_m": float(np.percentile(e3, 95)),
+            "max_3d_m": float(np.max(e3)), "mean_ned_m": [float(x) for x in err.mean(axis=0)]}
+
+
+def _xyz(text: str, what: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.replace(" ", "").split(",")])
+    except ValueError:
+        v = np.zeros(0)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise GnssProcessingError(f"{what}: expected 'X,Y,Z' in metres, got {text!r}")
+    return v
+
+
+def _load(args):
+    for p in [args.rover, *args.nav, *([args.base] if args.base else [])]:
+        if not Path(p).is_file():
+            raise GnssProcessingError(f"file not found: {p}")
+    store = EphemerisStore()
+    klob = None
+    for p in args.nav:
+        try:
+            for e in read_rinex_nav(p):
+                store.add(e)
+            klob = klob or read_rinex_nav_header_iono(p)
+        except (ValueError, IndexError) as exc:
+            raise GnssProcessingError(f"cannot read navigation file {p}: {exc}") from exc
+    if len(store) == 0:
+        raise GnssProcessingError("no GPS ephemeris in the navigation file(s)")
+    try:
+        hdr, rover = read_rinex_obs(args.rover)
+    except (ValueError, IndexError) as exc:
+        raise GnssProcessingError(f"cannot read rover observation file {args.rover}: {exc}") from exc
+    if not rover:
+        raise GnssProcessingError(f"no observation epochs in {args.rover}")
+    base_epochs = base = None
+    if args.mode == "dgps":
+        if not args.base:
+            raise GnssProcessingError("--mode dgps needs --base")
+        try:
+            bhdr, base_epochs = read_rinex_obs(args.base)
+        except (ValueError, IndexError) as exc:
+            raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
+        if args.base_xyz:
+            r_b = _xyz(args.base_xyz, "--base-xyz")
+        elif bhdr["approx_position_e"] is not None:
+            r_b = bhdr["approx_position_e"]
+        else:
+            raise GnssProcessingError("base position unknown: give --base-xyz (header has no APPROX POSITION XYZ)")
+        base = BaseStationPosition(station_id=0, r_e=np.asarray(r_b, float))
+        t_r = {round(e.t_gps) for e in rover}
+        if not t_r & {round(e.t_gps) for e in base_epochs}:
+            raise GnssProcessingError("no epochs in common between rover and base observations")
+    t0, t1 = rover[0].t_gps, rover[-1].t_gps
+    if not any(store.select_with_reason(s, 0.5 * (t0 + t1))[0] for s in store.sats) and \
+            not any(store.select_with_reason(s, t0)[0] for s in store.sats):
+        raise GnssProcessingError("no ephemeris valid during the observation period")
+    return store, klob, hdr, rover, base_epochs, base
+
+
+def run(args) -> int:
+    """Entry point of `companion gnss`; returns the process exit code."""
+    try:
+        return _run(args)
+    except GnssProcessingError as exc:
+        print(f"companion gnss: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args) -> int:
+    store, klob, hdr, rover, base_epochs, base = _load(args)
+    opts = ProcessOptions(mode=args.mode, elevation_mask_rad=math.radians(args.elevation_mask_deg))
+    truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
+    tty = sys.stderr.isatty()
+
+    def progress(i, n):
+        if n >= 500 and (i % max(1, n // 20) == 0 or i == n):
+            print(f"\r{args.mode}: {i}/{n} epochs ({100 * i // n} %)", end="\n" if (i == n or not tty) else "",
+                  file=sys.stderr, flush=True)
+
+    sols = process(rover, store, opts, klobuchar=klob, base_epochs=base_epochs, base=base, progress=progress)
+    solved = [s for s in sols if s is not None]
+    if not solved:
+        raise GnssProcessingError(f"no epoch could be solved ({len(rover)} epochs; ephemeris rejections: "
+                                  f"{dict(store.rejections)})")
+    summary = {"mode": args.mode, "signal": opts.signal, "epochs": len(rover), "solved": len(solved),
+               "elevation_mask_deg": args.elevation_mask_deg}
+    if truth is not None:
+        summary.update(statistics(sols, truth))
+    print(f"companion gnss {args.mode}: {len(solved)}/{len(rover)} epochs solved"
+          + (f", RMS 3-D {summary['rms_3d_m']:.3f} m, horizontal {summary['rms_h_m']:.3f} m, "
+             f"95% 3-D {summary['p95_3d_m']:.3f} m, max {summary['max_3d_m']:.3f} m" if "rms_3d_m" in summary else ""))
+    rows = []
+    for s in solved:
+        lat, lon, h = ecef_to_geodetic(s.r_e)
+        row = {"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "lat_deg": math.degrees(lat),
+               "lon_deg": math.degrees(lon), "h_m": h, "clock_bias_m": s.clock_bias_m, "n_sats": s.n_sats,
+               "sats": s.sats, "excluded": s.excluded, "pdop": s.pdop, "hdop": s.hdop, "vdop": s.vdop,
+               "raim_ok": s.raim_ok}
+        if truth is not None:
+            row["err_ned_m"] = [float(x) for x in ecef_to_ned(s.r_e, truth)]
+        rows.append(row)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({**summary, "solutions": rows}, fh, indent=1)
+    if args.pos:
+        with open(args.pos, "w") as fh:
+            fh.write(f"% companion gnss {args.mode} ({opts.signal}), rover {args.rover}\n")
+            fh.write("%  t_gps_s           x_e_m          y_e_m          z_e_m   lat_deg       lon_deg     h_m     ns  pdop\n")
+            for r in rows:
+                fh.write(f"{r['t_gps']:.3f} {r['r_e'][0]:14.4f} {r['r_e'][1]:14.4f} {r['r_e'][2]:14.4f} "
+                         f"{r['lat_deg']:13.9f} {r['lon_deg']:14.9f} {r['h_m']:9.4f} {r['n_sats']:3d} {r['pdop']:5.2f}\n")
+    return 0

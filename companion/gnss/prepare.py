@@ -1,0 +1,393 @@
+"""Per-epoch preparation of GNSS measurements for the filter and for SPP.
+
+:func:`prepare_epoch` turns one :class:`GnssEpoch` into arrays over the usable satellites whose
+pseudorange model is exactly::
+
+    pseudorange_m[i] = |r_sat_e[i] - r_antenna_e| + receiver_clock_bias_m + noise(sigma_pseudorange_m[i])
+
+* ``r_sat_e`` / ``v_sat_e``: satellite state at the GPS transmit time, rotated into the ECEF frame
+  of the reception time (Sagnac).  The rotation angle uses the *geometric* travel time
+  |r_sat - r_approx|/c, iterated twice, never P/c (P contains the receiver clock error).
+* Standalone: P + c*dt_sat (relativistic term included) - c*TGD*gamma_f - Klobuchar(f) - tropo.
+* DGPS: P + c*dt_sat + PRC (the corrector works on the same signal; TGD, iono and tropo are in the PRC).
+* ``signal='IF'``: ionosphere-free C1/P2 (L1 code with the first of L2W/L2X/L2C/L2L/L2S/L2P code);
+  broadcast clocks refer to the P1/P2 iono-free combination, so neither TGD nor iono is applied.
+  Carrier/Doppler columns then come from the L1 signal.
+* Satellites with carrier phase but no pseudorange are KEPT with ``pseudorange_m = NaN`` (the TDCP
+  model uses their phase); their transmit time is t_rx - rx_clock_bias_m/c - rho/c (GPS time), so pass
+  ``rx_clock_bias_m`` when known (else the position error is ~3.9 km/s x receiver clock error).
+  In DGPS mode they need no correction.  SPP ignores them.
+* With ``r_approx_e`` unknown (norm < 1000 km, e.g. the earth centre) elevation/azimuth are NaN, the
+  mask is not applied, no atmosphere model is applied and sigmas use zenith values; re-prepare at a
+  better position (see :func:`companion.gnss.spp.spp_epoch`).
+
+Sigma model (variances add):
+  code noise (a^2 + b^2/sin^2 E) with a = b = ``CODE_SIGMA_A_M``/``CODE_SIGMA_B_M`` (x3 for IF);
+  standalone adds URA^2, (``IONO_MODEL_ERROR_FRAC`` x Klobuchar)^2, (``TROPO_ZENITH_ERROR_M`` x mapping)^2;
+  DGPS uses 2 x code noise (base + rover) + ``DGPS_SIGMA_M``^2 + (``DGPS_AGE_SIGMA_MPS`` x age)^2.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..messages import GPS_L1_HZ, GPS_L2_HZ, SPEED_OF_LIGHT_MPS, GnssEpoch, SatObservation
+from ..nav.earth import OMEGA_IE_RADPS, ecef_to_geodetic
+from .atmosphere import klobuchar_delay_m, saastamoinen_zenith_m, tropo_mapping
+from .ephemeris import satellite_state, transmit_time
+from .ephemeris_store import EphemerisStore
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .dgps import DgpsCorrector
+
+C = SPEED_OF_LIGHT_MPS
+CODE_SIGMA_A_M = 0.3          # code noise, elevation-independent part, m (RTKLIB default)
+CODE_SIGMA_B_M = 0.3          # code noise, scaled by 1/sin(E), m
+IF_NOISE_FACTOR = 2.98        # noise amplification of the L1/L2 iono-free combination
+IONO_MODEL_ERROR_FRAC = 0.5   # Klobuchar removes ~50 % rms of the delay
+TROPO_ZENITH_ERROR_M = 0.1    # Saastamoinen + standard atmosphere zenith error, m
+DGPS_SIGMA_M = 0.2            # spatial/temporal decorrelation of a short-baseline PRC, m
+DGPS_AGE_SIGMA_MPS = 0.01     # growth of the correction error with age, m/s
+UNKNOWN_POSITION_NORM_M = 1.0e6
+L2_CODE_PRIORITY = ("L2W", "L2P", "L2X", "L2C", "L2L", "L2S")
+GAMMA_L1_L2 = (GPS_L1_HZ / GPS_L2_HZ) ** 2
+
+
+@dataclass
+class PreparedEpoch:
+    """Arrays over the n usable satellites of one epoch (n may be 0).  See module docstring."""
+
+    t_gps: float
+    signal: str
+    r_approx_e: np.ndarray
+    sats: list[str]
+    r_sat_e: np.ndarray
+    v_sat_e: np.ndarray
+    pseudorange_m: np.ndarray
+    sigma_pseudorange_m: np.ndarray
+    sat_clock_bias_m: np.ndarray
+    sat_clock_drift_mps: np.ndarray
+    carrier_cycles: np.ndarray
+    wavelength_m: np.ndarray
+    doppler_hz: np.ndarray
+    cn0_dbhz: np.ndarray
+    lock_time_s: np.ndarray
+    half_cycle: np.ndarray
+    loss_of_lock: np.ndarray
+    elevation_rad: np.ndarray
+    azimuth_rad: np.ndarray
+    iode: np.ndarray
+    dgps_age_s: np.ndarray
+    iono_m: np.ndarray            # ionospheric delay removed (m, 0 if none)
+    tropo_m: np.ndarray           # tropospheric delay removed (m, 0 if none)
+    rejected: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return len(self.sats)
+
+    def subset(self, idx) -> "PreparedEpoch":
+        """A copy restricted to the index array/list ``idx`` (rejections kept)."""
+        idx = np.asarray(idx, dtype=int)
+        kw = {}
+        for name in self.__dataclass_fields__:
+            v = getattr(self, name)
+            if isinstance(v, np.ndarray) and name != "r_approx_e":
+                kw[name] = v[idx]
+            elif name == "sats":
+                kw[name] = [self.sats[i] for i in idx]
+            elif name == "rejected":
+                kw[name] = dict(v)
+            else:
+                kw[name] = v
+        return PreparedEpoch(**kw)
+
+
+def group_by_sat(epoch: GnssEpoch) -> dict[str, dict[str, SatObservation]]:
+    """sat -> signal -> observation, in first-seen satellite order."""
+    out: dict[str, dict[str, SatObservation]] = {}
+    for o in epoch.observations:
+        out.setdefault(o.sat, {})[o.signal] = o
+    return out
+
+
+def form_pseudorange(sig: dict[str, SatObservation], signal: str):
+    """(pseudorange m or NaN, observation carrying phase/Doppler or None, TGD factor, iono factor).
+
+    TGD factor multiplies c*TGD to subtract (1 on L1, gamma on L2, 0 for IF); iono factor scales
+    the L1 Klobuchar delay (f_L1/f)^2 (0 for IF)."""
+    nan = float("nan")
+    if signal == "IF":
+        o1 = sig.get("L1C") or sig.get("L1W") or sig.get("L1P")
+        if o1 is None:
+            return nan, None, 0.0, 0.0
+        p2 = nan
+        for s in L2_CODE_PRIORITY:
+            o2 = sig.get(s)
+            if o2 is not None and o2.pseudorange_m == o2.pseudorange_m:
+                p2 = o2.pseudorange_m
+                break
+        p1 = o1.pseudorange_m
+        g1, g2 = GPS_L1_HZ * GPS_L1_HZ, GPS_L2_HZ * GPS_L2_HZ
+        p = (g1 * p1 - g2 * p2) / (g1 - g2)
+        return p, o1, 0.0, 0.0
+    o = sig.get(signal)
+    if o is None:
+        return nan, None, 0.0, 0.0
+    wl = o.wavelength_m
+    ratio = (wl / (C / GPS_L1_HZ)) ** 2 if wl == wl else 1.0  # (f_L1 / f)^2
+    return o.pseudorange_m, o, ratio, ratio
+
+
+def _rotate(r, v, tau):
+    a = OMEGA_IE_RADPS * tau
+    c, s = math.cos(a), math.sin(a)
+    return ((c * r[0] + s * r[1], -s * r[0] + c * r[1], r[2]),
+            (c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]))
+
+
+def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
+                  dgps: "DgpsCorrector | None" = None, elevation_mask_rad: float = math.radians(10.0),
+                  klobuchar=None, signal: str = "L1C", rx_clock_bias_m: float = 0.0,
+                  apply_models: bool = True, tropo: bool = True) -> PreparedEpoch:
+    """Corrected measurements of one epoch (see module docstring for the model and conventions).
+
+    ``klobuchar``: (alpha[4], beta[4]) or None (then no iono correction standalone).
+    ``apply_models=False`` applies the satellite clock only (used by the DGPS base: raw P + c*dt_sat).
+    """
+    t_rx = epoch.t_gps
+    r0 = np.asarray(r_approx_e, dtype=float)
+    rx, ry, rz = float(r0[0]), float(r0[1]), float(r0[2])
+    known = math.sqrt(rx * rx + ry * ry + rz * rz) > UNKNOWN_POSITION_NORM_M
+    ztd = 0.0
+    if known:
+        lat, lon, h = ecef_to_geodetic(r0)
+        sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+        east = (-so, co, 0.0)
+        north = (-sl * co, -sl * so, cl)
+        up = (cl * co, cl * so, sl)
+        if apply_models and dgps is None and tropo and -1000.0 < h < 20000.0:
+            zhd, zwd = saastamoinen_zenith_m(lat, h)
+            ztd = zhd + zwd
+        else:
+            ztd = 0.0
+    rejected: dict[str, str] = {}
+    rows = []
+    use_iono = apply_models and dgps is None and klobuchar is not None and known
+    alpha, beta = (klobuchar if klobuchar is not None else (None, None))
+    code_scale = IF_NOISE_FACTOR if signal == "IF" else 1.0
+    a2 = (CODE_SIGMA_A_M * code_scale) ** 2
+    b2 = (CODE_SIGMA_B_M * code_scale) ** 2
+    nan = float("nan")
+    for sat, sig in group_by_sat(epoch).items():
+        if sat[0] != "G":
+            rejected[sat] = "unsupported system"
+            continue
+        p, o, tgd_fac, iono_fac = form_pseudorange(sig, signal)
+        if o is None:
+            rejected[sat] = "no pseudorange"
+            continue
+        has_p = p == p and math.isfinite(p)
+        has_l = o.carrier_cycles == o.carrier_cycles
+        if not has_p and not has_l:
+            rejected[sat] = "no pseudorange"
+            continue
+        eph, reason = store.select_with_reason(sat, t_rx)
+        if eph is None:
+            rejected[sat] = "no ephemeris" if reason == "outside fit interval" else reason
+            continue
+        prc = nan
+        age = nan
+        if dgps is not None and has_p:
+            iode_c = dgps.iode(sat)
+            if iode_c is None:
+                rejected[sat] = "no DGPS correction"
+                continue
+            if iode_c != eph.iode:
+                eph2, _ = store.select_with_reason(sat, t_rx, iode=iode_c)
+                if eph2 is None:
+                    rejected[sat] = "IODE mismatch"
+                    continue
+                eph = eph2
+            prc, age, why = dgps.correction(sat, t_rx, eph.iode)
+            if why:
+                rejected[sat] = why
+                continue
+        if has_p:
+            t_tx = transmit_time(t_rx, p, eph)
+        else:
+            t_tx = None
+        # geometric travel time, two iterations (the first from the unrotated position)
+        if t_tx is None:  # phase only: transmit time from the geometric range
+            r_s, v_s, dts, ddts = satellite_state(eph, t_rx - rx_clock_bias_m / C - 0.075)
+            tau = math.dist(r_s, r0) / C if known else 0.075
+            t_tx = t_rx - rx_clock_bias_m / C - tau      # GPS time: no satellite clock term here
+        r_s, v_s, dts, ddts = satellite_state(eph, t_tx)
+        tau = math.dist(r_s, r0) / C
+        rr, vv = _rotate(r_s, v_s, tau)
+        tau = math.dist(rr, r0) / C
+        rr, vv = _rotate(r_s, v_s, tau)
+        dx, dy, dz = rr[0] - rx, rr[1] - ry, rr[2] - rz
+        rho = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if known:
+            ux, uy, uz = dx / rho, dy / rho, dz / rho
+            e_ = ux * east[0] + uy * east[1]
+            n_ = ux * north[0] + uy * north[1] + uz * north[2]
+            u_ = ux * up[0] + uy * up[1] + uz * up[2]
+            el = math.asin(max(-1.0, min(1.0, u_)))
+            az = math.atan2(e_, n_) % (2.0 * math.pi)
+            if el < elevation_mask_rad:
+                rejected[sat] = "below elevation mask"
+                continue
+            sin_el = max(math.sin(el), 0.05)
+        else:
+            el = az = nan
+            sin_el = 1.0
+        iono = tro = 0.0
+        var = a2 + b2 / (sin_el * sin_el)
+        pr = nan
+        if has_p:
+            pr = p + C * dts
+            if dgps is not None:
+                pr += prc
+                var = 2.0 * var + DGPS_SIGMA_M ** 2 + (DGPS_AGE_SIGMA_MPS * age) ** 2
+            elif apply_models:
+                pr -= C * eph.tgd_s * tgd_fac
+                if use_iono and iono_fac:
+                    iono = iono_fac * klobuchar_delay_m(t_rx, lat, lon, az, el, alpha, beta)
+                    pr -= iono
+                if ztd and known:
+                    tro = ztd * tropo_mapping(el)
+                    pr -= tro
+                var += eph.ura_m ** 2 + (IONO_MODEL_ERROR_FRAC * iono) ** 2
+                if known:
+                    var += (TROPO_ZENITH_ERROR_M * tropo_mapping(el)) ** 2
+            if not math.isfinite(pr):
+                rejected[sat] = "non-finite"
+                continue
+        if not (math.isfinite(rr[0]) and math.isfinite(dts)):
+            rejected[sat] = "non-finite"
+            continue
+        rows.append((sat, rr, vv, pr, math.sqrt(var), C * dts, C * ddts, o.carrier_cycles, o.wavelength_m,
+                     o.doppler_hz, o.cn0_dbhz, o.lock_time_s, o.half_cycle_ambiguous, o.loss_of_lock,
+                     el, az, eph.iode, age, iono, tro))
+    n = len(rows)
+    if n:
+        cols = list(zip(*rows))
+        arr = lambda k: np.array(cols[k], dtype=float)
+        return PreparedEpoch(
+            t_gps=t_rx, signal=signal, r_approx_e=r0.copy(), sats=list(cols[0]),
+            r_sat_e=np.array(cols[1], dtype=float), v_sat_e=np.array(cols[2], dtype=float),
+            pseudorange_m=arr(3), sigma_pseudorange_m=arr(4), sat_clock_bias_m=arr(5),
+            sat_clock_drift_mps=arr(6), carrier_cycles=arr(7), wavelength_m=arr(8), doppler_hz=arr(9),
+            cn0_dbhz=arr(10), lock_time_s=arr(11), half_cycle=np.array(cols[12], dtype=bool),
+            loss_of_lock=np.array(cols[13], dtype=bool), elevation_rad=arr(14), azimuth_rad=arr(15),
+            iode=np.array(cols[16], dtype=int), dgps_age_s=arr(17), iono_m=arr(18), tropo_m=arr(19),
+            rejected=rejected)
+    z = np.zeros(0)
+    return PreparedEpoch(
+        t_gps=t_rx, signal=signal, r_approx_e=r0.copy(), sats=[], r_sat_e=np.zeros((0, 3)),
+        v_sat_e=np.zeros((0, 3)), pseudorange_m=z, sigma_pseudorange_m=z, sat_clock_bias_m=z,
+        sat_clock_drift_mps=z, carrier_cycles=z, wavelength_m=z, doppler_hz=z, cn0_dbhz=z, lock_time_s=z,
+        half_cycle=np.zeros(0, bool), loss_of_lock=np.zeros(0, bool), elevation_rad=z, azimuth_rad=z,
+        iode=np.zeros(0, int), dgps_age_s=z, iono_m=z, tropo_m=z, rejected=rejected)
+
+
+# ---------------------------------------------------------------------------------------------
+# carrier smoothing
+# ---------------------------------------------------------------------------------------------
+
+class CarrierSmoother:
+    """Hatch filter of code with carrier, per satellite; returns epochs with smoothed pseudoranges.
+
+    With L1 and L2 phase the *divergence-free* phase combinations are used (no ionospheric
+    code-carrier divergence)::
+
+        Phi_DF1 = Phi1 + 2 (Phi1 - Phi2)/(gamma - 1),   Phi_DF2 = Phi2 + 2 gamma (Phi1 - Phi2)/(gamma - 1)
+
+    (phases in metres, gamma = (f1/f2)^2), which follow P1 and P2 exactly up to a constant.  Without
+    L2 phase the single-frequency Hatch filter is used with a shorter window
+    (``window_single_s``).  Smoothing restarts on: loss-of-lock / half-cycle flags, a gap longer than
+    ``max_gap_s``, a geometry-free phase jump larger than ``gf_jump_m`` between epochs, or a
+    code-minus-smoothed-code disagreement larger than ``max_code_jump_m``.  ``window_s`` is the
+    averaging length (N = window / interval epochs, growing from 1 after each restart).
+    """
+
+    def __init__(self, window_s: float = 600.0, window_single_s: float = 100.0, max_gap_s: float = 65.0,
+                 gf_jump_m: float = 0.15, max_code_jump_m: float = 10.0):
+        self.window_s = window_s
+        self.window_single_s = window_single_s
+        self.max_gap_s = max_gap_s
+        self.gf_jump_m = gf_jump_m
+        self.max_code_jump_m = max_code_jump_m
+        self._state: dict[str, dict] = {}
+        self.resets: dict[str, int] = {}
+
+    def _reset(self, sat: str, reason: str) -> None:
+        self.resets[reason] = self.resets.get(reason, 0) + 1
+        self._state.pop(sat, None)
+
+    def apply(self, epoch: GnssEpoch) -> GnssEpoch:
+        from dataclasses import replace
+        t = epoch.t_gps
+        out = []
+        g = GAMMA_L1_L2
+        for sat, sig in group_by_sat(epoch).items():
+            o1 = sig.get("L1C")
+            o2 = None
+            for s in L2_CODE_PRIORITY:
+                if s in sig and sig[s].carrier_cycles == sig[s].carrier_cycles:
+                    o2 = sig[s]
+                    break
+            if o1 is None or o1.carrier_cycles != o1.carrier_cycles or o1.pseudorange_m != o1.pseudorange_m:
+                self._state.pop(sat, None)
+                out.extend(sig.values())
+                continue
+            phi1 = o1.carrier_cycles * o1.wavelength_m
+            dual = o2 is not None and o2.pseudorange_m == o2.pseudorange_m
+            if dual:
+                phi2 = o2.carrier_cycles * o2.wavelength_m
+                gf = phi1 - phi2
+                df1 = phi1 + 2.0 * gf / (g - 1.0)
+                df2 = phi2 + 2.0 * g * gf / (g - 1.0)
+            else:
+                gf = float("nan")
+                df1, df2 = phi1, float("nan")
+            st = self._state.get(sat)
+            slip = o1.loss_of_lock or o1.half_cycle_ambiguous or (dual and (o2.loss_of_lock or o2.half_cycle_ambiguous))
+            if st is not None:
+                if slip:
+                    self._reset(sat, "loss of lock"); st = None
+                elif t - st["t"] > self.max_gap_s:
+                    self._reset(sat, "gap"); st = None
+                elif st["dual"] != dual:
+                    self._reset(sat, "signal change"); st = None
+                elif dual and abs(gf - st["gf"]) > self.gf_jump_m:
+                    self._reset(sat, "geometry-free jump"); st = None
+            p1 = o1.pseudorange_m
+            p2 = o2.pseudorange_m if dual else float("nan")
+            if st is None:
+                st = {"n": 1, "s1": p1, "s2": p2}
+            else:
+                nmax = max(1.0, (self.window_s if dual else self.window_single_s) / max(t - st["t"], 1e-3))
+                n = min(st["n"] + 1, nmax)
+                s1 = p1 / n + (st["s1"] + df1 - st["df1"]) * (n - 1.0) / n
+                s2 = p2 / n + (st["s2"] + df2 - st["df2"]) * (n - 1.0) / n if dual else float("nan")
+                if abs(s1 - p1) > self.max_code_jump_m or (dual and abs(s2 - p2) > self.max_code_jump_m):
+                    self._reset(sat, "code jump")
+                    st = {"n": 1, "s1": p1, "s2": p2}
+                else:
+                    st = {"n": n, "s1": s1, "s2": s2}
+            st.update(t=t, df1=df1, df2=df2, gf=gf, dual=dual)
+            self._state[sat] = st
+            for s, o in sig.items():
+                if o is o1:
+                    out.append(replace(o, pseudorange_m=st["s1"]))
+                elif dual and o is o2:
+                    out.append(replace(o, pseudorange_m=st["s2"]))
+                else:
+                    out.append(o)
+        return GnssEpoch(t_gps=t, observations=tuple(out), source=epoch.source)

@@ -1,0 +1,260 @@
+"""The seed-000 experiment: five navigation modes on the same simulated data, Monte Carlo.
+
+Modes (all share one simulated flight per run):
+
+* ``ins``        free inertial from the initial state;
+* ``gps``        standalone single point positioning, epoch by epoch (no INS);
+* ``loose``      INS + SPP position/velocity fixes (loosely coupled);
+* ``tight``      INS + standalone pseudoranges + Doppler range rates (conventional tight coupling);
+* ``tdcp_dgps``  the proposal: INS + DGPS-corrected pseudoranges + TDCP range rates.
+
+The error of a mode at time t is the 3-D distance between its position (the IMU for the INS
+modes, the antenna for ``gps``) and the truth, sampled at 1 Hz and averaged over the runs.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.gnss.ephemeris_store import EphemerisStore
+from companion.gnss.spp import spp_epoch
+from companion.nav.engine import EngineConfig, NavEngine
+from companion.nav.earth import rotation_from_rotvec
+from companion.nav.filter import ProcessNoise
+
+MODES = ("ins", "gps", "loose", "tight", "tdcp_dgps")
+
+# Table 4 of seed 000, 3-D position error (m)
+PAPER_TABLE4 = {
+    "t_s": [0, 10, 20, 30, 40, 50, 100, 200, 300, 400, 500],
+    "ins": [0, 2.05, 7.155, 15.79, 21.72, 43.03, 61.37, 659, 1540, 2690, 3718],
+    "gps": [115, 12, 193, 187, 50, 3, 187, 181, 56, 15, 20],
+    "loose": [0, 10, 113, 47, 99, 37, 241, 9, 2, 34, 30],
+    "tight": [0, 21, 20.2, 17.9, 25.9, 17.8, 41.4, 85, 44.9, 21.1, 12.3],
+    "tdcp_dgps": [0, 1.80, 7.74, 1.04, 5.96, 9.55, 6.88, 8.13, 4.26, 2.12, 8.03],
+}
+PAPER_MEAN = {"ins": None, "gps": 99.52, "loose": 65.66, "tight": 34.52, "tdcp_dgps": 6.568}
+
+
+@dataclass
+class FilterTuning:
+    """Filter noise model and initial uncertainty for one scenario (derived from its IMU model)."""
+
+    noise: ProcessNoise
+    p0: dict
+    sigma_doppler_mps: float = 0.1
+    sigma_phase_m: float = 0.005
+    sigma_tdcp_floor_mps: float = 0.01
+    gnss_latency_s: float = 0.0
+    # standalone pseudoranges: error floor the per-satellite model does not know about (e.g. SA)
+    sigma_pseudorange_standalone_floor_m: float = 0.0
+
+
+def mode_config(mode: str, tuning: FilterTuning, lever_arm_b) -> EngineConfig:
+    common = dict(noise=tuning.noise, lever_arm_b_m=tuple(lever_arm_b), sigma_doppler_mps=tuning.sigma_doppler_mps,
+                  sigma_phase_m=tuning.sigma_phase_m, sigma_tdcp_floor_mps=tuning.sigma_tdcp_floor_mps,
+                  elevation_mask_deg=5.0)
+    standalone = dict(use_dgps=False, sigma_pseudorange_floor_m=tuning.sigma_pseudorange_standalone_floor_m)
+    if mode == "loose":
+        return EngineConfig(use_loose=True, use_tdcp=False, **standalone, **common)
+    if mode == "tight":
+        return EngineConfig(use_pseudorange=True, use_doppler=True, use_tdcp=False, **standalone, **common)
+    if mode == "tdcp_dgps":
+        return EngineConfig(use_pseudorange=True, use_dgps=True, use_doppler=False, use_tdcp=True, **common)
+    if mode == "ins":
+        return EngineConfig(use_pseudorange=False, use_dgps=False, use_tdcp=False, **common)
+    raise ValueError(f"unknown mode {mode!r}")
+
+
+def initial_errors(rng: np.random.Generator, p0: dict):
+    """Initial attitude/position/velocity errors drawn from the filter's own P0 (honest NEES)."""
+    return (rng.normal(0.0, p0["att_rad"], 3), rng.normal(0.0, p0["pos_m"], 3), rng.normal(0.0, p0["vel_mps"], 3))
+
+
+def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s: float = 1.0,
+                 on_epoch=None, keep_engine: bool = False):
+    """Run one INS mode over a simulated flight.  Returns dict with 't_s', 'err_3d_m' (1 Hz) and
+    'nees' samples (error-state NEES of attitude/position/velocity at the same instants)."""
+    truth = sim.truth
+    cfg = mode_config(mode, tuning, sim.lever_arm_b)
+    eng = NavEngine(cfg)
+    eng.on_epoch = on_epoch
+    for eph in sim.ephemerides:
+        eng.process(eph)
+    eng.process(sim.base)
+    rng = np.random.default_rng(10_000 + seed)
+    d_att, d_pos, d_vel = initial_errors(rng, tuning.p0)
+    eng.initialize(truth.t_gps[0], truth.r_e[0] + d_pos, truth.v_e[0] + d_vel,
+                   rotation_from_rotvec(d_att) @ truth.C_b_e[0], tuning.p0)
+    use_gnss = mode != "ins"
+    rover, base = sim.rover_epochs, sim.base_epochs
+    i_rov = i_base = 0
+    lat = tuning.gnss_latency_s
+    t0 = truth.t_gps[0]
+    step = max(1, int(round(record_every_s / (truth.t_gps[1] - truth.t_gps[0]))))
+    ts, errs, nees = [0.0], [float(np.linalg.norm(eng.r_e - truth.r_e[0]))], []
+    for k, s in enumerate(sim.imu, start=1):
+        if use_gnss:
+            while i_base < len(base) and base[i_base].t_gps + lat <= s.t_gps:
+                eng.process(base[i_base])
+                i_base += 1
+            while i_rov < len(rover) and rover[i_rov].t_gps + lat <= s.t_gps:
+                eng.process(rover[i_rov])
+                i_rov += 1
+        eng.process_imu(s)
+        if k % step == 0:
+            ts.append(s.t_gps - t0)
+            errs.append(float(np.linalg.norm(eng.r_e - truth.r_e[k])))
+            nees.append(_nees(eng, truth, k))
+    out = {"t_s": np.array(ts), "err_3d_m": np.array(errs), "nees": np.array(nees),
+           "counters": dict(eng.counters)}
+    if keep_engine:
+        out["engine"] = eng
+    return out
+
+
+def _nees(eng: NavEngine, truth, k: int) -> float:
+    """NEES of the 9 navigation error states (attitude, position, velocity) at truth sample k."""
+    from companion.nav.filter import LAYOUT as L
+    err = np.empty(9)
+    # correction-convention errors: truth = estimate + error
+    dC = truth.C_b_e[k] @ eng.C_b_e.T
+    err[0:3] = 0.5 * np.array([dC[2, 1] - dC[1, 2], dC[0, 2] - dC[2, 0], dC[1, 0] - dC[0, 1]])
+    err[3:6] = truth.r_e[k] - eng.r_e
+    err[6:9] = truth.v_e[k] - eng.v_e
+    P = eng.kf.P[0:9, 0:9]
+    assert L.att == slice(0, 3) and L.pos == slice(3, 6) and L.vel == slice(6, 9)
+    return float(err @ np.linalg.solve(P, err))
+
+
+def run_gps_mode(sim, klobuchar=None):
+    """Standalone SPP at every rover epoch; error of the antenna position against truth."""
+    store = EphemerisStore(sim.ephemerides)
+    truth = sim.truth
+    t0 = truth.t_gps[0]
+    ts, errs = [], []
+    r_prev = None
+    for ep in sim.rover_epochs:
+        sol = spp_epoch(ep, store, klobuchar=klobuchar, r_init_e=r_prev)
+        if sol is None:
+            continue
+        r_prev = sol.r_e
+        r_ant_true = _truth_antenna_at(sim, ep.t_gps)
+        ts.append(ep.t_gps - t0)
+        errs.append(float(np.linalg.norm(sol.r_e - r_ant_true)))
+    return {"t_s": np.array(ts), "err_3d_m": np.array(errs)}
+
+
+def _truth_antenna_at(sim, t_gps: float) -> np.ndarray:
+    truth = sim.truth
+    k = int(np.searchsorted(truth.t_gps, t_gps))
+    k = min(max(k, 1), len(truth.t_gps) - 1)
+    a = (t_gps - truth.t_gps[k - 1]) / (truth.t_gps[k] - truth.t_gps[k - 1])
+    r = truth.r_e[k - 1] * (1 - a) + truth.r_e[k] * a
+    return r + truth.C_b_e[k] @ np.asarray(sim.lever_arm_b, float)
+
+
+def summarize(curves: list[dict], duration_s: float) -> dict:
+    """Average the runs' 1 Hz error curves; statistics over the flight."""
+    grid = np.arange(0.0, math.floor(duration_s) + 1e-9, 1.0)
+    stack = []
+    for c in curves:
+        stack.append(np.interp(grid, c["t_s"], c["err_3d_m"], left=np.nan, right=np.nan))
+    mean_curve = np.nanmean(np.array(stack), axis=0)
+    at = {str(int(t)): round(float(mean_curve[int(t)]), 3) for t in PAPER_TABLE4["t_s"] if t < len(grid)}
+    valid = np.isfinite(mean_curve)
+    return {"mean_3d_m": float(np.mean(mean_curve[valid])),
+            "rms_3d_m": float(np.sqrt(np.mean(np.concatenate([s[np.isfinite(s)] for s in stack]) ** 2))),
+            "max_3d_m": float(np.nanmax(mean_curve)),
+            "at_s": at, "curve_t_s": grid.tolist(), "curve_3d_m": [round(float(x), 4) for x in mean_curve]}
+
+
+def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progress=None) -> dict:
+    from .scenario import build_scenario
+    from .simulate import simulate
+    from .tuning import tuning_for
+
+    scenario = build_scenario(scenario_name)
+    tuning = tuning_for(scenario)
+    curves = {m: [] for m in modes}
+    nees_runs = []
+    counters = {}
+    t_start = time.perf_counter()
+    duration = None
+    for r in range(runs):
+        sim = simulate(scenario, seed + r)
+        duration = sim.truth.t_gps[-1] - sim.truth.t_gps[0]
+        for m in modes:
+            if m == "gps":
+                res = run_gps_mode(sim)
+            else:
+                res = run_ins_mode(m, sim, tuning, seed + r)
+                if m == "tdcp_dgps":
+                    nees_runs.append(res["nees"])
+                counters[m] = res.get("counters", {})
+            curves[m].append(res)
+        if progress:
+            progress(r + 1, runs, time.perf_counter() - t_start)
+    out = {"scenario": scenario_name, "runs": runs, "seed": seed, "modes": {}}
+    for m in modes:
+        s = summarize(curves[m], duration)
+        out["modes"][m] = s
+    if nees_runs:
+        avg = np.mean(np.array(nees_runs), axis=0)
+        out["tdcp_dgps_avg_nees_9dof"] = {"mean": float(np.mean(avg)), "median": float(np.median(avg))}
+    out["counters"] = counters
+    out["elapsed_s"] = time.perf_counter() - t_start
+    return out
+
+
+def format_table(result: dict) -> str:
+    modes = [m for m in MODES if m in result["modes"]]
+    paper = result["scenario"] == "paper"
+    head = f"{'t [s]':>6} | " + " | ".join(f"{m:>17}" for m in modes)
+    lines = [f"3-D position error (m), mean of {result['runs']} run(s), scenario '{result['scenario']}'"
+             + ("  [ours (paper Table 4)]" if paper else ""), head, "-" * len(head)]
+    for i, t in enumerate(PAPER_TABLE4["t_s"]):
+        cells = []
+        for m in modes:
+            ours = result["modes"][m]["at_s"].get(str(t))
+            if ours is None:
+                cells.append(f"{'-':>17}")
+                continue
+            txt = f"{ours:8.2f}"
+            if paper:
+                txt += f" ({PAPER_TABLE4[m][i]:6g})"
+            cells.append(f"{txt:>17}")
+        lines.append(f"{t:>6} | " + " | ".join(cells))
+    lines.append("-" * len(head))
+    cells = []
+    for m in modes:
+        txt = f"{result['modes'][m]['mean_3d_m']:8.2f}"
+        if paper:
+            pm = PAPER_MEAN[m]
+            txt += f" ({pm:6g})" if pm is not None else " (     -)"
+        cells.append(f"{txt:>17}")
+    lines.append(f"{'mean':>6} | " + " | ".join(cells))
+    return "\n".join(lines)
+
+
+def plot(result: dict, path: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 5))
+    for m in MODES:
+        if m in result["modes"]:
+            s = result["modes"][m]
+            ax.semilogy(s["curve_t_s"], np.maximum(s["curve_3d_m"], 1e-3), label=f"{m} (mean {s['mean_3d_m']:.2f} m)")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("3-D position error [m]")
+    ax.set_title(f"scenario '{result['scenario']}', {result['runs']} run(s)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
