@@ -1,0 +1,346 @@
+"""The field log: append-only, crash-safe, replayable record of every input the shell receives.
+
+File format (all integers little-endian), version 1
+---------------------------------------------------
+
+Each file starts with a 24-byte header::
+
+    magic      8 bytes  b"\\x89CFLOG\\r\\n"   (PNG-style: detects text-mode mangling)
+    version    u16      1
+    reserved   u16      0
+    sequence   u32      rotation sequence number of this file within its session
+    created    i64      wall-clock time the file was opened, ns since the Unix epoch
+
+followed by records::
+
+    magic      4 bytes  b"\\xd7\\x1eRC"
+    length     u32      payload length in bytes
+    t_mono_ns  i64      receive time, CLOCK_MONOTONIC ns (orders records, measures latency)
+    t_wall_ns  i64      receive time, wall clock, ns since the Unix epoch
+    kind_len   u8
+    kind       kind_len bytes, ASCII: stream id/kind, e.g. 'mavlink', 'ubx', 'rtcm', 'solution', 'event'
+    payload    length bytes, raw as received
+    crc32      u32      zlib.crc32 of everything from ``length`` through ``payload``
+
+Crash safety: records are only ever appended.  A ``kill -9`` (or power loss after the last
+fsync) leaves a file whose complete records all verify; a partial record at the end is detected
+(too short for its header/length, no later record magic) and reported as a truncated tail.  A
+corrupt record in the middle (CRC mismatch, impossible length) is reported and skipped: the reader
+resynchronises by scanning for the next record magic.  A payload may contain the magic bytes; a
+false resync then simply fails its CRC and the scan continues.
+
+Flush policy: records are buffered in memory and written + ``os.fsync``-ed together at most every
+``fsync_interval_s`` (default 1 s) -- by ``write`` when the interval has elapsed and by a small
+background thread when the stream goes quiet -- so a crash loses at most about the last interval.
+
+Rotation: when a file would exceed ``max_bytes`` a new file with the next sequence number is
+started.  Names are ``<stem>.<sequence:05d>.cflog``; files are created with ``O_EXCL`` and never
+overwritten.  Given a directory the writer picks ``stem = fieldlog-<UTC start time>``.
+"""
+from __future__ import annotations
+
+import os
+import struct
+import threading
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+FILE_MAGIC = b"\x89CFLOG\r\n"
+FILE_VERSION = 1
+FILE_HEADER = struct.Struct("<8sHHIq")
+RECORD_MAGIC = b"\xd7\x1eRC"
+RECORD_HEAD = struct.Struct("<4sIqqB")      # magic, length, t_mono, t_wall, kind_len
+CRC = struct.Struct("<I")
+SUFFIX = ".cflog"
+MAX_RECORD_PAYLOAD = 16 * 1024 * 1024
+
+
+@dataclass(frozen=True, slots=True)
+class FieldLogRecord:
+    t_mono_ns: int
+    t_wall_ns: int
+    kind: str
+    payload: bytes
+    file: str = ""
+    offset: int = 0
+
+
+def encode_record(kind: str, payload: bytes, t_mono_ns: int, t_wall_ns: int) -> bytes:
+    k = kind.encode("ascii")
+    if len(k) > 255:
+        raise ValueError("kind longer than 255 characters")
+    if len(payload) > MAX_RECORD_PAYLOAD:
+        raise ValueError(f"payload larger than {MAX_RECORD_PAYLOAD} bytes")
+    head = RECORD_HEAD.pack(RECORD_MAGIC, len(payload), t_mono_ns, t_wall_ns, len(k))
+    body = head[4:] + k + bytes(payload)
+    return RECORD_MAGIC + body + CRC.pack(zlib.crc32(body))
+
+
+class FieldLogWriter:
+    """Append-only, rotating, periodically fsync-ed field log writer (thread-safe ``write``)."""
+
+    def __init__(self, path_or_dir: str | os.PathLike, max_bytes: int = 64 * 1024 * 1024,
+                 fsync_interval_s: float = 1.0, background_flush: bool = True):
+        p = Path(path_or_dir)
+        if p.is_dir() or str(path_or_dir).endswith(os.sep) or p.suffix == "":
+            p.mkdir(parents=True, exist_ok=True)
+            self.directory = p
+            self.stem = "fieldlog-" + time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        else:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            self.directory = p.parent
+            self.stem = p.name[:-len(SUFFIX)] if p.name.endswith(SUFFIX) else p.stem
+        if max_bytes < FILE_HEADER.size + 64:
+            raise ValueError("max_bytes too small")
+        self.max_bytes = int(max_bytes)
+        self.fsync_interval_s = float(fsync_interval_s)
+        self.files: list[Path] = []
+        self.records_written = 0
+        self._seq = 0
+        self._fd: int | None = None
+        self._file_bytes = 0
+        self._file_records = 0
+        self._buf = bytearray()
+        self._last_sync = time.monotonic()
+        self._lock = threading.Lock()
+        self._closed = False
+        self._open_next()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if background_flush and self.fsync_interval_s > 0:
+            self._thread = threading.Thread(target=self._flusher, name="fieldlog-flush", daemon=True)
+            self._thread.start()
+
+    # -- files -------------------------------------------------------------------------------
+    def _open_next(self) -> None:
+        while True:
+            path = self.directory / f"{self.stem}.{self._seq:05d}{SUFFIX}"
+            try:
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o644)
+                break
+            except FileExistsError:
+                self._seq += 1
+        header = FILE_HEADER.pack(FILE_MAGIC, FILE_VERSION, 0, self._seq, time.time_ns())
+        os.write(fd, header)
+        os.fsync(fd)
+        try:   # make the new directory entry durable too
+            dfd = os.open(self.directory, os.O_RDONLY)
+            try:
+                os.fsync(dfd)
+            finally:
+                os.close(dfd)
+        except OSError:
+            pass
+        self._fd = fd
+        self._file_bytes = len(header)
+        self._file_records = 0
+        self.files.append(path)
+        self._seq += 1
+
+    def _sync_locked(self) -> None:
+        if self._fd is None:
+            return
+        if self._buf:
+            data = bytes(self._buf)
+            self._buf.clear()
+            done = 0
+            while done < len(data):
+                done += os.write(self._fd, data[done:])
+        os.fsync(self._fd)
+        self._last_sync = time.monotonic()
+
+    def _rotate_locked(self) -> None:
+        self._sync_locked()
+        os.close(self._fd)
+        self._fd = None
+        self._open_next()
+
+    # -- public ------------------------------------------------------------------------------
+    @property
+    def current_path(self) -> Path:
+        return self.files[-1]
+
+    def write(self, kind: str, payload: bytes, t_mono_ns: int | None = None,
+              t_wall_ns: int | None = None) -> None:
+        if t_mono_ns is None:
+            t_mono_ns = time.monotonic_ns()
+        if t_wall_ns is None:
+            t_wall_ns = time.time_ns()
+        rec = encode_record(kind, payload, t_mono_ns, t_wall_ns)
+        with self._lock:
+            if self._closed:
+                raise ValueError("write to a closed FieldLogWriter")
+            if self._file_records > 0 and self._file_bytes + len(rec) > self.max_bytes:
+                self._rotate_locked()
+            self._buf += rec
+            self._file_bytes += len(rec)
+            self._file_records += 1
+            self.records_written += 1
+            if time.monotonic() - self._last_sync >= self.fsync_interval_s:
+                self._sync_locked()
+
+    def flush(self) -> None:
+        """Write and fsync everything buffered now."""
+        with self._lock:
+            self._sync_locked()
+
+    def _flusher(self) -> None:
+        period = max(self.fsync_interval_s / 4.0, 0.01)
+        while not self._stop.wait(period):
+            with self._lock:
+                if self._closed:
+                    return
+                if self._buf and time.monotonic() - self._last_sync >= self.fsync_interval_s:
+                    self._sync_locked()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+        with self._lock:
+            if self._closed:
+                return
+            self._sync_locked()
+            os.close(self._fd)
+            self._fd = None
+            self._closed = True
+
+    def __enter__(self) -> "FieldLogWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ------------------------------------------------------------------------------------------
+@dataclass
+class FieldLogStats:
+    files: int = 0
+    records: int = 0
+    payload_bytes: int = 0
+    crc_errors: int = 0                 # records whose CRC failed (skipped)
+    bad_records: int = 0                # impossible length / kind, bad file header
+    skipped_bytes: int = 0              # bytes passed over while resynchronising
+    truncated_tails: list = field(default_factory=list)   # (file, bytes) partial records at file ends
+    errors: list = field(default_factory=list)            # (file, offset, reason), first 100
+
+    @property
+    def truncated_tail(self) -> bool:
+        return bool(self.truncated_tails)
+
+    def _error(self, file: str, offset: int, reason: str) -> None:
+        if len(self.errors) < 100:
+            self.errors.append((file, offset, reason))
+
+
+def field_log_files(path_or_dir: str | os.PathLike) -> list[Path]:
+    """The files of a log in replay order: a directory (all ``*.cflog``), one file, or a stem."""
+    p = Path(path_or_dir)
+    if p.is_dir():
+        return sorted(p.glob(f"*{SUFFIX}"))
+    if p.is_file():
+        return [p]
+    stem = p.name[:-len(SUFFIX)] if p.name.endswith(SUFFIX) else p.name
+    return sorted(p.parent.glob(f"{stem}.[0-9][0-9][0-9][0-9][0-9]{SUFFIX}"))
+
+
+class FieldLogReader:
+    """Iterate the records of a field log in order across rotated files; ``stats`` reports
+    what was read and what was skipped.  Never raises on corrupt content."""
+
+    def __init__(self, path_or_dir: str | os.PathLike):
+        self.files = field_log_files(path_or_dir)
+        self.stats = FieldLogStats()
+
+    def __iter__(self) -> Iterator[FieldLogRecord]:
+        for f in self.files:
+            yield from self._read_file(f)
+
+    def _read_file(self, path: Path) -> Iterator[FieldLogRecord]:
+        st = self.stats
+        name = str(path)
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            st._error(name, 0, f"unreadable: {exc}")
+            return
+        st.files += 1
+        if len(data) < FILE_HEADER.size:
+            st.truncated_tails.append((name, len(data)))
+            st._error(name, 0, "file shorter than its header")
+            return
+        magic, version, _r, _seq, _created = FILE_HEADER.unpack_from(data, 0)
+        pos = FILE_HEADER.size
+        if magic != FILE_MAGIC or version != FILE_VERSION:
+            st.bad_records += 1
+            st._error(name, 0, "bad file header; scanning for records")
+        n = len(data)
+        head = RECORD_HEAD.size
+        while pos < n:
+            if data[pos:pos + 4] != RECORD_MAGIC:
+                nxt = data.find(RECORD_MAGIC, pos + 1)
+                if nxt < 0:
+                    if n - pos < 4 and RECORD_MAGIC.startswith(data[pos:]):
+                        st.truncated_tails.append((name, n - pos))
+                    else:
+                        st.skipped_bytes += n - pos
+                        st._error(name, pos, "garbage at end of file")
+                    return
+                st.skipped_bytes += nxt - pos
+                st._error(name, pos, f"resync: skipped {nxt - pos} bytes")
+                pos = nxt
+                continue
+            ok_len = True
+            if n - pos >= head:
+                _m, length, t_mono, t_wall, klen = RECORD_HEAD.unpack_from(data, pos)
+                ok_len = length <= MAX_RECORD_PAYLOAD
+                end = pos + head + klen + length + 4
+            else:
+                end = n + 1
+            if not ok_len or end > n:
+                # incomplete: a truncated tail if nothing follows, else a corrupt length
+                nxt = data.find(RECORD_MAGIC, pos + 1)
+                if nxt < 0 and ok_len:
+                    st.truncated_tails.append((name, n - pos))
+                    return
+                st.bad_records += 1
+                st._error(name, pos, "impossible record length")
+                if nxt < 0:
+                    st.skipped_bytes += n - pos
+                    return
+                st.skipped_bytes += nxt - pos
+                pos = nxt
+                continue
+            body = data[pos + 4:end - 4]
+            (crc,) = CRC.unpack_from(data, end - 4)
+            if zlib.crc32(body) != crc:
+                st.crc_errors += 1
+                st._error(name, pos, "CRC mismatch")
+                nxt = data.find(RECORD_MAGIC, pos + 1)
+                if nxt < 0:
+                    st.skipped_bytes += n - pos
+                    return
+                st.skipped_bytes += nxt - pos
+                pos = nxt
+                continue
+            kind_b = data[pos + head:pos + head + klen]
+            try:
+                kind = kind_b.decode("ascii")
+            except UnicodeDecodeError:
+                kind = kind_b.decode("ascii", "replace")
+            payload = data[pos + head + klen:end - 4]
+            st.records += 1
+            st.payload_bytes += len(payload)
+            yield FieldLogRecord(t_mono, t_wall, kind, payload, name, pos)
+            pos = end
+
+
+def read_field_log(path_or_dir: str | os.PathLike) -> FieldLogReader:
+    """Records of a field log (directory, file or stem) in order; see :class:`FieldLogReader`.
+
+    ``reader = read_field_log(d); for rec in reader: ...; reader.stats``
+    """
+    return FieldLogReader(path_or_dir)

@@ -1,0 +1,644 @@
+"""RTCM 3 -> typed navigation messages, RTCM frame splitting and MAVLink GPS_RTCM_DATA fragments.
+
+* :class:`RtcmFramer` splits a byte stream (NTRIP, serial radio, MQTT payloads, a file) into
+  whole RTCM 3 frames (``0xD3``, 6 reserved bits, 10-bit length, payload, CRC-24Q).  Frames whose
+  CRC fails are counted and skipped; the framer resynchronises one byte after the false preamble,
+  so the good frames that follow are not lost.  The frames it returns are what the service
+  forwards to the autopilot.
+* :class:`RtcmDecoder` decodes frames (field extraction by pyrtcm) into
+
+  - :class:`~companion.messages.BaseStationPosition` from 1005/1006 (ARP, ECEF; 1006 adds the
+    antenna height, informational: DF025-027 already are the ARP);
+  - :class:`~companion.messages.GnssEpoch` (``source='base'``) from legacy 1004 (GPS L1/L2) and
+    from MSM4-MSM7 of GPS (107x), GLONASS (108x), Galileo (109x), SBAS (110x), QZSS (111x),
+    BeiDou (112x) and NavIC (113x).  All MSM messages of one epoch (multiple-message bit
+    DF393) are merged into one GnssEpoch;
+  - :class:`~companion.messages.GpsEphemeris` from 1019 (once per new IODE/toe per satellite).
+  - 1020 (GLONASS ephemeris) is used only for the satellites' FDMA frequency channels.
+
+Times: RTCM carries time of week (GPS, Galileo, QZSS, SBAS, NavIC: GPS TOW in ms; BeiDou: BDT =
+GPS - 14 s; GLONASS: day of week + Moscow time of day, converted with ``leap_seconds``).  The full
+week is resolved against ``week_hint``: an int GPS week, or a callable returning the current GPS
+time estimate (e.g. :func:`companion.io.ubx.system_clock_gps_time` for a live link, or the nav
+engine's time).  After the first epoch the decoder tracks its own time, so week roll-overs during a
+session are handled.  Without any hint, observation epochs and ephemerides are dropped and counted
+(``no_time_reference``): a replay must say what week it is.
+
+Observation conventions are those of :class:`~companion.messages.SatObservation`: pseudorange and
+carrier (cycles, RINEX sign) from rough + fine ranges; Doppler (MSM5/7) = -range rate / lambda;
+``lock_time_s`` is the *minimum* lock time the indicator guarantees; ``loss_of_lock`` is set when
+the lock time indicator decreased (RTKLIB's rule); ``half_cycle_ambiguous`` from DF420.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Union
+
+import numpy as np
+from pyrtcm import RTCMReader
+
+from ..gnss.lnav import URA_M, fit_interval_h
+from ..messages import (SECONDS_PER_WEEK, BaseStationPosition, GnssEpoch, GpsEphemeris,
+                        SatObservation)
+from .ubx import (DEFAULT_LEAP_SECONDS, RateLimitedLog, TimeReference, WeekHint,
+                  wavelength_m)
+
+log = logging.getLogger(__name__)
+
+RtcmMessage = Union[GnssEpoch, GpsEphemeris, BaseStationPosition]
+
+PREAMBLE = 0xD3
+MS_TO_M = 299792.458          # light travel in one millisecond, m
+PI_GPS = 3.1415926535898
+
+# --------------------------------------------------------------------------------------------
+# CRC-24Q (RTCM 10403 / Qualcomm), table driven.
+_CRC24Q_POLY = 0x1864CFB
+
+
+def _crc_table() -> list[int]:
+    table = []
+    for i in range(256):
+        c = i << 16
+        for _ in range(8):
+            c <<= 1
+            if c & 0x1000000:
+                c ^= _CRC24Q_POLY
+        table.append(c & 0xFFFFFF)
+    return table
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc24q(data: bytes | bytearray | memoryview) -> int:
+    crc = 0
+    table = _CRC_TABLE
+    for b in data:
+        crc = ((crc << 8) & 0xFFFFFF) ^ table[((crc >> 16) ^ b) & 0xFF]
+    return crc
+
+
+def frame_message_type(frame: bytes) -> int:
+    """Message number (first 12 payload bits) of a whole frame."""
+    return (frame[3] << 4) | (frame[4] >> 4) if len(frame) >= 6 else -1
+
+
+class RtcmFramer:
+    """Incremental splitter of a byte stream into CRC-checked RTCM 3 frames.
+
+    ``feed(data)`` returns the complete frames (bytes, preamble to CRC inclusive).  ``counters``:
+    ``frames``, ``bad_crc``, ``garbage_bytes``, ``bad_header`` (reserved bits set).
+    """
+
+    def __init__(self, log_interval_s: float = 10.0, name: str = "RTCM"):
+        self._buf = bytearray()
+        self.counters: dict[str, int] = {}
+        self._rlog = RateLimitedLog(log, log_interval_s)
+        self.name = name
+
+    def _count(self, reason: str, n: int = 1) -> None:
+        self.counters[reason] = self.counters.get(reason, 0) + n
+
+    def _reject(self, reason: str, detail: str = "", n: int = 1) -> None:
+        self._count(reason, n)
+        self._rlog.warn(f"{self.name} {reason}", self.counters[reason], detail)
+
+    @property
+    def pending_bytes(self) -> int:
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[bytes]:
+        frames: list[bytes] = []
+        buf = self._buf
+        buf += data
+        n = len(buf)
+        pos = 0
+        while True:
+            i = buf.find(PREAMBLE, pos)
+            if i < 0:
+                if n > pos:
+                    self._reject("garbage_bytes", n=n - pos)
+                pos = n
+                break
+            if i > pos:
+                self._reject("garbage_bytes", n=i - pos)
+            pos = i
+            if n - pos < 3:
+                break
+            if buf[pos + 1] & 0xFC:
+                # reserved bits must be zero: not a frame start
+                self._count("bad_header")
+                self._count("garbage_bytes")
+                pos += 1
+                continue
+            length = ((buf[pos + 1] & 0x03) << 8) | buf[pos + 2]
+            end = pos + 3 + length + 3
+            if end > n:
+                break
+            crc = (buf[end - 3] << 16) | (buf[end - 2] << 8) | buf[end - 1]
+            if length == 0 or crc24q(memoryview(buf)[pos:end - 3]) != crc:
+                self._reject("bad_crc", f"{length}-byte frame")
+                pos += 1
+                continue
+            frames.append(bytes(buf[pos:end]))
+            self._count("frames")
+            pos = end
+        del buf[:pos]
+        return frames
+
+
+# --------------------------------------------------------------------------------------------
+# MAVLink GPS_RTCM_DATA fragmentation (common.xml message 233; ArduPilot AP_GPS::handle_gps_rtcm_fragment).
+GPS_RTCM_DATA_LEN = 180
+GPS_RTCM_MAX_FRAGMENTS = 4
+
+
+def rtcm_to_gps_rtcm_data_fragments(frame: bytes, seq: int) -> list[tuple[int, bytes]]:
+    """Split one RTCM frame into GPS_RTCM_DATA ``(flags, data)`` pairs (data unpadded; its length
+    is the message's ``len`` field and the caller pads ``data`` to 180 bytes).
+
+    flags: bit 0 = fragmented, bits 1-2 = fragment id, bits 3-7 = sequence id (``seq & 0x1F``).
+
+    * ``len(frame) <= 180``: one unfragmented message (ArduPilot injects it directly).
+    * 181..720 bytes: fragments of 180 bytes, the last shorter.  The autopilot knows it has the
+      whole frame when a fragment shorter than 180 bytes arrives, or when all four fragments
+      are full; so a frame of exactly 360 or 540 bytes is followed by a zero-length fragment.
+    * more than 720 bytes: cannot be sent (two bits of fragment id): returns ``[]``.
+    """
+    n = len(frame)
+    if n == 0 or n > GPS_RTCM_DATA_LEN * GPS_RTCM_MAX_FRAGMENTS:
+        return []
+    seq_bits = (seq & 0x1F) << 3
+    if n <= GPS_RTCM_DATA_LEN:
+        return [(seq_bits, bytes(frame))]
+    chunks = [bytes(frame[i:i + GPS_RTCM_DATA_LEN]) for i in range(0, n, GPS_RTCM_DATA_LEN)]
+    if n % GPS_RTCM_DATA_LEN == 0 and len(chunks) < GPS_RTCM_MAX_FRAGMENTS:
+        chunks.append(b"")
+    return [(1 | (k << 1) | seq_bits, c) for k, c in enumerate(chunks)]
+
+
+class GpsRtcmDataFragmenter:
+    """Stateful wrapper: advances the 5-bit sequence id per frame and counts dropped frames."""
+
+    def __init__(self):
+        self.seq = 0
+        self.counters: dict[str, int] = {"frames": 0, "fragments": 0, "dropped_too_long": 0}
+
+    def fragments(self, frame: bytes) -> list[tuple[int, bytes]]:
+        out = rtcm_to_gps_rtcm_data_fragments(frame, self.seq)
+        if not out:
+            self.counters["dropped_too_long"] += 1
+            log.warning("RTCM frame of %d bytes is too long for GPS_RTCM_DATA, dropped", len(frame))
+            return []
+        self.seq = (self.seq + 1) & 0x1F
+        self.counters["frames"] += 1
+        self.counters["fragments"] += len(out)
+        return out
+
+
+# --------------------------------------------------------------------------------------------
+# Lock time indicators -> minimum lock time (s)
+def lock_time_df013(i: int) -> float:
+    """1004 / 1012 L1/L2 lock time indicator (7 bits) -> minimum lock time, s."""
+    if i < 24:
+        return float(i)
+    if i < 48:
+        return 2.0 * i - 24
+    if i < 72:
+        return 4.0 * i - 120
+    if i < 96:
+        return 8.0 * i - 408
+    if i < 120:
+        return 16.0 * i - 1176
+    if i < 127:
+        return 32.0 * i - 3096
+    return 937.0
+
+
+def lock_time_df402(i: int) -> float:
+    """MSM4/5 lock time indicator (4 bits) -> minimum lock time, s."""
+    return 0.0 if i == 0 else 2.0 ** (i + 4) * 1e-3
+
+
+def lock_time_df407(i: int) -> float:
+    """MSM6/7 extended lock time indicator (10 bits) -> minimum lock time, s."""
+    if i < 64:
+        return i * 1e-3
+    if i > 704:
+        return math.nan
+    if i == 704:
+        return 67108.864
+    n = (i - 64) // 32 + 1
+    offset = 0
+    for k in range(1, n + 1):
+        offset += 2 ** (k - 1) * 32 * (k + 1)
+    return (2 ** n * i - offset) * 1e-3
+
+
+# --------------------------------------------------------------------------------------------
+# MSM: message number -> (system letter, msm type)
+_MSM_SYSTEMS = {107: "G", 108: "R", 109: "E", 110: "S", 111: "J", 112: "C", 113: "I"}
+_MSM_TIME_FIELD = {"G": "DF004", "R": None, "E": "DF248", "S": "DF004", "J": "DF428",
+                   "C": "DF427", "I": "DF546"}
+_INVALID_FINE_PR_MS = -2.0 ** -10      # DF400 / DF405 "invalid" marker after scaling
+_INVALID_FINE_PH_MS = -2.0 ** -8       # DF401 / DF406
+_INVALID_FINE_RATE = -1.6384           # DF404
+
+
+def _msm_sat_id(system: str, prn: int) -> str | None:
+    if system == "J" and prn > 192:
+        prn -= 192
+    elif system == "S":
+        prn = prn - 100 if prn >= 100 else prn + 19
+    if not 1 <= prn <= 99:
+        return None
+    return f"{system}{prn:02d}"
+
+
+@dataclass
+class _PendingEpoch:
+    t_gps: float
+    observations: list = field(default_factory=list)
+    more_follow: bool = True
+    systems: set = field(default_factory=set)
+
+
+class RtcmDecoder:
+    """Incremental RTCM 3 decoder; see the module docstring.
+
+    ``feed(data)`` frames and decodes; ``decode_frame(frame)`` decodes one already framed message
+    (use this when the same frames are also forwarded).  ``flush()`` returns a pending epoch whose
+    closing message never came (end of file).  ``counters`` merges the framer's and the decoder's.
+    """
+
+    def __init__(self, week_hint: WeekHint = None, leap_seconds: int = DEFAULT_LEAP_SECONDS,
+                 log_interval_s: float = 10.0):
+        self.framer = RtcmFramer(log_interval_s)
+        self.time_ref = TimeReference(week_hint)
+        self.leap_seconds = leap_seconds
+        self._counters: dict[str, int] = {}
+        self._rlog = RateLimitedLog(log, log_interval_s)
+        self._pending: _PendingEpoch | None = None
+        self._lock: dict[tuple[str, str], float] = {}
+        self._cp_adj: dict[tuple[str, str], float] = {}
+        self._glo_channel: dict[int, int] = {}
+        self._eph_last: dict[str, tuple] = {}
+
+    @property
+    def counters(self) -> dict[str, int]:
+        out = dict(self.framer.counters)
+        for k, v in self._counters.items():
+            out[k] = out.get(k, 0) + v
+        return out
+
+    def _count(self, reason: str, n: int = 1) -> None:
+        self._counters[reason] = self._counters.get(reason, 0) + n
+
+    def _reject(self, reason: str, detail: str = "") -> None:
+        self._count(reason)
+        self._rlog.warn(f"RTCM {reason}", self._counters[reason], detail)
+
+    # -- entry points ------------------------------------------------------------------------
+    def feed(self, data: bytes) -> list[RtcmMessage]:
+        out: list[RtcmMessage] = []
+        for frame in self.framer.feed(data):
+            out.extend(self.decode_frame(frame))
+        return out
+
+    def flush(self) -> list[RtcmMessage]:
+        if self._pending is None:
+            return []
+        p, self._pending = self._pending, None
+        return [self._make_epoch(p)]
+
+    def decode_frame(self, frame: bytes) -> list[RtcmMessage]:
+        mtype = frame_message_type(frame)
+        try:
+            return self._decode(mtype, frame)
+        except Exception as exc:  # malformed content in a CRC-valid frame: never raise
+            self._reject("bad_payload", f"type {mtype}: {exc!r}")
+            return []
+
+    # -- dispatch ----------------------------------------------------------------------------
+    def _decode(self, mtype: int, frame: bytes) -> list[RtcmMessage]:
+        family, sub = divmod(mtype, 10)
+        if family in _MSM_SYSTEMS and 1 <= sub <= 7:
+            msg = RTCMReader.parse(frame, validate=0, labelmsm=1)
+            system = _MSM_SYSTEMS[family]
+            if sub < 4:
+                # no full pseudorange in MSM1-3: only keep the epoch bookkeeping right
+                self._count("msm1_3_unsupported")
+                t_gps = self._msm_time(msg, system)
+                return [] if t_gps is None else self._add_observations(t_gps, [], bool(msg.DF393), system)
+            return self._msm(msg, system, sub)
+        if mtype in (1005, 1006):
+            msg = RTCMReader.parse(frame, validate=0)
+            self._count("station")
+            return [BaseStationPosition(
+                station_id=int(msg.DF003),
+                r_e=np.array([msg.DF025, msg.DF026, msg.DF027], float),
+                antenna_height_m=float(getattr(msg, "DF028", 0.0)))]
+        if mtype in (1002, 1004):
+            msg = RTCMReader.parse(frame, validate=0)
+            return self._legacy_gps(msg)
+        if mtype in (1010, 1012):
+            msg = RTCMReader.parse(frame, validate=0)
+            return self._legacy_glonass(msg)
+        if mtype in (1001, 1003, 1009, 1011):
+            # no integer-millisecond ambiguity: no full pseudorange.  Keep epoch bookkeeping.
+            msg = RTCMReader.parse(frame, validate=0)
+            self._count(f"ignored_{mtype}")
+            if mtype < 1009:
+                t_gps = self._resolve(msg.DF004 * 1e-3)
+                sys_ = "G"
+            else:
+                t_gps = self._resolve(self._glonass_tod_to_tow(int(msg.DF034) * 1e-3, self.leap_seconds), 86400.0)
+                sys_ = "R"
+            return [] if t_gps is None else self._add_observations(t_gps, [], bool(msg.DF005), sys_)
+        if mtype == 1019:
+            msg = RTCMReader.parse(frame, validate=0)
+            eph = self._gps_eph(msg)
+            return [eph] if eph is not None else []
+        if mtype == 1020:
+            msg = RTCMReader.parse(frame, validate=0)
+            self._glo_channel[int(msg.DF038)] = int(msg.DF040) - 7
+            self._count("glonass_channel")
+            return []
+        self._count(f"ignored_{mtype}")
+        return []
+
+    # -- epochs ------------------------------------------------------------------------------
+    def _make_epoch(self, p: _PendingEpoch) -> GnssEpoch:
+        self._count("epochs")
+        return GnssEpoch(t_gps=p.t_gps, observations=tuple(p.observations), source="base")
+
+    def _add_observations(self, t_gps: float, obs: list[SatObservation], more_follow: bool,
+                          system: str) -> list[RtcmMessage]:
+        out: list[RtcmMessage] = []
+        p = self._pending
+        if (p is not None and p.more_follow and system not in p.systems
+                and abs(t_gps - p.t_gps) > 1e-6):
+            # A message announced as part of the pending epoch (DF393/DF005 of the previous
+            # message), from a system not yet in it, whose time differs by whole seconds: a
+            # GLONASS leap-second or BeiDou BDT/GPST mismatch of the sender or of
+            # ``leap_seconds``.  Keep the epoch together and count it.
+            d = t_gps - p.t_gps
+            if abs(d - round(d)) < 1e-6 and abs(round(d)) <= 30:
+                self._reject("epoch_time_mismatch", f"{system} {d:+.0f} s")
+                t_gps = p.t_gps
+        if p is not None and abs(p.t_gps - t_gps) > 1e-6:
+            if p.more_follow:
+                self._count("epoch_incomplete")
+            out.append(self._make_epoch(p))
+            p = self._pending = None
+        if p is None:
+            p = self._pending = _PendingEpoch(t_gps)
+        p.observations.extend(obs)
+        p.systems.add(system)
+        p.more_follow = more_follow
+        self.time_ref.update(t_gps)
+        if not more_follow:
+            out.append(self._make_epoch(p))
+            self._pending = None
+        return out
+
+    def _resolve(self, tow_s: float, period_s: float = SECONDS_PER_WEEK) -> float | None:
+        t = self.time_ref.resolve_tow(tow_s, period_s)
+        if t is None:
+            self._reject("no_time_reference", "pass week_hint to RtcmDecoder")
+        return t
+
+    def _slip(self, sat: str, signal: str, lock_s: float) -> bool:
+        prev = self._lock.get((sat, signal))
+        self._lock[(sat, signal)] = lock_s
+        return prev is not None and lock_s < prev
+
+    # -- 1004 --------------------------------------------------------------------------------
+    def _adjust_cp(self, key: tuple[str, str], cp_cycles: float) -> float:
+        """Undo the sender's 1500-cycle roll-overs of the phase-minus-pseudorange difference."""
+        prev = self._cp_adj.get(key)
+        if prev is not None:
+            if cp_cycles < prev - 750.0:
+                cp_cycles += 1500.0 * math.ceil((prev - 750.0 - cp_cycles) / 1500.0)
+            elif cp_cycles > prev + 750.0:
+                cp_cycles -= 1500.0 * math.ceil((cp_cycles - prev - 750.0) / 1500.0)
+        self._cp_adj[key] = cp_cycles
+        return cp_cycles
+
+    def _legacy_gps(self, msg) -> list[RtcmMessage]:
+        t_gps = self._resolve(msg.DF004 * 1e-3)
+        if t_gps is None:
+            return []
+        self._count(f"obs_{msg.identity}")
+        obs = self._legacy_obs(msg, "G", int(msg.DF006), MS_TO_M,
+                               ("DF009", "DF010", "DF011", "DF012", "DF013", "DF014", "DF015",
+                                "DF016", "DF017", "DF018", "DF019", "DF020"),
+                               ("L1C", "L1P"), ("L2X", "L2P", "L2D", "L2W"))
+        return self._add_observations(t_gps, obs, bool(msg.DF005), "G")
+
+    @staticmethod
+    def _glonass_tod_to_tow(tod_s: float, leap_seconds: int = DEFAULT_LEAP_SECONDS) -> float:
+        return (tod_s - 3 * 3600.0 + leap_seconds) % 86400.0
+
+    def _legacy_glonass(self, msg) -> list[RtcmMessage]:
+        t_gps = self._resolve(self._glonass_tod_to_tow(int(msg.DF034) * 1e-3, self.leap_seconds), 86400.0)
+        if t_gps is None:
+            return []
+        self._count(f"obs_{msg.identity}")
+        obs = self._legacy_obs(msg, "R", int(msg.DF035), 2 * MS_TO_M,
+                               ("DF038", "DF039", "DF041", "DF042", "DF043", "DF044", "DF045",
+                                "DF046", "DF047", "DF048", "DF049", "DF050"),
+                               ("L1C", "L1P"), ("L2C", "L2P", "L2P", "L2P"))
+        return self._add_observations(t_gps, obs, bool(msg.DF005), "R")
+
+    def _legacy_obs(self, msg, system: str, nsat: int, modulus_m: float, f: tuple,
+                    codes1: tuple, codes2: tuple) -> list[SatObservation]:
+        """1002/1004 (GPS) and 1010/1012 (GLONASS) satellite blocks."""
+        (f_sat, f_code1, f_pr1, f_ppr1, f_lock1, f_amb, f_cnr1,
+         f_code2, f_dpr2, f_ppr2, f_lock2, f_cnr2) = f
+        obs: list[SatObservation] = []
+        for k in range(1, nsat + 1):
+            s = f"_{k:02d}"
+            prn = int(getattr(msg, f_sat + s))
+            glo_k = None
+            if system == "G":
+                sat = f"S{prn + 80 - 100:02d}" if prn >= 40 else f"G{prn:02d}"
+            else:
+                sat = f"R{prn:02d}"
+                glo_k = int(msg.__dict__.get("DF040" + s, 0)) - 7
+                self._glo_channel[prn] = glo_k
+            pr1 = float(getattr(msg, f_pr1 + s)) + int(getattr(msg, f_amb + s)) * modulus_m
+            sig1 = codes1[int(getattr(msg, f_code1 + s)) & 1]
+            lam1 = wavelength_m(sat, sig1, glo_k)
+            ppr1 = float(getattr(msg, f_ppr1 + s))
+            cp1 = math.nan
+            lock1 = lock_time_df013(int(getattr(msg, f_lock1 + s)))
+            if abs(ppr1 + 262.144) > 1e-6 and math.isfinite(lam1):
+                cp1 = pr1 / lam1 + self._adjust_cp((sat, sig1), ppr1 / lam1)
+            cnr1 = float(getattr(msg, f_cnr1 + s))
+            obs.append(SatObservation(
+                sat=sat, pseudorange_m=pr1, carrier_cycles=cp1,
+                cn0_dbhz=cnr1 if cnr1 > 0 else math.nan, lock_time_s=lock1,
+                loss_of_lock=math.isfinite(cp1) and self._slip(sat, sig1, lock1),
+                signal=sig1, wavelength_m=lam1))
+            if not hasattr(msg, f_dpr2 + s):
+                continue           # L1-only message (1002 / 1010)
+            dpr2 = float(getattr(msg, f_dpr2 + s))
+            ppr2 = float(getattr(msg, f_ppr2 + s))
+            pr2_valid = abs(dpr2 + 163.84) > 1e-6
+            cp2_valid = abs(ppr2 + 262.144) > 1e-6
+            cnr2 = float(getattr(msg, f_cnr2 + s))
+            if not (pr2_valid or cp2_valid) or (cnr2 == 0 and dpr2 == 0 and ppr2 == 0):
+                continue           # no L2 for this satellite
+            sig2 = codes2[int(getattr(msg, f_code2 + s)) & 3]
+            lam2 = wavelength_m(sat, sig2, glo_k)
+            cp2 = math.nan
+            lock2 = lock_time_df013(int(getattr(msg, f_lock2 + s)))
+            if cp2_valid and math.isfinite(lam2):
+                cp2 = pr1 / lam2 + self._adjust_cp((sat, sig2), ppr2 / lam2)
+            obs.append(SatObservation(
+                sat=sat, pseudorange_m=pr1 + dpr2 if pr2_valid else math.nan, carrier_cycles=cp2,
+                cn0_dbhz=cnr2 if cnr2 > 0 else math.nan, lock_time_s=lock2,
+                loss_of_lock=math.isfinite(cp2) and self._slip(sat, sig2, lock2),
+                signal=sig2, wavelength_m=lam2))
+        return obs
+
+    # -- MSM4..7 -----------------------------------------------------------------------------
+    def _msm_time(self, msg, system: str) -> float | None:
+        if system == "R":
+            dow = int(msg.DF416)
+            tod_s = int(msg.DF034) * 1e-3 - 3 * 3600.0 + self.leap_seconds
+            if dow == 7:
+                return self._resolve(tod_s % 86400.0, 86400.0)
+            return self._resolve((dow * 86400.0 + tod_s) % SECONDS_PER_WEEK)
+        tow_s = int(getattr(msg, _MSM_TIME_FIELD[system])) * 1e-3
+        if system == "C":
+            tow_s = (tow_s + 14.0) % SECONDS_PER_WEEK
+        return self._resolve(tow_s)
+
+    def _msm(self, msg, system: str, msm: int) -> list[RtcmMessage]:
+        t_gps = self._msm_time(msg, system)
+        if t_gps is None:
+            return []
+        self._count(f"msm{msm}")
+        nsat, ncell = int(msg.NSat), int(msg.NCell)
+        sats = {}
+        for i in range(1, nsat + 1):
+            s = f"_{i:02d}"
+            prn = int(getattr(msg, "PRN" + s))
+            rough_ms = int(getattr(msg, "DF397" + s))
+            rough = math.nan if rough_ms == 255 else rough_ms + float(getattr(msg, "DF398" + s))
+            ext = getattr(msg, "DF419" + s, None)
+            if ext is None:
+                ext = getattr(msg, "ExtSatInfo" + s, None)
+            rate = getattr(msg, "DF399" + s, None)
+            rate = math.nan if rate is None or int(rate) == -8192 else float(rate)
+            glo_k = None
+            if system == "R":
+                if ext is not None and int(ext) <= 13:
+                    glo_k = int(ext) - 7
+                    self._glo_channel[prn] = glo_k
+                else:
+                    glo_k = self._glo_channel.get(prn)
+            sats[prn] = (rough, rate, glo_k)
+        if msm in (4, 5):
+            f_pr, f_ph, f_lock, f_cnr = "DF400", "DF401", "DF402", "DF403"
+            lock_fn = lock_time_df402
+        else:
+            f_pr, f_ph, f_lock, f_cnr = "DF405", "DF406", "DF407", "DF408"
+            lock_fn = lock_time_df407
+        obs: list[SatObservation] = []
+        for j in range(1, ncell + 1):
+            s = f"_{j:02d}"
+            prn = int(getattr(msg, "CELLPRN" + s))
+            code = str(getattr(msg, "CELLSIG" + s))
+            sat = _msm_sat_id(system, prn)
+            if sat is None or prn not in sats or len(code) != 2:
+                self._count("msm_unknown_signal")
+                continue
+            signal = "L" + code
+            rough, rate, glo_k = sats[prn]
+            lam = wavelength_m(sat, signal, glo_k)
+            fine_pr = float(getattr(msg, f_pr + s))
+            fine_ph = float(getattr(msg, f_ph + s))
+            pr = math.nan
+            if math.isfinite(rough) and abs(fine_pr - _INVALID_FINE_PR_MS) > 1e-12:
+                pr = (rough + fine_pr) * MS_TO_M
+            cp = math.nan
+            if math.isfinite(rough) and abs(fine_ph - _INVALID_FINE_PH_MS) > 1e-12 and math.isfinite(lam):
+                cp = (rough + fine_ph) * MS_TO_M / lam
+            elif math.isfinite(rough) and not math.isfinite(lam):
+                self._count("glonass_channel_unknown")
+            lock_s = lock_fn(int(getattr(msg, f_lock + s)))
+            dop = math.nan
+            if msm in (5, 7) and math.isfinite(rate) and math.isfinite(lam):
+                fine_rate = float(getattr(msg, "DF404" + s))
+                if abs(fine_rate - _INVALID_FINE_RATE) > 1e-9:
+                    dop = -(rate + fine_rate) / lam
+            cnr = float(getattr(msg, f_cnr + s))
+            obs.append(SatObservation(
+                sat=sat, pseudorange_m=pr, carrier_cycles=cp, doppler_hz=dop,
+                cn0_dbhz=cnr if cnr > 0 else math.nan, lock_time_s=lock_s,
+                half_cycle_ambiguous=bool(int(getattr(msg, "DF420" + s))) and math.isfinite(cp),
+                loss_of_lock=math.isfinite(cp) and self._slip(sat, signal, lock_s),
+                signal=signal, wavelength_m=lam))
+        return self._add_observations(t_gps, obs, bool(msg.DF393), system)
+
+    # -- 1019 --------------------------------------------------------------------------------
+    def _gps_eph(self, msg) -> GpsEphemeris | None:
+        ref = self.time_ref.reference()
+        if ref is None:
+            self._reject("no_time_reference", "pass week_hint to RtcmDecoder")
+            return None
+        prn = int(msg.DF009)
+        week = int(msg.DF076)
+        week = week + 1024 * round((ref / SECONDS_PER_WEEK - week) / 1024)
+        toe = float(msg.DF093)
+        # week of toe: within half a week of the reference time (RTKLIB's rule)
+        dt = week * SECONDS_PER_WEEK + toe - ref
+        if dt < -SECONDS_PER_WEEK / 2:
+            week += 1
+        elif dt >= SECONDS_PER_WEEK / 2:
+            week -= 1
+        pi = PI_GPS
+        iodc = int(msg.DF085)
+        iode = int(msg.DF071)
+        ura_index = int(msg.DF077) & 0x0F
+        eph = GpsEphemeris(
+            sat=f"G{prn:02d}", week=week, toe_s=toe, toc_s=float(msg.DF081),
+            sqrt_a=float(msg.DF092), e=float(msg.DF090), i0_rad=float(msg.DF097) * pi,
+            omega0_rad=float(msg.DF095) * pi, omega_rad=float(msg.DF099) * pi,
+            m0_rad=float(msg.DF088) * pi, delta_n_radps=float(msg.DF087) * pi,
+            idot_radps=float(msg.DF079) * pi, omega_dot_radps=float(msg.DF100) * pi,
+            cuc_rad=float(msg.DF089), cus_rad=float(msg.DF091), crc_m=float(msg.DF098),
+            crs_m=float(msg.DF086), cic_rad=float(msg.DF094), cis_rad=float(msg.DF096),
+            af0_s=float(msg.DF084), af1_sps=float(msg.DF083), af2_sps2=float(msg.DF082),
+            tgd_s=float(msg.DF101), iode=iode, iodc=iodc, health=int(msg.DF102),
+            ura_m=URA_M[ura_index], fit_interval_h=fit_interval_h(int(msg.DF137), iodc))
+        key = (eph.iode, eph.week, eph.toe_s)
+        if self._eph_last.get(eph.sat) == key:
+            self._count("ephemeris_repeat")
+            return None
+        self._eph_last[eph.sat] = key
+        self._count("ephemerides")
+        return eph
+
+
+def decode_rtcm_file(path: str, week_hint: WeekHint = None, chunk_size: int = 4096,
+                     leap_seconds: int = DEFAULT_LEAP_SECONDS) -> tuple[list[RtcmMessage], RtcmDecoder]:
+    """Convenience: decode a whole RTCM 3 file (in chunks, like a live stream)."""
+    dec = RtcmDecoder(week_hint=week_hint, leap_seconds=leap_seconds)
+    out: list[RtcmMessage] = []
+    with open(path, "rb") as f:
+        while chunk := f.read(chunk_size):
+            out.extend(dec.feed(chunk))
+    out.extend(dec.flush())
+    return out, dec
+
+
+__all__ = ["RtcmFramer", "RtcmDecoder", "GpsRtcmDataFragmenter", "rtcm_to_gps_rtcm_data_fragments",
+           "crc24q", "frame_message_type", "decode_rtcm_file", "lock_time_df013", "lock_time_df402",
+           "lock_time_df407"]

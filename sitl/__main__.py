@@ -1,0 +1,75 @@
+"""python -m sitl: simulation, reproduction of the papers' experiments, benchmarks."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _write_json(path: str | None, obj) -> None:
+    if path:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps(obj, indent=2))
+        print(f"wrote {path}")
+
+
+def _progress(done: int, total: int, elapsed_s: float) -> None:
+    width = 30
+    filled = int(width * done / total)
+    eta = elapsed_s / done * (total - done)
+    sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] run {done}/{total}  "
+                     f"{elapsed_s:6.1f} s elapsed, ~{eta:5.1f} s left")
+    if done == total:
+        sys.stderr.write("\n")
+    sys.stderr.flush()
+
+
+def cmd_paper(args) -> int:
+    from .paper import format_table, plot, run_experiment
+    result = run_experiment(args.scenario, args.runs, args.seed, progress=_progress, jobs=args.jobs)
+    print(format_table(result))
+    if "tdcp_dgps_avg_nees_9dof" in result:
+        nees = result["tdcp_dgps_avg_nees_9dof"]
+        print(f"tdcp_dgps: run-averaged NEES (9 dof: attitude, position, velocity) mean {nees['mean']:.2f}")
+    if "outage" in result:
+        o = result["outage"]
+        print(f"tdcp_dgps over the GNSS outage ({o['duration_s']:.0f} s): 3-D error {o['err_start_m']:.2f} m at "
+              f"its start, {o['err_end_m']:.2f} m at its end (max {o['err_max_m']:.2f} m); "
+              f"horizontal RMS over the flight {result['modes']['tdcp_dgps']['rms_h_m']:.3f} m")
+    _write_json(args.json, result)
+    if args.plot:
+        plot(result, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import format_bench, run_bench
+    result = run_bench(args.duration)
+    print(format_bench(result))
+    _write_json(args.json, result)
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m sitl", description=__doc__)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    pp = sub.add_parser("paper", help="seed 000's experiment: five navigation modes on the same simulated data")
+    pp.add_argument("--scenario", default="paper", help="paper (seed 000 sec 4.1) or uav (realistic survey flight)")
+    pp.add_argument("--runs", type=int, default=20, help="Monte Carlo runs (default 20)")
+    pp.add_argument("--seed", type=int, default=1, help="seed of the first run; run i uses seed+i")
+    pp.add_argument("--jobs", type=int, default=0, help="worker processes (default: one per CPU core)")
+    pp.add_argument("--json", help="write the results as JSON here")
+    pp.add_argument("--plot", help="write a PNG of the error of every mode against time here")
+    pp.set_defaults(func=cmd_paper)
+    pb = sub.add_parser("bench", help="engine throughput, latency and memory")
+    pb.add_argument("--duration", type=float, default=None, help="seconds of the uav flight to use (default: all)")
+    pb.add_argument("--json", help="write the figures as JSON here")
+    pb.set_defaults(func=cmd_bench)
+    args = p.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
