@@ -22,7 +22,7 @@ import numpy as np
 from companion.gnss.ephemeris_store import EphemerisStore
 from companion.gnss.spp import spp_epoch
 from companion.nav.engine import EngineConfig, NavEngine
-from companion.nav.earth import rotation_from_rotvec
+from companion.nav.earth import C_n_e, ecef_to_geodetic, rotation_from_rotvec
 from companion.nav.filter import ProcessNoise
 
 MODES = ("ins", "gps", "loose", "tight", "tdcp_dgps")
@@ -95,7 +95,11 @@ def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s
     lat = tuning.gnss_latency_s
     t0 = truth.t_gps[0]
     step = max(1, int(round(record_every_s / (truth.t_gps[1] - truth.t_gps[0]))))
-    ts, errs, nees = [0.0], [float(np.linalg.norm(eng.r_e - truth.r_e[0]))], []
+    lat0, lon0, _ = ecef_to_geodetic(truth.r_e[0])
+    up_e = -C_n_e(lat0, lon0)[:, 2]   # local vertical (the flights span a few km: one is enough)
+    d0 = eng.r_e - truth.r_e[0]
+    ts, errs, nees = [0.0], [float(np.linalg.norm(d0))], []
+    errs_h = [float(np.linalg.norm(d0 - up_e * (d0 @ up_e)))]
     for k, s in enumerate(sim.imu, start=1):
         if use_gnss:
             while i_base < len(base) and base[i_base].t_gps + lat <= s.t_gps:
@@ -106,11 +110,13 @@ def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s
                 i_rov += 1
         eng.process_imu(s)
         if k % step == 0:
+            d = eng.r_e - truth.r_e[k]
             ts.append(s.t_gps - t0)
-            errs.append(float(np.linalg.norm(eng.r_e - truth.r_e[k])))
+            errs.append(float(np.linalg.norm(d)))
+            errs_h.append(float(np.linalg.norm(d - up_e * (d @ up_e))))
             nees.append(_nees(eng, truth, k))
-    out = {"t_s": np.array(ts), "err_3d_m": np.array(errs), "nees": np.array(nees),
-           "counters": dict(eng.counters)}
+    out = {"t_s": np.array(ts), "err_3d_m": np.array(errs), "err_h_m": np.array(errs_h),
+           "nees": np.array(nees), "counters": dict(eng.counters)}
     if keep_engine:
         out["engine"] = eng
     return out
@@ -135,17 +141,21 @@ def run_gps_mode(sim, klobuchar=None):
     store = EphemerisStore(sim.ephemerides)
     truth = sim.truth
     t0 = truth.t_gps[0]
-    ts, errs = [], []
+    ts, errs, errs_h = [], [], []
     r_prev = None
+    lat0, lon0, _ = ecef_to_geodetic(truth.r_e[0])
+    up_e = -C_n_e(lat0, lon0)[:, 2]
     for ep in sim.rover_epochs:
         sol = spp_epoch(ep, store, klobuchar=klobuchar, r_init_e=r_prev)
         if sol is None:
             continue
         r_prev = sol.r_e
         r_ant_true = _truth_antenna_at(sim, ep.t_gps)
+        d = sol.r_e - r_ant_true
         ts.append(ep.t_gps - t0)
-        errs.append(float(np.linalg.norm(sol.r_e - r_ant_true)))
-    return {"t_s": np.array(ts), "err_3d_m": np.array(errs)}
+        errs.append(float(np.linalg.norm(d)))
+        errs_h.append(float(np.linalg.norm(d - up_e * (d @ up_e))))
+    return {"t_s": np.array(ts), "err_3d_m": np.array(errs), "err_h_m": np.array(errs_h)}
 
 
 def _truth_antenna_at(sim, t_gps: float) -> np.ndarray:
@@ -166,46 +176,71 @@ def summarize(curves: list[dict], duration_s: float) -> dict:
     mean_curve = np.nanmean(np.array(stack), axis=0)
     at = {str(int(t)): round(float(mean_curve[int(t)]), 3) for t in PAPER_TABLE4["t_s"] if t < len(grid)}
     valid = np.isfinite(mean_curve)
+    all_h = np.concatenate([c["err_h_m"] for c in curves])
     return {"mean_3d_m": float(np.mean(mean_curve[valid])),
             "rms_3d_m": float(np.sqrt(np.mean(np.concatenate([s[np.isfinite(s)] for s in stack]) ** 2))),
+            "rms_h_m": float(np.sqrt(np.mean(all_h ** 2))),
             "max_3d_m": float(np.nanmax(mean_curve)),
             "at_s": at, "curve_t_s": grid.tolist(), "curve_3d_m": [round(float(x), 4) for x in mean_curve]}
 
 
-def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progress=None) -> dict:
+def _one_run(scenario_name: str, seed: int, modes) -> dict:
+    """Simulate one flight and run every mode on it (a unit of work for a worker process)."""
     from .scenario import build_scenario
     from .simulate import simulate
     from .tuning import tuning_for
 
     scenario = build_scenario(scenario_name)
     tuning = tuning_for(scenario)
-    curves = {m: [] for m in modes}
-    nees_runs = []
-    counters = {}
+    sim = simulate(scenario, seed)
+    out = {"duration_s": float(sim.truth.t_gps[-1] - sim.truth.t_gps[0]),
+           "outages_s": [(a - sim.truth.t_gps[0], b - sim.truth.t_gps[0]) for a, b in scenario.rover_outages],
+           "curves": {}, "counters": {}}
+    for m in modes:
+        res = run_gps_mode(sim) if m == "gps" else run_ins_mode(m, sim, tuning, seed)
+        out["counters"][m] = res.pop("counters", {})
+        out["curves"][m] = res
+    return out
+
+
+def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progress=None, jobs: int = 0) -> dict:
+    """Monte Carlo over ``runs`` simulated flights (seeds seed..seed+runs-1), in parallel worker
+    processes.  Each run is deterministic in its seed, so the result does not depend on ``jobs``."""
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
     t_start = time.perf_counter()
-    duration = None
-    for r in range(runs):
-        sim = simulate(scenario, seed + r)
-        duration = sim.truth.t_gps[-1] - sim.truth.t_gps[0]
-        for m in modes:
-            if m == "gps":
-                res = run_gps_mode(sim)
-            else:
-                res = run_ins_mode(m, sim, tuning, seed + r)
-                if m == "tdcp_dgps":
-                    nees_runs.append(res["nees"])
-                counters[m] = res.get("counters", {})
-            curves[m].append(res)
-        if progress:
-            progress(r + 1, runs, time.perf_counter() - t_start)
+    jobs = jobs or min(runs, os.cpu_count() or 1)
+    seeds = [seed + r for r in range(runs)]
+    results = []
+    if jobs <= 1:
+        for i, sd in enumerate(seeds):
+            results.append(_one_run(scenario_name, sd, modes))
+            if progress:
+                progress(i + 1, runs, time.perf_counter() - t_start)
+    else:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            futures = [pool.submit(_one_run, scenario_name, sd, modes) for sd in seeds]
+            for i, f in enumerate(futures):
+                results.append(f.result())
+                if progress:
+                    progress(i + 1, runs, time.perf_counter() - t_start)
+    duration = results[0]["duration_s"]
     out = {"scenario": scenario_name, "runs": runs, "seed": seed, "modes": {}}
     for m in modes:
-        s = summarize(curves[m], duration)
-        out["modes"][m] = s
-    if nees_runs:
-        avg = np.mean(np.array(nees_runs), axis=0)
+        out["modes"][m] = summarize([r["curves"][m] for r in results], duration)
+    if "tdcp_dgps" in modes:
+        avg = np.mean(np.array([r["curves"]["tdcp_dgps"]["nees"] for r in results]), axis=0)
         out["tdcp_dgps_avg_nees_9dof"] = {"mean": float(np.mean(avg)), "median": float(np.median(avg))}
-    out["counters"] = counters
+        outages = results[0]["outages_s"]
+        if outages:
+            a, b = outages[0]
+            curve = np.array(out["modes"]["tdcp_dgps"]["curve_3d_m"])
+            ia, ib = int(math.floor(a)), min(int(math.ceil(b)), len(curve) - 1)
+            out["outage"] = {"start_s": a, "end_s": b, "duration_s": b - a,
+                             "err_start_m": float(curve[ia]), "err_end_m": float(curve[ib]),
+                             "err_max_m": float(np.max(curve[ia:ib + 1]))}
+    out["counters"] = {m: results[0]["counters"][m] for m in modes}
     out["elapsed_s"] = time.perf_counter() - t_start
     return out
 

@@ -99,7 +99,7 @@ def invert_step(r0_e, v0_e, C0_b_e, v1_e, C1_b_e, tau_s: float):
     R = C0_b_e.T @ earth_rotation_transform(tau_s).T @ C1_b_e
     dtheta = _log_rotation(R)
     w = OMEGA_IE_RADPS
-    coriolis = np.array([-2.0 * w * v0_e[1], 2.0 * w * v0_e[0], 0.0])
+    coriolis = np.array([2.0 * w * v0_e[1], -2.0 * w * v0_e[0], 0.0])   # -2 Omega x v
     rhs = C0_b_e.T @ (v1_e - v0_e - (gravity_ecef(r0_e) + coriolis) * tau_s)
     dv = np.linalg.solve(np.eye(3) + 0.5 * skew(dtheta), rhs)
     return dtheta, dv

@@ -1,0 +1,346 @@
+"""Turn a :class:`sitl.scenario.Scenario` into truth, IMU samples and rover/base GNSS epochs.
+
+``simulate(scenario, seed) -> SimData``.  Deterministic: each error process draws from its own
+``np.random.default_rng([seed, STREAM])``.  See :mod:`sitl.scenario` for the models.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.gnss.atmosphere import klobuchar_delay_m, saastamoinen_zenith_m
+from companion.messages import (GPS_L1_WAVELENGTH_M, SPEED_OF_LIGHT_MPS, BaseStationPosition,
+                                GnssEpoch, GpsEphemeris, ImuSample, SatObservation)
+from companion.nav.earth import ecef_to_geodetic
+from companion.nav.strapdown import invert_step
+
+from . import sensors
+from .scenario import Scenario
+from .sky import elevation_azimuth, light_time_range
+
+C = SPEED_OF_LIGHT_MPS
+LAMBDA = GPS_L1_WAVELENGTH_M
+DOPPLER_STEP_S = 1e-3          # central difference half-step for the Doppler range rate
+
+# random streams (one per process; adding a process never changes the others)
+_S_IMU, _S_CLK_ROVER, _S_CLK_BASE = 1, 2, 3
+_S_IONO_C, _S_IONO_D, _S_TROPO_C, _S_TROPO_D, _S_SATCLK, _S_SA = 10, 11, 12, 13, 14, 15
+_S_ORB_C, _S_ORB_D, _S_ORB_RAC = 16, 17, 18
+_S_SITE = {"rover": 20, "base": 30}
+_S_AMB = {"rover": 40, "base": 41}
+
+
+@dataclass(eq=False)
+class Truth:
+    t_gps: np.ndarray        # (N,) IMU sample times (true GPS time), t_gps[0] = t0
+    r_e: np.ndarray          # (N, 3) IMU position, ECEF
+    v_e: np.ndarray          # (N, 3)
+    C_b_e: np.ndarray        # (N, 3, 3)
+
+
+@dataclass(eq=False)
+class SimData:
+    scenario: Scenario
+    seed: int
+    truth: Truth
+    imu: list[ImuSample]
+    imu_ideal_dtheta_b: np.ndarray     # (N-1, 3) error-free increments (invert_step)
+    imu_ideal_dv_b: np.ndarray
+    rover_epochs: list[GnssEpoch]
+    base_epochs: list[GnssEpoch]
+    ephemerides: list[GpsEphemeris]
+    base: BaseStationPosition
+    lever_arm_b: np.ndarray
+    errors: dict = field(default_factory=dict)
+
+    @property
+    def imu_ideal(self) -> list[ImuSample]:
+        """Error-free IMU samples (same times as ``imu``)."""
+        t, dt = self.truth.t_gps, 1.0 / self.scenario.imu.rate_hz
+        return [ImuSample(float(t[i + 1]), dt, self.imu_ideal_dtheta_b[i], self.imu_ideal_dv_b[i])
+                for i in range(len(t) - 1)]
+
+    def initial_state(self):
+        """(t0_gps, r_e, v_e, C_b_e) of the IMU at the first sample (truth)."""
+        tr = self.truth
+        return float(tr.t_gps[0]), tr.r_e[0].copy(), tr.v_e[0].copy(), tr.C_b_e[0].copy()
+
+    def truth_at(self, t_gps: float):
+        """(r_e, v_e, C_b_e) of the IMU at any time in the run: cubic Hermite position between
+        samples, the trajectory's own velocity and attitude."""
+        return _truth_at(self.scenario, self.truth, t_gps)
+
+    def antenna_at(self, t_gps: float):
+        r, _, Cbe = self.truth_at(t_gps)
+        return r + Cbe @ self.lever_arm_b
+
+
+def _truth_at(scn: Scenario, tr: Truth, t_gps: float):
+    f = scn.imu.rate_hz
+    tau = 1.0 / f
+    x = (t_gps - tr.t_gps[0]) * f
+    k = min(max(int(math.floor(x)), 0), len(tr.t_gps) - 2)
+    s = (t_gps - tr.t_gps[k]) / tau
+    s2, s3 = s * s, s * s * s
+    r = ((2 * s3 - 3 * s2 + 1) * tr.r_e[k] + (s3 - 2 * s2 + s) * tau * tr.v_e[k]
+         + (-2 * s3 + 3 * s2) * tr.r_e[k + 1] + (s3 - s2) * tau * tr.v_e[k + 1])
+    t_rel = t_gps - tr.t_gps[0]
+    Cte = scn.C_t_e
+    v = Cte @ scn.trajectory.velocity_t(t_rel)[0]
+    Cbe = Cte @ scn.trajectory.attitude_t(t_rel)[0]
+    return r, v, Cbe
+
+
+def make_truth(scn: Scenario) -> Truth:
+    f = scn.imu.rate_hz
+    n = int(round(scn.duration_s * f)) + 1
+    t_rel = np.arange(n) / f
+    Cte = scn.C_t_e
+    v_e = scn.trajectory.velocity_t(t_rel) @ Cte.T
+    C_b_e = np.einsum("ij,njk->nik", Cte, scn.trajectory.attitude_t(t_rel))
+    tau = 1.0 / f
+    r_e = np.empty((n, 3))
+    r_e[0] = scn.origin_r_e
+    inc = 0.5 * tau * (v_e[:-1] + v_e[1:])
+    r = r_e[0].copy()
+    for i in range(n - 1):              # sequential, exactly the mechanization's trapezoid rule
+        r = r + inc[i]
+        r_e[i + 1] = r
+    return Truth(scn.t0_gps + t_rel, r_e, v_e, C_b_e)
+
+
+def ideal_increments(scn: Scenario, tr: Truth):
+    """Error-free increments that take the mechanization exactly from each truth sample to the
+    next (:func:`companion.nav.strapdown.invert_step`, the exact inverse of ``strapdown_step``)."""
+    tau = 1.0 / scn.imu.rate_hz
+    n = len(tr.t_gps)
+    dth = np.empty((n - 1, 3))
+    dv = np.empty((n - 1, 3))
+    for i in range(n - 1):
+        dth[i], dv[i] = invert_step(tr.r_e[i], tr.v_e[i], tr.C_b_e[i], tr.v_e[i + 1], tr.C_b_e[i + 1], tau)
+    return dth, dv
+
+
+class _Atmosphere:
+    """Slow per-satellite processes (common and rover-only parts), times relative to t0."""
+
+    def __init__(self, scn: Scenario, seed: int, sats: list[str]):
+        self.scn = scn
+        self.idx = {s: i for i, s in enumerate(sats)}
+        t0, t1 = -5.0, scn.duration_s + 5.0
+        S = len(sats)
+
+        def proc(stream, sigma, tau, n=S):
+            if sigma == 0.0:
+                return None
+            return sensors.smooth_processes(np.random.default_rng([seed, stream]), t0, t1, tau, n, sigma)
+
+        self.iono_c = proc(_S_IONO_C, scn.iono.sigma_common_m, scn.iono.tau_s)
+        self.iono_d = proc(_S_IONO_D, scn.iono.sigma_diff_m, scn.iono.tau_diff_s or scn.iono.tau_s)
+        self.tropo_c = proc(_S_TROPO_C, scn.tropo.sigma_common_m, scn.tropo.tau_s)
+        self.tropo_d = proc(_S_TROPO_D, scn.tropo.sigma_diff_m, scn.tropo.tau_diff_s or scn.tropo.tau_s)
+        self.satclk = proc(_S_SATCLK, scn.sat_clock.sigma_common_m, scn.sat_clock.tau_s)
+        self.sa = proc(_S_SA, scn.sa.sigma_common_m, scn.sa.tau_s)
+        self.orb_c = proc(_S_ORB_C, scn.orbit.sigma_los_common_m, scn.orbit.tau_s)
+        self.orb_d = proc(_S_ORB_D, scn.orbit.sigma_los_diff_m, scn.orbit.tau_s)
+        self.orb_rac = (proc(_S_ORB_RAC, 1.0, scn.orbit.tau_s, 3 * S)
+                        if any(scn.orbit.sigma_rac_m) else None)
+
+    def slow_at(self, t_rel) -> dict:
+        """All slow processes at the times ``t_rel`` (relative to t0): name -> (len(t), S or 3S)."""
+        t_rel = np.asarray(t_rel, float)
+        out = {}
+        for name in ("iono_c", "iono_d", "tropo_c", "tropo_d", "satclk", "sa", "orb_c", "orb_d",
+                     "orb_rac"):
+            p = getattr(self, name)
+            out[name] = None if p is None else p.value(t_rel)
+        return out
+
+    def components(self, sat: str, slow: dict, i: int, t_gps: float, rover: bool, r_ant, el, az,
+                   r_sat, v_sat) -> dict[str, float]:
+        """Slow error components (m) for one satellite; ``slow`` from :meth:`slow_at`, row ``i``."""
+        scn, j = self.scn, self.idx[sat]
+
+        def v(name):
+            a = slow[name]
+            return 0.0 if a is None else float(a[i, j])
+
+        lat, lon, h = ecef_to_geodetic(r_ant)
+        # ionosphere
+        m_i = 1.0 if scn.iono.mapping == "none" else float(sensors.iono_obliquity(el))
+        iono = m_i * (v("iono_c") + (v("iono_d") if rover else 0.0))
+        if scn.iono.model == "klobuchar":
+            iono += scn.iono.model_scale * klobuchar_delay_m(t_gps, lat, lon, az, el,
+                                                             scn.klobuchar_alpha, scn.klobuchar_beta)
+        # troposphere
+        m_t = 1.0 if scn.tropo.mapping == "none" else float(sensors.tropo_obliquity(el))
+        tropo = v("tropo_c") + (v("tropo_d") if rover else 0.0)
+        if scn.tropo.model == "saastamoinen":
+            zhd, zwd = saastamoinen_zenith_m(lat, h)
+            tropo += scn.tropo.model_scale * (zhd + zwd)
+        tropo *= m_t
+        # orbit along the line of sight (receiver -> satellite)
+        orb = v("orb_c") + (v("orb_d") if rover else 0.0)
+        if slow["orb_rac"] is not None:
+            d = r_sat - r_ant
+            u = d / math.sqrt(float(d @ d))
+            e_r = r_sat / math.sqrt(float(r_sat @ r_sat))
+            e_c = _cross(r_sat, v_sat)
+            e_c /= math.sqrt(float(e_c @ e_c))
+            e_a = _cross(e_c, e_r)
+            x = slow["orb_rac"][i, 3 * j:3 * j + 3] * np.asarray(scn.orbit.sigma_rac_m)
+            orb += float(u @ (x[0] * e_r + x[1] * e_a + x[2] * e_c))
+        return {"iono_m": iono, "tropo_m": tropo, "orbit_m": orb,
+                "sat_clock_err_m": v("satclk"), "sa_m": v("sa")}
+
+
+def _cross(a, b) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+_COMPONENTS = ("geometric_m", "sat_clock_brdc_m", "iono_m", "tropo_m", "orbit_m", "sat_clock_err_m",
+               "sa_m", "code_mp_m", "code_noise_m", "carrier_mp_m", "carrier_noise_m",
+               "doppler_noise_hz", "range_rate_mps", "elevation_rad", "azimuth_rad",
+               "ambiguity_cycles")
+
+
+def _receiver(scn: Scenario, seed: int, who: str, tr: Truth, atmo: _Atmosphere,
+              ephs: list[GpsEphemeris], lever_b: np.ndarray):
+    rover = who == "rover"
+    rx = scn.rover_rx if rover else scn.base_rx
+    clk_model = scn.rover_clock if rover else scn.base_clock
+    dt_ep = 1.0 / scn.gnss_rate_hz
+    t_end = scn.t0_gps + scn.duration_s
+    k0 = math.ceil(scn.t0_gps / dt_ep)
+    k1 = math.floor(t_end / dt_ep)
+    T_rx = np.arange(k0, k1 + 1) * dt_ep          # receiver time tags (integer seconds)
+    K, S = len(T_rx), len(ephs)
+    sats = [e.sat for e in ephs]
+
+    b, d = sensors.clock_process(np.random.default_rng([seed, _S_CLK_ROVER if rover else _S_CLK_BASE]),
+                                 clk_model, K, dt_ep)
+    t_true = T_rx - b / C
+
+    rs = np.random.default_rng([seed, _S_SITE[who]])
+    code_mp = sensors.gm1(rs, K, dt_ep, rx.code_mp_tau_s, rx.code_mp_m, S)
+    car_mp = sensors.gm1(rs, K, dt_ep, rx.carrier_mp_tau_s, rx.carrier_mp_m, S)
+    code_n = rs.standard_normal((K, S)) * rx.code_noise_m
+    car_n = rs.standard_normal((K, S)) * rx.carrier_noise_m
+    dop_n = rs.standard_normal((K, S)) * rx.doppler_noise_mps / LAMBDA
+    r_amb = np.random.default_rng([seed, _S_AMB[who]])
+
+    errs = {c: np.full((K, S), np.nan) for c in _COMPONENTS}
+    keep = np.ones(K, bool)
+    if rover:
+        for a, z in scn.rover_outages:
+            keep &= ~((t_true >= a) & (t_true < z))
+    slips = sorted(scn.cycle_slips) if rover else []
+    slip_used = [False] * len(slips)
+
+    def antenna(t):
+        if not rover:
+            return scn.base_r_e
+        r, _, Cbe = _truth_at(scn, tr, t)
+        return r + Cbe @ lever_b
+
+    def phase_range(eph, t, r_ant, tau_guess, iters, slow, i):
+        """Noise-free carrier-phase range terms except the receiver clock (m) and its parts."""
+        rho, tau, r_s, v_s, clk, _ = light_time_range(eph, t, r_ant, tau_guess, iters)
+        el, az = elevation_azimuth(r_ant, r_s)
+        comp = atmo.components(eph.sat, slow, i, t, rover, r_ant, el, az, r_s, v_s)
+        brdc = C * (clk - eph.tgd_s)
+        phi = (rho - brdc + comp["sat_clock_err_m"] + comp["sa_m"] - comp["iono_m"]
+               + comp["tropo_m"] + comp["orbit_m"])
+        return phi, rho, tau, el, az, brdc, comp
+
+    epochs: list[GnssEpoch] = []
+    amb = {}
+    lock_start = {}
+    last_seen = {}
+    first_epoch = True
+    h = DOPPLER_STEP_S
+    for k in range(K):
+        if not keep[k]:
+            continue
+        t = float(t_true[k])
+        r_c = antenna(t)
+        r_m, r_p = antenna(t - h), antenna(t + h)
+        slow = atmo.slow_at(np.array([t - h, t, t + h]) - scn.t0_gps)
+        obs = []
+        for j, eph in enumerate(ephs):
+            phi, rho, tau, el, az, brdc, comp = phase_range(eph, t, r_c, 0.075, 3, slow, 1)
+            if el < math.radians(scn.mask_deg):
+                continue
+            phi_m = phase_range(eph, t - h, r_m, tau, 2, slow, 0)[0]
+            phi_p = phase_range(eph, t + h, r_p, tau, 2, slow, 2)[0]
+            rate = (phi_p - phi_m) / (2.0 * h) + d[k]
+            sat = eph.sat
+            lol = False
+            prev = last_seen.get(sat)
+            if prev is None or prev != k - 1:     # not tracked at the previous epoch
+                if sat in amb:
+                    lol = True                 # re-acquisition after a gap: new ambiguity
+                amb[sat] = int(r_amb.integers(-2 ** 20, 2 ** 20 + 1))
+                lock_start[sat] = T_rx[k]
+            for i, (ts, ss, cyc) in enumerate(slips):
+                if not slip_used[i] and ss == sat and ts <= T_rx[k]:
+                    slip_used[i] = True
+                    amb[sat] += int(cyc)
+                    lock_start[sat] = T_rx[k]
+                    lol = True
+            last_seen[sat] = k
+            f_el = float(sensors.elevation_factor(el, rx.el_scaling))
+            mp_c, n_c = code_mp[k, j] * f_el, code_n[k, j] * f_el
+            mp_p, n_p = car_mp[k, j] * f_el, car_n[k, j] * f_el
+            common = rho + b[k] - brdc + comp["sat_clock_err_m"] + comp["sa_m"] + comp["tropo_m"] \
+                + comp["orbit_m"]
+            pr = common + comp["iono_m"] + mp_c + n_c
+            cp = (common - comp["iono_m"] + mp_p + n_p) / LAMBDA + amb[sat]
+            dop = -rate / LAMBDA + dop_n[k, j]
+            obs.append(SatObservation(sat=sat, pseudorange_m=float(pr), carrier_cycles=float(cp),
+                                      doppler_hz=float(dop),
+                                      cn0_dbhz=float(sensors.cn0_dbhz(el)),
+                                      lock_time_s=float(T_rx[k] - lock_start[sat]),
+                                      loss_of_lock=lol and not first_epoch))
+            e = errs
+            e["geometric_m"][k, j] = rho
+            e["sat_clock_brdc_m"][k, j] = brdc
+            for c in ("iono_m", "tropo_m", "orbit_m", "sat_clock_err_m", "sa_m"):
+                e[c][k, j] = comp[c]
+            e["code_mp_m"][k, j], e["code_noise_m"][k, j] = mp_c, n_c
+            e["carrier_mp_m"][k, j], e["carrier_noise_m"][k, j] = mp_p, n_p
+            e["doppler_noise_hz"][k, j] = dop_n[k, j]
+            e["range_rate_mps"][k, j] = rate
+            e["elevation_rad"][k, j], e["azimuth_rad"][k, j] = el, az
+            e["ambiguity_cycles"][k, j] = amb[sat]
+        first_epoch = False
+        epochs.append(GnssEpoch(t_gps=float(T_rx[k]), observations=tuple(obs), source=who))
+    errs.update({"sats": sats, "t_rx_gps": T_rx, "t_gps": t_true, "emitted": keep,
+                 "rx_clock_m": b, "rx_clock_drift_mps": d})
+    return epochs, errs
+
+
+def simulate(scenario: Scenario, seed: int | None = None) -> SimData:
+    scn = scenario
+    seed = scn.default_seed if seed is None else int(seed)
+    tr = make_truth(scn)
+    dth, dv = ideal_increments(scn, tr)
+    ie = sensors.imu_errors(np.random.default_rng([seed, _S_IMU]), scn.imu, len(dth))
+    tau = 1.0 / scn.imu.rate_hz
+    dth_m = dth + ie["gyro_error"] * tau
+    dv_m = dv + ie["accel_error"] * tau
+    imu = [ImuSample(float(tr.t_gps[i + 1]), tau, dth_m[i], dv_m[i]) for i in range(len(dth))]
+
+    ephs = list(scn.ephemerides)
+    lever = np.asarray(scn.lever_arm_b, float)
+    atmo = _Atmosphere(scn, seed, [e.sat for e in ephs])
+    rover_epochs, rover_err = _receiver(scn, seed, "rover", tr, atmo, ephs, lever)
+    base_epochs, base_err = _receiver(scn, seed, "base", tr, atmo, ephs, lever)
+    errors = {"imu": ie, "rover": rover_err, "base": base_err}
+    return SimData(scenario=scn, seed=seed, truth=tr, imu=imu, imu_ideal_dtheta_b=dth,
+                   imu_ideal_dv_b=dv, rover_epochs=rover_epochs, base_epochs=base_epochs,
+                   ephemerides=ephs,
+                   base=BaseStationPosition(scn.base_station_id, np.asarray(scn.base_r_e, float).copy()),
+                   lever_arm_b=lever, errors=errors)
