@@ -51,12 +51,13 @@ class FilterTuning:
     gnss_latency_s: float = 0.0
     # standalone pseudoranges: error floor the per-satellite model does not know about (e.g. SA)
     sigma_pseudorange_standalone_floor_m: float = 0.0
+    klobuchar: tuple | None = None       # broadcast (alpha, beta) for the standalone modes
 
 
 def mode_config(mode: str, tuning: FilterTuning, lever_arm_b) -> EngineConfig:
     common = dict(noise=tuning.noise, lever_arm_b_m=tuple(lever_arm_b), sigma_doppler_mps=tuning.sigma_doppler_mps,
                   sigma_phase_m=tuning.sigma_phase_m, sigma_tdcp_floor_mps=tuning.sigma_tdcp_floor_mps,
-                  elevation_mask_deg=5.0)
+                  elevation_mask_deg=5.0, klobuchar=tuning.klobuchar)
     standalone = dict(use_dgps=False, sigma_pseudorange_floor_m=tuning.sigma_pseudorange_standalone_floor_m)
     if mode == "loose":
         return EngineConfig(use_loose=True, use_tdcp=False, **standalone, **common)
@@ -197,7 +198,7 @@ def _one_run(scenario_name: str, seed: int, modes) -> dict:
            "outages_s": [(a - sim.truth.t_gps[0], b - sim.truth.t_gps[0]) for a, b in scenario.rover_outages],
            "curves": {}, "counters": {}}
     for m in modes:
-        res = run_gps_mode(sim) if m == "gps" else run_ins_mode(m, sim, tuning, seed)
+        res = run_gps_mode(sim, tuning.klobuchar) if m == "gps" else run_ins_mode(m, sim, tuning, seed)
         out["counters"][m] = res.pop("counters", {})
         out["curves"][m] = res
     return out

@@ -47,7 +47,10 @@ def tuning_for(scenario) -> FilterTuning:
         standalone_floor = math.sqrt(var)
         sa_rate = scenario.sa.sigma_common_m / scenario.sa.tau_s
         sigma_doppler = math.hypot(sigma_doppler, sa_rate)
-    return FilterTuning(noise=noise, p0=p0, sigma_doppler_mps=sigma_doppler,
+    klobuchar = None
+    if any(scenario.klobuchar_alpha) or any(scenario.klobuchar_beta):
+        klobuchar = (tuple(scenario.klobuchar_alpha), tuple(scenario.klobuchar_beta))
+    return FilterTuning(noise=noise, p0=p0, sigma_doppler_mps=sigma_doppler, klobuchar=klobuchar,
                         sigma_pseudorange_standalone_floor_m=standalone_floor,
                         sigma_phase_m=math.hypot(rx.carrier_noise_m, rx.carrier_mp_m),
                         sigma_tdcp_floor_mps=0.005,
