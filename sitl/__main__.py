@@ -35,8 +35,10 @@ def cmd_paper(args) -> int:
     if "outage" in result:
         o = result["outage"]
         print(f"tdcp_dgps over the GNSS outage ({o['duration_s']:.0f} s): 3-D error {o['err_start_m']:.2f} m at "
-              f"its start, {o['err_end_m']:.2f} m at its end (max {o['err_max_m']:.2f} m); "
-              f"horizontal RMS over the flight {result['modes']['tdcp_dgps']['rms_h_m']:.3f} m")
+              f"its start, {o['err_end_m']:.2f} m at its end (max {o['err_max_m']:.2f} m)")
+        td = result["modes"]["tdcp_dgps"]
+        print(f"tdcp_dgps horizontal RMS: {td['rms_h_m']:.3f} m over the whole flight, "
+              f"{td['rms_h_m_outside_outage']:.3f} m outside the outage")
     _write_json(args.json, result)
     if args.plot:
         plot(result, args.plot)

@@ -32,7 +32,7 @@ def _run(sim, tuning, with_gnss: bool, seed: int = 0):
         eng.process(eph)
     eng.process(sim.base)
     truth = sim.truth
-    d_att, d_pos, d_vel = initial_errors(np.random.default_rng(seed), tuning.p0)
+    d_att, d_pos, d_vel = initial_errors(np.random.default_rng(seed), tuning.p0, sim.truth.r_e[0])
     eng.initialize(truth.t_gps[0], truth.r_e[0] + d_pos, truth.v_e[0] + d_vel,
                    rotation_from_rotvec(d_att) @ truth.C_b_e[0], tuning.p0)
     rover, base = sim.rover_epochs, sim.base_epochs

@@ -52,12 +52,18 @@ class FilterTuning:
     # standalone pseudoranges: error floor the per-satellite model does not know about (e.g. SA)
     sigma_pseudorange_standalone_floor_m: float = 0.0
     klobuchar: tuple | None = None       # broadcast (alpha, beta) for the standalone modes
+    pseudorange_correlation_time_s: float = 0.0
+    zupt_enabled: bool = False
+    sigma_phase_elevation_scaling: bool = False
 
 
 def mode_config(mode: str, tuning: FilterTuning, lever_arm_b) -> EngineConfig:
     common = dict(noise=tuning.noise, lever_arm_b_m=tuple(lever_arm_b), sigma_doppler_mps=tuning.sigma_doppler_mps,
                   sigma_phase_m=tuning.sigma_phase_m, sigma_tdcp_floor_mps=tuning.sigma_tdcp_floor_mps,
-                  elevation_mask_deg=5.0, klobuchar=tuning.klobuchar)
+                  elevation_mask_deg=5.0, klobuchar=tuning.klobuchar,
+                  pseudorange_correlation_time_s=tuning.pseudorange_correlation_time_s,
+                  zupt_enabled=tuning.zupt_enabled,
+                  sigma_phase_elevation_scaling=tuning.sigma_phase_elevation_scaling)
     standalone = dict(use_dgps=False, sigma_pseudorange_floor_m=tuning.sigma_pseudorange_standalone_floor_m)
     if mode == "loose":
         return EngineConfig(use_loose=True, use_tdcp=False, **standalone, **common)
@@ -70,9 +76,12 @@ def mode_config(mode: str, tuning: FilterTuning, lever_arm_b) -> EngineConfig:
     raise ValueError(f"unknown mode {mode!r}")
 
 
-def initial_errors(rng: np.random.Generator, p0: dict):
-    """Initial attitude/position/velocity errors drawn from the filter's own P0 (honest NEES)."""
-    return (rng.normal(0.0, p0["att_rad"], 3), rng.normal(0.0, p0["pos_m"], 3), rng.normal(0.0, p0["vel_mps"], 3))
+def initial_errors(rng: np.random.Generator, p0: dict, r_e):
+    """Initial attitude/position/velocity errors drawn from the filter's own P0 (honest NEES).
+    Attitude: tilt and heading sigmas in local NED, returned as an ECEF rotation vector."""
+    lat, lon, _ = ecef_to_geodetic(r_e)
+    att_n = rng.normal(0.0, 1.0, 3) * np.array([p0["tilt_rad"], p0["tilt_rad"], p0["heading_rad"]])
+    return C_n_e(lat, lon) @ att_n, rng.normal(0.0, p0["pos_m"], 3), rng.normal(0.0, p0["vel_mps"], 3)
 
 
 def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s: float = 1.0,
@@ -87,7 +96,7 @@ def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s
         eng.process(eph)
     eng.process(sim.base)
     rng = np.random.default_rng(10_000 + seed)
-    d_att, d_pos, d_vel = initial_errors(rng, tuning.p0)
+    d_att, d_pos, d_vel = initial_errors(rng, tuning.p0, truth.r_e[0])
     eng.initialize(truth.t_gps[0], truth.r_e[0] + d_pos, truth.v_e[0] + d_vel,
                    rotation_from_rotvec(d_att) @ truth.C_b_e[0], tuning.p0)
     use_gnss = mode != "ins"
@@ -173,7 +182,12 @@ def summarize(curves: list[dict], duration_s: float) -> dict:
     grid = np.arange(0.0, math.floor(duration_s) + 1e-9, 1.0)
     stack = []
     for c in curves:
-        stack.append(np.interp(grid, c["t_s"], c["err_3d_m"], left=np.nan, right=np.nan))
+        # nearest sample within 1 s; gaps (outages, no solution) stay NaN instead of being bridged
+        j = np.clip(np.searchsorted(c["t_s"], grid), 1, len(c["t_s"]) - 1)
+        j = np.where(np.abs(c["t_s"][j - 1] - grid) < np.abs(c["t_s"][j] - grid), j - 1, j)
+        v = c["err_3d_m"][j].astype(float)
+        v[np.abs(c["t_s"][j] - grid) > 1.0] = np.nan
+        stack.append(v)
     mean_curve = np.nanmean(np.array(stack), axis=0)
     at = {str(int(t)): round(float(mean_curve[int(t)]), 3) for t in PAPER_TABLE4["t_s"] if t < len(grid)}
     valid = np.isfinite(mean_curve)
@@ -236,6 +250,9 @@ def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progre
         outages = results[0]["outages_s"]
         if outages:
             a, b = outages[0]
+            outside = np.concatenate([c["err_h_m"][(c["t_s"] < a) | (c["t_s"] > b)]
+                                      for c in (r["curves"]["tdcp_dgps"] for r in results)])
+            out["modes"]["tdcp_dgps"]["rms_h_m_outside_outage"] = float(np.sqrt(np.mean(outside ** 2)))
             curve = np.array(out["modes"]["tdcp_dgps"]["curve_3d_m"])
             ia, ib = int(math.floor(a)), min(int(math.ceil(b)), len(curve) - 1)
             out["outage"] = {"start_s": a, "end_s": b, "duration_s": b - a,

@@ -32,7 +32,11 @@ def tuning_for(scenario) -> FilterTuning:
     noise = ProcessNoise(gyro_arw_rad_per_sqrt_s=arw, accel_vrw_mps_per_sqrt_s=vrw,
                          gyro_bias_rw_radps_per_sqrt_s=bg_rw, accel_bias_rw_mps2_per_sqrt_s=ba_rw,
                          clock_bias_psd_m2ps=max(clk.s_f, 0.01), clock_drift_psd_m2ps3=max(clk.s_g, 0.1))
-    p0 = {"att_rad": 1e-3 if scenario.name == "paper" else 5e-3, "pos_m": 0.5, "vel_mps": 0.05,
+    # initial attitude: the paper starts from a known attitude (navigation-grade alignment); a
+    # drone starts from its autopilot's attitude: levelled to a few mrad, heading from a compass (~3 deg)
+    paper_like = scenario.name.startswith("paper")
+    p0 = {"tilt_rad": 1e-3 if paper_like else 5e-3, "heading_rad": 1e-3 if paper_like else 0.05,
+          "pos_m": 0.5, "vel_mps": 0.05,
           "ba_mps2": max(ba0, 1e-3), "bg_radps": max(bg0, 1e-6), "clk_m": 100.0, "drift_mps": 5.0}
     rx = scenario.rover_rx
     # Selective Availability (paper scenario only) is far larger than any per-satellite error model:
@@ -51,6 +55,10 @@ def tuning_for(scenario) -> FilterTuning:
     if any(scenario.klobuchar_alpha) or any(scenario.klobuchar_beta):
         klobuchar = (tuple(scenario.klobuchar_alpha), tuple(scenario.klobuchar_beta))
     return FilterTuning(noise=noise, p0=p0, sigma_doppler_mps=sigma_doppler, klobuchar=klobuchar,
+                        pseudorange_correlation_time_s=rx.code_mp_tau_s,
+                        # a drone sits still on the ground before take-off; the paper's vehicle never rests
+                        zupt_enabled=not paper_like,
+                        sigma_phase_elevation_scaling=rx.el_scaling,
                         sigma_pseudorange_standalone_floor_m=standalone_floor,
                         sigma_phase_m=math.hypot(rx.carrier_noise_m, rx.carrier_mp_m),
                         sigma_tdcp_floor_mps=0.005,

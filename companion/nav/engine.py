@@ -28,7 +28,8 @@ from ..messages import BaseStationPosition, GnssEpoch, GnssFix, GpsEphemeris, Im
 from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .measurements import (InsPoint, PhaseRecord, antenna_state, doppler_batch, line_of_sight,
-                           position_fix_batch, pseudorange_batch, tdcp_batch, velocity_fix_batch)
+                           position_fix_batch, pseudorange_batch, tdcp_batch, velocity_fix_batch,
+                           zero_rate_batch, zero_velocity_batch)
 from .strapdown import strapdown_step_with_force
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,7 @@ class EngineConfig:
     # measurement noise
     sigma_doppler_mps: float = 0.1
     sigma_phase_m: float = 0.005
+    sigma_phase_elevation_scaling: bool = False   # carrier noise x 1/sin(elevation)
     sigma_tdcp_floor_mps: float = 0.01
     sigma_pseudorange_floor_m: float = 0.0
     tdcp_max_interval_s: float = 1.5
@@ -62,6 +64,18 @@ class EngineConfig:
     coasting_after_s: float = 3.0
     untrusted_sigma_h_m: float = 50.0
     clock_reset_threshold_m: float = 300.0
+    # time-correlated pseudorange errors (multipath): weight as if one independent sample per
+    # (1 + 2 tau / T) epochs, the Gauss-Markov effective-sample rule, so P does not shrink below
+    # what averaging correlated errors can deliver
+    pseudorange_correlation_time_s: float = 0.0
+    # zero-velocity / zero-rate updates while the IMU shows the vehicle at rest (ground phases)
+    zupt_enabled: bool = False
+    zupt_window_s: float = 0.5
+    zupt_accel_std_mps2: float = 0.05       # max std of each specific-force axis over the window
+    zupt_gyro_std_radps: float = 0.005      # max std of each gyro axis over the window
+    zupt_max_speed_mps: float = 0.5         # the INS must agree that it is (nearly) still
+    zupt_sigma_mps: float = 0.02
+    zaru_sigma_floor_radps: float = 2e-4
     gravity_gradient_refresh_m: float = 200.0
     klobuchar: tuple | None = None
 
@@ -105,6 +119,8 @@ class NavEngine:
         self._pending: list[GnssEpoch] = []
         self._phase: dict[str, PhaseRecord] = {}
         self._base_phase: dict[str, deque] = {}
+        self._still = _StillnessDetector(config) if config.zupt_enabled else None
+        self._last_epoch_t = math.nan
         self._grad = None
         self._grad_r = None
         self._g_ref = None
@@ -121,14 +137,21 @@ class NavEngine:
         ba_mps2, bg_radps, clk_m, drift_mps (1-sigma, isotropic)."""
         L = LAYOUT
         d = np.zeros(L.n)
-        d[L.att] = P0_sigmas["att_rad"] ** 2
         d[L.pos] = P0_sigmas["pos_m"] ** 2
         d[L.vel] = P0_sigmas["vel_mps"] ** 2
         d[L.ba] = P0_sigmas["ba_mps2"] ** 2
         d[L.bg] = P0_sigmas["bg_radps"] ** 2
         d[L.clk] = P0_sigmas.get("clk_m", 1e3) ** 2
         d[L.drift] = P0_sigmas.get("drift_mps", 10.0) ** 2
-        self.kf = ErrorStateKalmanFilter(np.diag(d), self.cfg.noise, self.cfg.gate_probability)
+        P0 = np.diag(d)
+        # attitude: tilt and heading uncertainties usually differ by an order of magnitude
+        # (levelling vs compass); given in local NED, rotated to the ECEF error axes
+        tilt = P0_sigmas.get("tilt_rad", P0_sigmas.get("att_rad"))
+        heading = P0_sigmas.get("heading_rad", P0_sigmas.get("att_rad"))
+        lat, lon, _ = ecef_to_geodetic(r_e)
+        Cne = C_n_e(lat, lon)
+        P0[L.att, L.att] = Cne @ np.diag([tilt ** 2, tilt ** 2, heading ** 2]) @ Cne.T
+        self.kf = ErrorStateKalmanFilter(P0, self.cfg.noise, self.cfg.gate_probability)
         self.t_gps = float(t_gps)
         self.r_e = np.array(r_e, float)
         self.v_e = np.array(v_e, float)
@@ -254,12 +277,31 @@ class NavEngine:
         self.clock_bias_m += self.clock_drift_mps * (s.t_gps - self.t_gps)
         self.t_gps = s.t_gps
         self._push_history()
+        if self._still is not None and self._still.add(th, dvl, tau):
+            self._zero_motion_update()
         if self._pending and self._pending[0].t_gps <= self.t_gps:
             ready = [e for e in self._pending if e.t_gps <= self.t_gps]
             self._pending = [e for e in self._pending if e.t_gps > self.t_gps]
             for e in ready:
                 self._process_epoch(e)
         return None
+
+    def _zero_motion_update(self) -> None:
+        """ZUPT + ZARU from the still window (only if the INS agrees it is nearly at rest)."""
+        speed = float(np.linalg.norm(self.v_e))
+        if speed > self.cfg.zupt_max_speed_mps:
+            self.counters["zupt skipped: INS speed"] += 1
+            return
+        w_mean, w_std_mean = self._still.gyro_mean_and_sigma()
+        batches = [zero_velocity_batch(self.v_e, self.cfg.zupt_sigma_mps),
+                   zero_rate_batch(w_mean, self.C_b_e, self.b_g, max(w_std_mean, self.cfg.zaru_sigma_floor_radps))]
+        reports = [self.kf.gate(b) for b in batches]
+        for r in reports:
+            self.counters[f"{r.kind} used"] += r.n_accepted
+            self.counters[f"{r.kind} rejected"] += len(r.labels) - r.n_accepted
+        dx = self.kf.update(batches, reports)
+        if any(r.n_accepted for r in reports):
+            self._feedback(dx)
 
     def _push_history(self):
         self._history.append((self.t_gps, self.r_e, self.v_e, self.C_b_e))
@@ -329,6 +371,7 @@ class NavEngine:
         else:
             if cfg.use_pseudorange and len(prep.sats):
                 pr = pseudorange_batch(ins, prep, self.lever_arm_b, sigma_floor_m=cfg.sigma_pseudorange_floor_m)
+                pr.r_var = pr.r_var * self._correlation_inflation(epoch.t_gps)
                 if len(pr):
                     self._check_clock(ins, pr)
                     batches.append(pr)
@@ -342,7 +385,8 @@ class NavEngine:
                     self.counters["tdcp base-corrected epochs" if corr else "tdcp uncorrected epochs"] += 1
                 batches.append(tdcp_batch(ins, prep, self._phase, self.lever_arm_b, cfg.sigma_phase_m,
                                           cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s,
-                                          phase_correction_m=corr))
+                                          phase_correction_m=corr,
+                                          elevation_scaling=cfg.sigma_phase_elevation_scaling))
         batches = [b for b in batches if len(b)]
         reports = [self.kf.gate(b) for b in batches]
         for r in reports:
@@ -357,10 +401,20 @@ class NavEngine:
             rep.dx = dx
             self.last_gnss_update_t = epoch.t_gps
         self._remember_phase(ins, dx, prep)
+        self._last_epoch_t = epoch.t_gps
         self.epoch_reports.append(rep)
         if self.on_epoch is not None:
             self.on_epoch(rep)
         return rep
+
+    def _correlation_inflation(self, t_gps: float) -> float:
+        """Variance factor for time-correlated pseudorange errors: 1 + 2 tau / T (T = epoch interval)."""
+        tau = self.cfg.pseudorange_correlation_time_s
+        if tau <= 0:
+            return 1.0
+        T = t_gps - self._last_epoch_t
+        T = T if 0.0 < T < 30.0 else 1.0
+        return 1.0 + 2.0 * tau / T
 
     def _check_clock(self, ins: InsPoint, pr: MeasurementBatch) -> None:
         """First epoch: take the clock from the data.  Later: a common jump of all pseudorange
@@ -388,6 +442,7 @@ class NavEngine:
         lat, lon, _ = ecef_to_geodetic(sol.r_e)
         Cne = C_n_e(lat, lon)
         sig = max(float(np.median(prep.sigma_pseudorange_m)), self.cfg.sigma_pseudorange_floor_m)
+        sig *= math.sqrt(self._correlation_inflation(prep.t_gps))  # same weighting as tight coupling
         cov_n = np.diag([(sig * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sig * sol.vdop) ** 2])
         out = [position_fix_batch(ins, sol.r_e, Cne @ cov_n @ Cne.T, self.lever_arm_b)]
         if sol.v_e is not None:
@@ -488,3 +543,48 @@ class NavEngine:
                            status, self.last_gnss_update_t, self.reset_counter,
                            {"clock_bias_m": self.clock_bias_m, "clock_drift_mps": self.clock_drift_mps,
                             "b_a": self.b_a.copy(), "b_g": self.b_g.copy()})
+
+
+class _StillnessDetector:
+    """Running mean/variance of the six IMU channels over a sliding window (O(1) per sample)."""
+
+    def __init__(self, cfg: EngineConfig):
+        self.cfg = cfg
+        self.buf: deque = deque()
+        self.s = [0.0] * 6
+        self.s2 = [0.0] * 6
+        self.window_s = cfg.zupt_window_s
+        self.span = 0.0
+        self._since_update = 0.0
+
+    def add(self, dtheta, dv, tau: float) -> bool:
+        """Add one sample (raw increments); True when a still window is complete and due an update."""
+        x = (dtheta[0] / tau, dtheta[1] / tau, dtheta[2] / tau, dv[0] / tau, dv[1] / tau, dv[2] / tau)
+        self.buf.append((x, tau))
+        self.span += tau
+        s, s2 = self.s, self.s2
+        for i in range(6):
+            s[i] += x[i]
+            s2[i] += x[i] * x[i]
+        while self.span > self.window_s and len(self.buf) > 1:
+            old, t_old = self.buf.popleft()
+            self.span -= t_old
+            for i in range(6):
+                s[i] -= old[i]
+                s2[i] -= old[i] * old[i]
+        self._since_update += tau
+        if self.span < 0.9 * self.window_s or self._since_update < self.window_s:
+            return False
+        n = len(self.buf)
+        var = [max(s2[i] / n - (s[i] / n) ** 2, 0.0) for i in range(6)]
+        still = (max(var[0:3]) < self.cfg.zupt_gyro_std_radps ** 2
+                 and max(var[3:6]) < self.cfg.zupt_accel_std_mps2 ** 2)
+        if still:
+            self._since_update = 0.0
+        return still
+
+    def gyro_mean_and_sigma(self):
+        n = len(self.buf)
+        mean = np.array(self.s[0:3]) / n
+        var = np.array(self.s2[0:3]) / n - mean ** 2
+        return mean, float(np.sqrt(max(float(np.max(var)), 0.0) / n))

@@ -17,6 +17,9 @@ from .earth import OMEGA_IE_RADPS, skew
 from .filter import LAYOUT, MeasurementBatch
 
 
+_TEN_DEG_RAD = math.radians(10.0)
+
+
 @dataclass
 class InsPoint:
     """Nominal (INS) state at one instant, usually interpolated to a GNSS epoch's GPS time."""
@@ -95,7 +98,8 @@ def doppler_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, sigma_mps: float
 
 def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_b: np.ndarray,
                sigma_phase_m: float, sigma_rate_floor_mps: float, max_interval_s: float,
-               layout=LAYOUT, phase_correction_m: dict[str, float] | None = None) -> MeasurementBatch:
+               layout=LAYOUT, phase_correction_m: dict[str, float] | None = None,
+               elevation_scaling: bool = False) -> MeasurementBatch:
     """Pseudorange rate from time-differenced carrier phase (seed 000 eqs 2-7, 14).
 
     Over one epoch interval the integer ambiguity cancels.  The *prediction* uses the INS
@@ -108,7 +112,8 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
     The error of the INS displacement is modelled as dv_k T (the velocity error over the
     interval), giving the paper's range-rate Jacobian H_v = -u plus the receiver clock drift.
     ``phase_correction_m`` optionally removes common errors (e.g. a base station's time-differenced
-    carrier, see :mod:`companion.gnss.dgps`).
+    carrier, see :mod:`companion.nav.engine`).  With ``elevation_scaling`` the carrier noise grows as
+    1/sin(elevation) (multipath), floored at 10 degrees.
     """
     r_ant, _, _ = antenna_state(ins, lever_arm_b)
     rows, labels, zs, rvar = [], [], [], []
@@ -141,7 +146,10 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
         rows.append(h)
         labels.append(sat)
         zs.append(meas - pred)
-        rvar.append(2.0 * sigma_phase_m ** 2 / (T * T) + sigma_rate_floor_mps ** 2)
+        sig = sigma_phase_m
+        if elevation_scaling:
+            sig /= math.sin(max(float(prep.elevation_rad[i]), _TEN_DEG_RAD))
+        rvar.append(2.0 * sig * sig / (T * T) + sigma_rate_floor_mps ** 2)
     H = np.array(rows) if rows else np.zeros((0, layout.n))
     return MeasurementBatch("tdcp", labels, np.array(zs), H, np.array(rvar))
 
@@ -170,3 +178,21 @@ def _whitened(kind, labels, z, H, cov):
     L = np.linalg.cholesky(cov)
     Li = np.linalg.inv(L)
     return MeasurementBatch(kind, labels, Li @ z, Li @ H, np.ones(len(labels)))
+
+
+def zero_velocity_batch(v_e: np.ndarray, sigma_mps: float, layout=LAYOUT) -> MeasurementBatch:
+    """ZUPT (seed 002's ground phases): the vehicle is at rest, so the true velocity is zero."""
+    H = np.zeros((3, layout.n))
+    H[:, layout.vel] = np.eye(3)
+    return MeasurementBatch("zupt", ["vx", "vy", "vz"], -np.asarray(v_e, float), H, np.full(3, sigma_mps ** 2))
+
+
+def zero_rate_batch(omega_meas_b: np.ndarray, C_b_e: np.ndarray, b_g: np.ndarray, sigma_radps: float,
+                    layout=LAYOUT) -> MeasurementBatch:
+    """ZARU: at rest the gyros measure the earth rate plus their bias, so the mean raw rate over a
+    still window observes the gyro bias directly (heading drift of a MEMS gyro stops on the ground)."""
+    earth_b = C_b_e.T @ np.array([0.0, 0.0, OMEGA_IE_RADPS])
+    H = np.zeros((3, layout.n))
+    H[:, layout.bg] = np.eye(3)
+    z = np.asarray(omega_meas_b, float) - earth_b - b_g
+    return MeasurementBatch("zaru", ["wx", "wy", "wz"], z, H, np.full(3, sigma_radps ** 2))
