@@ -155,34 +155,49 @@ class MqttTelemetryPublisher:
         self._health = dict(health)
         self._event.set()
 
+    @staticmethod
+    async def _watch(client) -> None:
+        """Iterating the (empty) message queue is how aiomqtt reports a broker loss while idle."""
+        async for _ in client.messages:
+            pass
+        raise aiomqtt.MqttError("disconnected")
+
+    async def _publish_pending(self, client) -> None:
+        if self._health is not None:
+            h, self._health = self._health, None
+            try:
+                await client.publish(self.health_topic, json.dumps(h, default=str), qos=1, retain=True)
+            except aiomqtt.MqttError:
+                self._health = self._health or h
+                raise
+            self.counters["published"] += 1
+        if self._solution is not None:
+            s, self._solution = self._solution, None
+            try:
+                await client.publish(self.solution_topic, json.dumps(s), qos=0)
+            except aiomqtt.MqttError:
+                self._solution = self._solution or s
+                raise
+            self.counters["published"] += 1
+            await asyncio.sleep(self.min_interval_s)
+
     async def run(self) -> None:
         while True:
+            watcher = None
             try:
                 async with aiomqtt.Client(self.host, self.port, identifier=self.identifier) as client:
                     self.connected = True
                     self.counters["connects"] += 1
                     self._backoff.reset()
+                    watcher = asyncio.create_task(self._watch(client))
                     while True:
-                        await self._event.wait()
+                        waiter = asyncio.create_task(self._event.wait())
+                        done, _ = await asyncio.wait({waiter, watcher}, return_when=asyncio.FIRST_COMPLETED)
+                        if watcher in done:
+                            waiter.cancel()
+                            watcher.result()          # raises the MqttError
                         self._event.clear()
-                        if self._health is not None:
-                            h, self._health = self._health, None
-                            try:
-                                await client.publish(self.health_topic, json.dumps(h, default=str), qos=1,
-                                                     retain=True)
-                            except aiomqtt.MqttError:
-                                self._health = self._health or h
-                                raise
-                            self.counters["published"] += 1
-                        if self._solution is not None:
-                            s, self._solution = self._solution, None
-                            try:
-                                await client.publish(self.solution_topic, json.dumps(s), qos=0)
-                            except aiomqtt.MqttError:
-                                self._solution = self._solution or s
-                                raise
-                            self.counters["published"] += 1
-                            await asyncio.sleep(self.min_interval_s)
+                        await self._publish_pending(client)
             except aiomqtt.MqttError as exc:
                 self.counters["errors"] += 1
                 self.last_error = str(exc)
@@ -191,6 +206,8 @@ class MqttTelemetryPublisher:
                     log.warning("MQTT telemetry broker %s:%d lost: %s", self.host, self.port, exc)
             finally:
                 self.connected = False
+                if watcher is not None and not watcher.done():
+                    watcher.cancel()
             self._event.set()          # re-send what is pending after reconnecting
             await asyncio.sleep(self._backoff.next())
 

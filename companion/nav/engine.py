@@ -63,7 +63,8 @@ class EngineConfig:
     history_s: float = 2.0
     coasting_after_s: float = 3.0
     untrusted_sigma_h_m: float = 50.0
-    clock_reset_threshold_m: float = 300.0
+    clock_jump_sigmas: float = 8.0           # common pseudorange step, in sigmas of the clock, that re-seeds it
+    clock_jump_min_m: float = 30.0
     # time-correlated pseudorange errors (multipath): weight as if one independent sample per
     # (1 + 2 tau / T) epochs, the Gauss-Markov effective-sample rule, so P does not shrink below
     # what averaging correlated errors can deliver
@@ -283,7 +284,10 @@ class NavEngine:
             ready = [e for e in self._pending if e.t_gps <= self.t_gps]
             self._pending = [e for e in self._pending if e.t_gps > self.t_gps]
             for e in ready:
-                self._process_epoch(e)
+                if isinstance(e, GnssFix):
+                    self._process_fix(e)
+                else:
+                    self._process_epoch(e)
         return None
 
     def _zero_motion_update(self) -> None:
@@ -339,12 +343,19 @@ class NavEngine:
             self.counters["gnss before init"] += 1
             return None
         if epoch.t_gps > self.t_gps:
-            bisect.insort(self._pending, epoch, key=lambda e: e.t_gps)
-            if len(self._pending) > 20:
-                self._pending.pop(0)
-                self.counters["gnss epoch dropped: waiting queue full"] += 1
+            self._wait_for_imu(epoch)
             return None
         return self._process_epoch(epoch)
+
+    def _wait_for_imu(self, msg) -> None:
+        """Hold a GNSS message whose time the IMU has not reached yet (time-ordered queue)."""
+        if msg.t_gps > self.t_gps + self.cfg.history_s:
+            self.counters["gnss message too far ahead of the IMU (dropped)"] += 1
+            return
+        bisect.insort(self._pending, msg, key=lambda e: e.t_gps)
+        if len(self._pending) > 20:
+            self._pending.pop(0)
+            self.counters["gnss message dropped: waiting queue full"] += 1
 
     def _process_epoch(self, epoch: GnssEpoch) -> EpochReport:
         rep = EpochReport(epoch.t_gps)
@@ -417,21 +428,29 @@ class NavEngine:
         return 1.0 + 2.0 * tau / T
 
     def _check_clock(self, ins: InsPoint, pr: MeasurementBatch) -> None:
-        """First epoch: take the clock from the data.  Later: a common jump of all pseudorange
-        innovations (receiver clock reset, millisecond jump) re-seeds the clock state."""
+        """First epoch: take the clock from the data.  Later: a jump common to all pseudorange
+        innovations (receiver clock reset or steering step, a base-clock step in the corrections)
+        re-seeds the clock state.  Common-mode means: the median innovation is far outside what the
+        clock's own uncertainty allows, while the innovations agree with each other."""
         common = float(np.median(pr.z))
-        if not self.clock_initialized or abs(common) > self.cfg.clock_reset_threshold_m:
-            if self.clock_initialized:
-                self.counters["receiver clock jump re-seeded"] += 1
-                log.warning("receiver clock jump of %.1f m re-seeded", common)
-            self.clock_bias_m += common
-            pr.z = pr.z - common
-            L = LAYOUT
-            P = self.kf.P
-            P[L.clk, :] = 0.0
-            P[:, L.clk] = 0.0
-            P[L.clk, L.clk] = 100.0 ** 2
-            self.clock_initialized = True
+        L = LAYOUT
+        P = self.kf.P
+        if self.clock_initialized:
+            r_med = float(np.median(pr.r_var))
+            spread = float(np.median(np.abs(pr.z - common)))
+            if len(pr) < 3 or abs(common) < max(self.cfg.clock_jump_sigmas * math.sqrt(P[L.clk, L.clk] + r_med),
+                                                 self.cfg.clock_jump_min_m):
+                return
+            if spread > 3.0 * math.sqrt(r_med):
+                return  # not common-mode: a position problem, leave it to the gate
+            self.counters["receiver clock jump re-seeded"] += 1
+            log.warning("pseudoranges jumped together by %.1f m: clock state re-seeded", common)
+        self.clock_bias_m += common
+        pr.z = pr.z - common
+        P[L.clk, :] = 0.0
+        P[:, L.clk] = 0.0
+        P[L.clk, L.clk] = max(float(np.median(pr.r_var)), 1.0)
+        self.clock_initialized = True
 
     def _loose_batches(self, ins, prep):
         from ..gnss.spp import solve_spp
@@ -452,12 +471,18 @@ class NavEngine:
         return out
 
     def process_fix(self, fix: GnssFix):
-        """Loose coupling of a receiver's own fix (GPS_RAW_INT / NAV-PVT)."""
+        """Loose coupling of a receiver's own fix (GPS_RAW_INT / NAV-PVT), at the fix's GPS time."""
         if not self.initialized:
             self.counters["fix before init"] += 1
             return None
-        ins = self.ins_at(min(fix.t_gps, self.t_gps))
-        if ins is None or fix.fix_type < 3:
+        if fix.t_gps > self.t_gps:
+            self._wait_for_imu(fix)
+            return None
+        return self._process_fix(fix)
+
+    def _process_fix(self, fix: GnssFix):
+        ins = self.ins_at(fix.t_gps)
+        if ins is None or fix.fix_type < 3 or not np.all(np.isfinite(fix.r_e)):
             self.counters["fix unusable"] += 1
             return None
         lat, lon, _ = ecef_to_geodetic(fix.r_e)
@@ -467,6 +492,10 @@ class NavEngine:
         if fix.v_e is not None:
             batches.append(velocity_fix_batch(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2, self.lever_arm_b))
         reports = [self.kf.gate(b) for b in batches]
+        for r in reports:
+            self.counters[f"fix {r.kind} used"] += r.n_accepted
+            for reason in r.rejected_reason.values():
+                self.counters[f"fix {r.kind} rejected: {reason}"] += 1
         dx = self.kf.update(batches, reports)
         if any(r.n_accepted for r in reports):
             self._feedback(dx)
