@@ -91,7 +91,7 @@ def load_imu_log(path: str, imu_id: int | None = None):
         return imu_id or 0, d[:, 0], d[:, 1:4], d[:, 4:7]
     if p.is_dir() or suf == ".cflog":
         return _select(_rows_from_messages(_field_log_messages(p), imu_id), imu_id)
-    from pymavlink import mavutil
+    mavutil = mavlink2_mavutil()
     conn = mavutil.mavlink_connection(str(p), robust_parsing=True) if suf != ".bin" \
         else mavutil.mavlink_connection(str(p))
 
@@ -102,6 +102,17 @@ def load_imu_log(path: str, imu_id: int | None = None):
                 return
             yield m
     return _select(_rows_from_messages(it(), imu_id), imu_id)
+
+
+def mavlink2_mavutil():
+    """pymavlink's mavutil with the MAVLink 2 ardupilotmega dialect (it also parses MAVLink 1
+    frames).  mavutil picks v1 unless MAVLINK20 is set; v1 lacks the ``id`` extension fields."""
+    import os
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+    if getattr(mavutil, "current_dialect", None) != "ardupilotmega" or mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
+        mavutil.set_dialect("ardupilotmega")
+    return mavutil
 
 
 def _is_numeric_row(line: str) -> bool:

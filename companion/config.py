@@ -166,7 +166,18 @@ class FilterConfig:
     history_s: float = _f(2.0, min=0.1, max=60.0)
     coasting_after_s: float = _f(3.0, min=0.1)
     untrusted_sigma_h_m: float = _f(50.0, min=0.0, min_exclusive=True)
-    clock_reset_threshold_m: float = _f(300.0, min=0.0, min_exclusive=True)
+    clock_jump_sigmas: float = _f(8.0, min=0.0, min_exclusive=True,
+                                  doc="common pseudorange step, in clock sigmas, that re-seeds the clock")
+    clock_jump_min_m: float = _f(30.0, min=0.0)
+    sigma_phase_elevation_scaling: bool = _f(False, doc="carrier noise x 1/sin(elevation)")
+    pseudorange_correlation_time_s: float = _f(0.0, min=0.0, doc="multipath correlation time (0 = white)")
+    zupt_enabled: bool = _f(False)
+    zupt_window_s: float = _f(0.5, min=0.0, min_exclusive=True)
+    zupt_accel_std_mps2: float = _f(0.05, min=0.0, min_exclusive=True)
+    zupt_gyro_std_radps: float = _f(0.005, min=0.0, min_exclusive=True)
+    zupt_max_speed_mps: float = _f(0.5, min=0.0, min_exclusive=True)
+    zupt_sigma_mps: float = _f(0.02, min=0.0, min_exclusive=True)
+    zaru_sigma_floor_radps: float = _f(2e-4, min=0.0)
     gravity_gradient_refresh_m: float = _f(200.0, min=0.0, min_exclusive=True)
 
     def process_noise(self):
@@ -180,9 +191,19 @@ class FilterConfig:
             clock_drift_psd_m2ps3=self.clock_drift_psd_m2ps3)
 
     def engine_config(self, lever_arm_b_m=(0.0, 0.0, 0.0)):
+        """The engine configuration.  Keys the engine does not (or no longer) know are left out
+        with a warning rather than breaking start-up (tests/test_config.py flags the drift)."""
+        import logging
         from .nav.engine import EngineConfig
-        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-              if f.name not in _NOISE_FIELDS}
+        known = {f.name for f in dataclasses.fields(EngineConfig)}
+        kw = {}
+        for f in dataclasses.fields(self):
+            if f.name in _NOISE_FIELDS:
+                continue
+            if f.name in known:
+                kw[f.name] = getattr(self, f.name)
+            else:
+                logging.getLogger(__name__).warning("filter.%s is not an EngineConfig field; ignored", f.name)
         return EngineConfig(noise=self.process_noise(), lever_arm_b_m=tuple(lever_arm_b_m), **kw)
 
 

@@ -115,7 +115,8 @@ def fit_allan(tau, adev, nclus, slope_tol: float = 0.15) -> AllanFit:
         mod = np.sqrt(N * N / tau + (BI_FACTOR * B) ** 2 + K * K * tau / 3.0)
         return w * (np.log(mod) - np.log(adev))
 
-    sol = least_squares(resid, x0, method="lm" if len(tau) > 3 else "trf")
+    # bounded in log space (a term absent from the data goes to its lower bound, no overflow)
+    sol = least_squares(resid, x0, bounds=(x0 - 25.0, x0 + 10.0), method="trf")
     N, B, K = (float(v) for v in np.exp(sol.x))
     return AllanFit(N, B, K, float(tau[i_min]), float(adev[i_min]), n_line, b_min, k_line)
 

@@ -575,45 +575,45 @@ class NavEngine:
 
 
 class _StillnessDetector:
-    """Running mean/variance of the six IMU channels over a sliding window (O(1) per sample)."""
+    """Stillness test on the last ``zupt_window_s`` of raw IMU rates.
 
-    def __init__(self, cfg: EngineConfig):
+    Samples go into a preallocated ring buffer (one row write per sample); the window statistics
+    are computed with numpy only every quarter window, which keeps the IMU-rate cost to ~1 us.
+    """
+
+    def __init__(self, cfg: EngineConfig, max_rate_hz: float = 2000.0):
         self.cfg = cfg
-        self.buf: deque = deque()
-        self.s = [0.0] * 6
-        self.s2 = [0.0] * 6
         self.window_s = cfg.zupt_window_s
-        self.span = 0.0
-        self._since_update = 0.0
+        self.buf = np.zeros((int(max_rate_hz * cfg.zupt_window_s) + 1, 6))
+        self.n = 0           # samples written in total
+        self._since_check_s = 0.0
+        self._since_update_s = 0.0
+        self._window: np.ndarray | None = None
 
     def add(self, dtheta, dv, tau: float) -> bool:
-        """Add one sample (raw increments); True when a still window is complete and due an update."""
-        x = (dtheta[0] / tau, dtheta[1] / tau, dtheta[2] / tau, dv[0] / tau, dv[1] / tau, dv[2] / tau)
-        self.buf.append((x, tau))
-        self.span += tau
-        s, s2 = self.s, self.s2
-        for i in range(6):
-            s[i] += x[i]
-            s2[i] += x[i] * x[i]
-        while self.span > self.window_s and len(self.buf) > 1:
-            old, t_old = self.buf.popleft()
-            self.span -= t_old
-            for i in range(6):
-                s[i] -= old[i]
-                s2[i] -= old[i] * old[i]
-        self._since_update += tau
-        if self.span < 0.9 * self.window_s or self._since_update < self.window_s:
+        """Add one sample (raw increments); True when the last window is still and an update is due."""
+        i = self.n % len(self.buf)
+        inv = 1.0 / tau
+        self.buf[i] = (dtheta[0] * inv, dtheta[1] * inv, dtheta[2] * inv, dv[0] * inv, dv[1] * inv, dv[2] * inv)
+        self.n += 1
+        self._since_check_s += tau
+        self._since_update_s += tau
+        m = min(int(round(self.window_s / tau)), len(self.buf))  # window in samples at the current rate
+        if self.n < m or self._since_check_s < 0.25 * self.window_s:
             return False
-        n = len(self.buf)
-        var = [max(s2[i] / n - (s[i] / n) ** 2, 0.0) for i in range(6)]
-        still = (max(var[0:3]) < self.cfg.zupt_gyro_std_radps ** 2
-                 and max(var[3:6]) < self.cfg.zupt_accel_std_mps2 ** 2)
-        if still:
-            self._since_update = 0.0
-        return still
+        self._since_check_s = 0.0
+        idx = (np.arange(self.n - m, self.n)) % len(self.buf)
+        w = self.buf[idx]
+        std = w.std(axis=0)
+        still = bool(std[0:3].max() < self.cfg.zupt_gyro_std_radps and std[3:6].max() < self.cfg.zupt_accel_std_mps2)
+        if still and self._since_update_s >= self.window_s:
+            self._since_update_s = 0.0
+            self._window = w
+            return True
+        return False
 
     def gyro_mean_and_sigma(self):
-        n = len(self.buf)
-        mean = np.array(self.s[0:3]) / n
-        var = np.array(self.s2[0:3]) / n - mean ** 2
-        return mean, float(np.sqrt(max(float(np.max(var)), 0.0) / n))
+        """Mean raw gyro rate over the still window and the standard error of that mean."""
+        w = self._window
+        mean = w[:, 0:3].mean(axis=0)
+        return mean, float(w[:, 0:3].std(axis=0).max() / math.sqrt(len(w)))
