@@ -10,6 +10,7 @@ Arrays are numpy float64.  Messages are frozen: the core never mutates its input
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -140,6 +141,22 @@ class GnssFix:
     sigma_vel_mps: float = 0.5
     num_sats: int = 0
     fix_type: int = 3                 # 0-1 no fix, 2 2-D, 3 3-D, 4 DGPS, 5 RTK float, 6 RTK fixed
+
+
+@dataclass(frozen=True, slots=True)
+class GnssAttitude:
+    """Body attitude from a multi-antenna GNSS receiver (seed 003): ZYX Euler angles of the body
+    frame relative to local NED, antenna-baseline misalignment already removed.  A dual-antenna
+    receiver (UBX NAV-RELPOSNED, GPS_RAW_INT yaw) gives heading (and pitch along the baseline);
+    three antennas give all three.  Angles not measured are NaN."""
+
+    t_gps: float
+    heading_rad: float = float("nan")
+    pitch_rad: float = float("nan")
+    roll_rad: float = float("nan")
+    sigma_heading_rad: float = math.radians(0.2)
+    sigma_pitch_rad: float = math.radians(0.2)
+    sigma_roll_rad: float = math.radians(0.4)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -20,25 +20,18 @@ Method
     - ``ins_only``: the rover epochs post-processed so the flag is cleared and lock time keeps
       growing across injected slips -- only the INS-predicted innovation gate can see them.
 * Detection: the TDCP of the slipped satellite over the slip interval is rejected by the gate,
-  or (``flags`` variant) the receiver flagged the slip, which restarts the engine's bookkeeping.
-  We also count *contaminated* slips: the slipped TDCP accepted into the update (with flags this
-  happens because the engine forms and gates TDCP before it looks at the flags).
+  or (``flags`` variant) the receiver flagged the slip, which restarts the engine's bookkeeping
+  before any TDCP is formed.  *Contaminated* slips: a slipped TDCP accepted into the update.
 * False alarms: TDCP rejections of satellite-epochs whose interval contains no slip, divided by
   all such satellite-epochs.
-* A candidate engine test is evaluated offline on the very (z, H, P, R) the production gate saw
-  (recorded by wrapping ``ErrorStateKalmanFilter.gate`` for the duration of the run): the
-  *leave-one-out* innovation of each TDCP row, conditioned on the other TDCP rows of the epoch
-  (which estimate the common receiver clock drift), with iterative exclusion of the worst row.
-
-Finding (see the README / report): the per-measurement innovation variance of a TDCP row is
-dominated by the *prior clock-drift variance* (the filter's drift PSD of 0.1 m^2/s^3 makes
-sqrt(S) ~ 0.32 m/s after 1 s), so the 99.9 % gate opens at 3.29 * 0.32 = 1.04 m/s = 5.5 cycles
-over 1 s.  The common drift is identical on every satellite; removing it (single differences,
-seed 004; or the leave-one-out test) leaves sqrt(S) ~ 0.02 m/s.
+* The engine gates TDCP rows leave-one-out (companion.nav.filter.gate): each row against its
+  prediction from the other rows of the epoch, which explain the common receiver clock drift.  A
+  plain per-row test is dominated by the prior clock-drift variance (sqrt(S) ~ 0.32 m/s with the
+  tuning's drift PSD, a gate of 1.04 m/s = 5.5 cycles over 1 s); leave-one-out brings the spread to
+  ~0.02 m/s.  Receiver slip flags restart a satellite's bookkeeping before TDCP is formed.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import time
@@ -46,7 +39,7 @@ import time
 import numpy as np
 
 SLIP_SIZES = (1, 2, 5, 10, 100)
-VARIANTS = ("flags", "ins_only", "proposed")
+VARIANTS = ("flags", "ins_only")
 
 
 # ---------------------------------------------------------------------------- slip plan
@@ -117,84 +110,6 @@ def strip_slip_flags(epochs, slips: dict):
     return out
 
 
-# ---------------------------------------------------------------------------- gate recorder
-class _GateRecorder:
-    """Records (labels, z, H, P, r_var) of every TDCP batch the production gate sees."""
-
-    def __init__(self, replace_with_loo: bool = False):
-        self.pending = []
-        self.replace = replace_with_loo
-
-    @contextlib.contextmanager
-    def installed(self):
-        """For the duration, every filter's ``gate`` is wrapped (restored on exit).  With
-        ``replace_with_loo`` the TDCP decision is the proposed leave-one-out test instead: a
-        preview of the engine change, run in the loop, without editing the engine."""
-        from companion.nav import filter as kf_mod
-        orig = kf_mod.ErrorStateKalmanFilter.gate
-        rec = self
-
-        def gate(kf, batch):
-            rep = orig(kf, batch)
-            if batch.kind == "tdcp" and len(batch):
-                rec.pending.append((list(batch.labels), batch.z.copy(), batch.H.copy(), kf.P.copy(),
-                                    batch.r_var.copy(), kf.gate_chi2_1dof))
-                if rec.replace:
-                    rej, ratio = leave_one_out_test(batch.z, batch.H, kf.P, batch.r_var, kf.gate_chi2_1dof,
-                                                    return_ratios=True)
-                    finite = np.isfinite(batch.z)
-                    rep.accepted = finite & ~rej
-                    rep.test_ratio = ratio
-                    rep.rejected_reason = {lab: "innovation gate (leave-one-out)"
-                                           for lab, a in zip(batch.labels, rep.accepted) if not a}
-            return rep
-
-        kf_mod.ErrorStateKalmanFilter.gate = gate
-        try:
-            yield self
-        finally:
-            kf_mod.ErrorStateKalmanFilter.gate = orig
-
-
-def leave_one_out_test(z, H, P, r_var, gate_chi2: float, min_others: int = 2, return_ratios: bool = False):
-    """Proposed TDCP slip test: each row's innovation conditioned on the other (not yet excluded)
-    rows of the same epoch, worst row excluded while any exceeds the gate.  Returns rejected mask.
-
-    nu_i = z_i - H_i K_o z_o,  var_i = H_i P_o H_i^T + r_i,  P_o = P - K_o H_o P,
-    K_o = P H_o^T (H_o P H_o^T + R_o)^-1  (o = the other active rows).  With fewer than
-    ``min_others`` other rows the plain prior test is used.  With ``return_ratios`` also returns
-    each row's final test ratio (nu^2 / (var * gate))."""
-    m = len(z)
-    rejected = np.zeros(m, bool)
-    final = np.zeros(m)
-    while True:
-        active = np.flatnonzero(~rejected)
-        if len(active) == 0:
-            break
-        ratios = np.zeros(m)
-        for i in active:
-            o = active[active != i]
-            if len(o) < min_others:
-                s = H[i] @ P @ H[i] + r_var[i]
-                ratios[i] = z[i] ** 2 / (s * gate_chi2)
-                continue
-            Ho = H[o]
-            PHt = P @ Ho.T
-            S = Ho @ PHt + np.diag(r_var[o])
-            K = np.linalg.solve(S, PHt.T).T
-            nu = z[i] - H[i] @ (K @ z[o])
-            Po = P - K @ PHt.T
-            s = H[i] @ Po @ H[i] + r_var[i]
-            ratios[i] = nu ** 2 / (s * gate_chi2)
-        final[active] = ratios[active]
-        worst = int(active[np.argmax(ratios[active])])
-        if ratios[worst] > 1.0:
-            rejected[worst] = True
-        else:
-            break
-    return (rejected, final) if return_ratios else rejected
-
-
 # ---------------------------------------------------------------------------- one run
 def _one_run(scenario_name: str, seed: int, spacing_s: float) -> dict:
     from sitl.paper import run_ins_mode
@@ -217,43 +132,38 @@ def _one_run(scenario_name: str, seed: int, spacing_s: float) -> dict:
     for variant in VARIANTS:
         data = sim if variant == "flags" else dataclasses.replace(
             sim, rover_epochs=strip_slip_flags(sim.rover_epochs, slips))
-        recorder = _GateRecorder(replace_with_loo=variant == "proposed")
-        epochs = []
+        epochs = {}
 
-        def on_epoch(rep, recorder=recorder, epochs=epochs):
+        def on_epoch(rep, epochs=epochs):
             tdcp = [r for r in rep.reports if r.kind == "tdcp"]
-            loo = None
-            if tdcp and recorder.pending:
-                labels, z, H, P, rv, g = recorder.pending[-1]
-                loo = dict(zip(labels, leave_one_out_test(z, H, P, rv, g)))
-            recorder.pending.clear()
             if tdcp:
-                r = tdcp[0]
-                epochs.append((rep.t_gps, list(r.labels), r.accepted.copy(), r.test_ratio.copy(), loo))
+                epochs[rep.t_gps] = dict(zip(tdcp[0].labels, tdcp[0].accepted.tolist()))
 
-        with recorder.installed():
-            run_ins_mode("tdcp_dgps", data, tuning, seed, on_epoch=on_epoch)
+        run_ins_mode("tdcp_dgps", data, tuning, seed, on_epoch=on_epoch)
         flag_source = flags_at if variant == "flags" else {}
-        per_size = {str(s): {"n": 0, "detected": 0, "gate": 0, "contaminated": 0, "loo": 0} for s in SLIP_SIZES}
-        fa = {"n": 0, "rejected": 0, "loo_rejected": 0}
-        for t, labels, acc, ratio, loo in epochs:
-            for lab, a in zip(labels, acc):
-                key = (t, lab)
-                if key in slips:
-                    c = per_size[str(abs(slips[key]))]
-                    c["n"] += 1
-                    gate = not bool(a)
-                    flag = flag_source.get(key, False)
-                    c["gate"] += gate
-                    c["detected"] += gate or flag
-                    c["contaminated"] += bool(a)
-                    c["loo"] += bool(loo[lab]) if loo is not None else gate
-                else:
+        per_size = {str(s): {"n": 0, "detected": 0, "gate": 0, "flag": 0, "contaminated": 0} for s in SLIP_SIZES}
+        fa = {"n": 0, "rejected": 0}
+        for (t, sat), cycles in slips.items():
+            rows = epochs.get(t, {})
+            flagged = flag_source.get((t, sat), False)
+            if sat not in rows and not flagged:
+                continue          # no TDCP formed over that interval (e.g. satellite just rose)
+            c = per_size[str(abs(cycles))]
+            c["n"] += 1
+            if sat in rows:
+                gate = not rows[sat]
+                c["gate"] += gate
+                c["contaminated"] += not gate
+                c["detected"] += gate or flagged
+            else:
+                c["flag"] += 1    # the flag restarted the bookkeeping before TDCP was formed
+                c["detected"] += 1
+        for t, rows in epochs.items():
+            for sat, acc in rows.items():
+                if (t, sat) not in slips:
                     fa["n"] += 1
-                    fa["rejected"] += not bool(a)
-                    fa["loo_rejected"] += bool(loo[lab]) if loo is not None else (not bool(a))
+                    fa["rejected"] += not acc
         out["variants"][variant] = {"per_size": per_size, "false_alarm": fa}
-    # receiver flags: how many of the true slips did the simulated receiver flag
     out["flagged_by_receiver"] = sum(flags_at.get(k, False) for k in slips)
     out["true_slips"] = len(slips)
     return out
@@ -288,8 +198,8 @@ def run_slips(scenario_name: str = "paper-nosa", runs: int = 10, seed: int = 1, 
            "flagged_by_receiver": sum(r["flagged_by_receiver"] for r in results)}
     summary = {}
     for v in VARIANTS:
-        per = {str(s): {"n": 0, "detected": 0, "gate": 0, "contaminated": 0, "loo": 0} for s in SLIP_SIZES}
-        fa = {"n": 0, "rejected": 0, "loo_rejected": 0}
+        per = {str(s): {"n": 0, "detected": 0, "gate": 0, "flag": 0, "contaminated": 0} for s in SLIP_SIZES}
+        fa = {"n": 0, "rejected": 0}
         for r in results:
             for s, c in r["variants"][v]["per_size"].items():
                 for k in c:
@@ -307,16 +217,12 @@ def run_slips(scenario_name: str = "paper-nosa", runs: int = 10, seed: int = 1, 
             "contaminated_rate": {s: rate(per[s]["contaminated"], per[s]["n"]) for s in per},
             "false_alarm_rate": rate(fa["rejected"], fa["n"]),
             "satellite_epochs": fa["n"],
-            "proposed_loo_detection_rate": {s: rate(per[s]["loo"], per[s]["n"]) for s in per},
-            "proposed_loo_false_alarm_rate": rate(fa["loo_rejected"], fa["n"]),
         }
     out["variants"] = summary
     # headline keys: the INS-predicted test alone (receiver flags removed), as issue 4 asks
     out["detection_rate"] = summary["ins_only"]["detection_rate"]
     out["false_alarm_rate"] = summary["ins_only"]["false_alarm_rate"]
     out["detection_rate_with_flags"] = summary["flags"]["detection_rate"]
-    out["detection_rate_proposed_loo"] = summary["proposed"]["detection_rate"]
-    out["false_alarm_rate_proposed_loo"] = summary["proposed"]["false_alarm_rate"]
     out["false_alarm_rate_with_flags"] = summary["flags"]["false_alarm_rate"]
     out["targets"] = {"detection_ge2": 0.99, "detection_1": 0.90, "false_alarm_max": 0.001}
     out["elapsed_s"] = time.perf_counter() - t_start
@@ -326,23 +232,20 @@ def run_slips(scenario_name: str = "paper-nosa", runs: int = 10, seed: int = 1, 
 def format_slips(res: dict) -> str:
     lines = [f"cycle slips, scenario '{res['scenario']}', {res['runs']} run(s), {res['true_slips']} slips "
              f"({res['flagged_by_receiver']} flagged by the simulated receiver)"]
-    head = (f"{'slip [cyc]':>10} | {'n':>4} | {'with flags':>10} | {'contam.':>7} | {'INS gate only':>13} | "
-            f"{'proposed LOO':>12} | target")
+    head = f"{'slip [cyc]':>10} | {'n':>4} | {'INS test only':>13} | {'with receiver flags':>19} | target"
     lines += [head, "-" * len(head)]
-    vf, vi, vp = (res["variants"][v] for v in VARIANTS)
+    vf, vi = res["variants"]["flags"], res["variants"]["ins_only"]
     for s in map(str, SLIP_SIZES):
         tgt = ">= 90 %" if s == "1" else ">= 99 %"
-        lines.append(f"{s:>10} | {vi['n_slips'][s]:>4} | {100 * vf['detection_rate'][s]:9.1f}% | "
-                     f"{100 * vf['contaminated_rate'][s]:6.1f}% | {100 * vi['detection_rate'][s]:12.1f}% | "
-                     f"{100 * vp['detection_rate'][s]:11.1f}% | {tgt}")
+        lines.append(f"{s:>10} | {vi['n_slips'][s]:>4} | {100 * vi['detection_rate'][s]:12.1f}% | "
+                     f"{100 * vf['detection_rate'][s]:18.1f}% | {tgt}")
     lines.append("-" * len(head))
-    lines.append(f"false alarms per satellite-epoch: with flags {100 * vf['false_alarm_rate']:.3f} %, "
-                 f"INS gate only {100 * vi['false_alarm_rate']:.3f} %, proposed LOO "
-                 f"{100 * vp['false_alarm_rate']:.3f} % (target <= 0.1 %; {vi['satellite_epochs']} satellite-epochs)")
-    lines.append("'with flags': receiver flags present (simulator output); 'contam.': slipped TDCP accepted into "
-                 "the update although flagged (the engine gates TDCP before it reads the flags); 'INS gate "
-                 "only': flags removed, production gate; 'proposed LOO': flags removed, TDCP gated by the "
-                 "leave-one-out test in the loop (engine change preview)")
+    lines.append(f"false alarms per satellite-epoch: INS test only {100 * vi['false_alarm_rate']:.3f} %, "
+                 f"with flags {100 * vf['false_alarm_rate']:.3f} % (target <= 0.1 %; "
+                 f"{vi['satellite_epochs']} satellite-epochs)")
+    lines.append("'INS test only': the receiver's slip flags and lock-time resets removed, so only the "
+                 "INS-predicted TDCP innovation test (leave-one-out, seed 004 eq 16) can see the slip; "
+                 "'with receiver flags': as the simulated receiver reports them")
     return "\n".join(lines)
 
 

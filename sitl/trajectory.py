@@ -241,3 +241,237 @@ def survey_flight(origin_llh, heading0_rad: float = 0.3, cruise_mps: float = 9.0
                             heading_rate=SmoothProfile(0.0, tuple(hr_steps)),
                             v_down=SmoothProfile(0.0, tuple(v_down_steps)),
                             heading0_rad=heading0_rad, events=tuple(events))
+
+
+# ------------------------------------------------------------------------------------------
+# ground vehicle (seed 002: non-holonomic constraint)
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class GroundTrajectory:
+    """A car on a road, from C2-smooth profiles (all times t_rel, s):
+
+    * speed V along the body x axis, heading psi = psi0 + integral(psi_dot);
+    * pitch = road grade angle theta (the body x axis follows the road, so the velocity has
+      no body-vertical component: v_t = V (cos theta cos psi, cos theta sin psi, -sin theta));
+    * roll = road crossfall (bank) + suspension roll outward in turns,
+      ``-roll_per_lat_accel * a_lat`` (a_lat = V psi_dot; roll is a rotation about the velocity
+      axis, so it does not break the constraint);
+    * body lateral velocity v_y = side-slip ``-slip_per_lat_accel * a_lat * ...`` (the rear drifts
+      out: a slip angle proportional to the lateral acceleration, beta = -k a_lat, v_y = V beta)
+      plus an optional injected skid profile ``skid`` (m/s, body y), added as v_y C_b_t[:, 1].
+
+    With ``slip_per_lat_accel = 0`` and no skid the body velocity is exactly (V, 0, 0): the
+    non-holonomic constraint holds for the truth."""
+
+    origin_llh: tuple[float, float, float]
+    duration_s: float
+    speed: SmoothProfile
+    heading_rate: SmoothProfile
+    grade: SmoothProfile                     # pitch = road grade angle, rad
+    bank: SmoothProfile                      # road crossfall, rad
+    heading0_rad: float
+    roll_per_lat_accel: float = 0.0          # rad per m/s^2 (suspension roll, outward)
+    slip_per_lat_accel: float = 0.0          # rad per m/s^2 (side-slip angle)
+    skid: SmoothProfile = SmoothProfile(0.0, ())
+    events: tuple[tuple[str, float, float], ...] = ()
+
+    def heading(self, t):
+        return self.heading0_rad + self.heading_rate.integral(t)
+
+    def _angles(self, t):
+        V = self.speed.value(t)
+        a_lat = V * self.heading_rate.value(t)
+        roll = self.bank.value(t) - self.roll_per_lat_accel * a_lat
+        return V, a_lat, roll, self.grade.value(t), self.heading(t)
+
+    def lateral_velocity_b(self, t_rel) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t_rel, float))
+        V, a_lat, _, _, _ = self._angles(t)
+        return -self.slip_per_lat_accel * a_lat * V + self.skid.value(t)
+
+    def attitude_t(self, t_rel) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t_rel, float))
+        _, _, roll, pitch, psi = self._angles(t)
+        return euler_to_dcm_vec(roll, pitch, psi)
+
+    def velocity_t(self, t_rel) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t_rel, float))
+        V, a_lat, roll, pitch, psi = self._angles(t)
+        C = euler_to_dcm_vec(roll, pitch, psi)
+        v_y = -self.slip_per_lat_accel * a_lat * V + self.skid.value(t)
+        return V[:, None] * C[:, :, 0] + v_y[:, None] * C[:, :, 1]
+
+
+class _Route:
+    """Builds speed / heading-rate smootherstep steps along a time cursor."""
+
+    def __init__(self):
+        self.t = 0.0
+        self.v = 0.0
+        self.speed_steps: list = []
+        self.hr_steps: list = []
+        self.events: list = []
+
+    def hold(self, name: str, dur: float):
+        self.events.append((name, self.t, self.t + dur))
+        self.t += dur
+
+    def speed_to(self, v: float, dur: float, name: str | None = None):
+        self.speed_steps.append((self.t, dur, v - self.v))
+        self.events.append((name or ("accelerate" if v > self.v else "brake"), self.t, self.t + dur))
+        self.v = v
+        self.t += dur
+
+    def turn(self, angle_deg: float, rate_dps: float, ramp_s: float = 1.5, name: str = "turn"):
+        """Turn by angle_deg (+ = right, NED yaw) at a peak rate; the angle is exact."""
+        a = math.radians(abs(angle_deg))
+        w = math.radians(rate_dps) * (1.0 if angle_deg > 0 else -1.0)
+        hold = a / abs(w) - ramp_s
+        assert hold >= 0.0, "turn too short for its ramps"
+        self.hr_steps.append((self.t, ramp_s, w))
+        self.hr_steps.append((self.t + ramp_s + hold, ramp_s, -w))
+        dur = 2.0 * ramp_s + hold
+        self.events.append((name, self.t, self.t + dur))
+        self.t += dur
+
+
+def road_drive(origin_llh, heading0_rad: float = math.radians(30.0), skid_at_s: float | None = None,
+               skid_mps: float = 2.0, skid_s: float = 3.0) -> GroundTrajectory:
+    """The 'nhc' drive (~10 min, speeds 5-20 m/s; event times in ``events``):
+
+    rest 15 s; accelerate to 12 m/s; straight; brake to 7 m/s; 90-deg right turn (17 deg/s,
+    radius ~24 m); accelerate to 15; straight; brake to 7; roundabout (enter 30 deg right,
+    circulate 210 deg left at 15 deg/s, radius ~27 m, exit 30 deg right); accelerate to 18;
+    straight over a hill; brake to a stop; stop 20 s (ZUPT); accelerate to 10; 90-deg left turn;
+    accelerate to 20; long straight; brake to 10; gentle 45-deg right curve; straight; 90-deg
+    right turn at 8 m/s; accelerate to 14; straight; brake to a stop; rest.
+
+    Road profile: grade steps between -3 and +3 deg (pitch), crossfall between -1.5 and +1.5 deg;
+    suspension roll 0.4 deg per m/s^2 of lateral acceleration (outward; ~4 deg/g, a passenger
+    car); side-slip angle 0.1 deg per m/s^2 (at 2 m/s^2 and 7 m/s: 0.025 m/s sideways, well
+    inside the constraint's 0.1 m/s noise).  Optional skid: a body-lateral velocity ``skid_mps``
+    held for ``skid_s`` (0.5-s smootherstep ramps on each side) starting at ``skid_at_s``.
+    """
+    r = _Route()
+    r.hold("rest", 15.0)
+    r.speed_to(12.0, 8.0)
+    r.hold("straight1", 40.0)
+    r.speed_to(7.0, 5.0)
+    r.turn(90.0, 17.0, name="turn1 (90 right)")
+    r.speed_to(15.0, 8.0)
+    r.hold("straight2", 55.0)
+    r.speed_to(7.0, 6.0)
+    r.turn(30.0, 12.0, name="roundabout entry")
+    r.turn(-210.0, 15.0, name="roundabout")
+    r.turn(30.0, 12.0, name="roundabout exit")
+    r.speed_to(18.0, 10.0)
+    r.hold("straight3 (hill)", 60.0)
+    r.speed_to(0.0, 12.0)
+    r.hold("stop", 20.0)
+    r.speed_to(10.0, 8.0)
+    r.turn(-90.0, 15.0, name="turn2 (90 left)")
+    r.speed_to(20.0, 10.0)
+    r.hold("straight4", 90.0)
+    r.speed_to(10.0, 6.0)
+    r.turn(45.0, 6.0, name="curve (45 right)")
+    r.hold("straight5", 40.0)
+    r.speed_to(8.0, 4.0)
+    r.turn(90.0, 17.0, name="turn3 (90 right)")
+    r.speed_to(14.0, 8.0)
+    r.hold("straight6", 75.0)
+    r.speed_to(5.0, 6.0)
+    r.turn(-90.0, 20.0, name="turn4 (90 left)")
+    r.hold("straight7", 35.0)
+    r.speed_to(0.0, 5.0)
+    r.hold("rest", 10.0)
+    duration = math.ceil(r.t)
+    deg = math.radians(1.0)
+    # grade / crossfall changes never fall in the rest or stop phases
+    grade = SmoothProfile(0.0, ((40.0, 8.0, 1.5 * deg), (100.0, 10.0, -2.5 * deg), (185.0, 10.0, 4.0 * deg),
+                                (215.0, 10.0, -6.0 * deg), (236.0, 8.0, 3.0 * deg), (300.0, 10.0, 2.0 * deg),
+                                (340.0, 12.0, -3.0 * deg), (420.0, 10.0, 1.0 * deg), (470.0, 10.0, -1.5 * deg),
+                                (520.0, 10.0, 1.5 * deg)))
+    bank = SmoothProfile(0.0, ((35.0, 5.0, 1.0 * deg), (110.0, 5.0, -2.0 * deg), (200.0, 5.0, 1.5 * deg),
+                               (300.0, 5.0, -1.5 * deg), (360.0, 6.0, 2.5 * deg), (500.0, 6.0, -1.5 * deg)))
+    skid = SmoothProfile(0.0, ())
+    events = list(r.events)
+    if skid_at_s is not None:
+        ramp = 0.5
+        skid = SmoothProfile(0.0, ((skid_at_s, ramp, skid_mps), (skid_at_s + ramp + skid_s, ramp, -skid_mps)))
+        events.append(("skid", skid_at_s, skid_at_s + 2 * ramp + skid_s))
+    return GroundTrajectory(origin_llh=tuple(origin_llh), duration_s=float(duration),
+                            speed=SmoothProfile(0.0, tuple(r.speed_steps)),
+                            heading_rate=SmoothProfile(0.0, tuple(r.hr_steps)),
+                            grade=grade, bank=bank, heading0_rad=heading0_rad,
+                            roll_per_lat_accel=math.radians(0.4), slip_per_lat_accel=math.radians(0.1),
+                            skid=skid, events=tuple(events))
+
+
+# ------------------------------------------------------------------------------------------
+# fixed-wing survey aircraft (seed 003: GNSS attitude)
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FixedWingTrajectory:
+    """An aircraft in coordinated flight, no wind: ground speed V, heading psi (track = yaw, no
+    side-slip), climb rate -v_d.  Flight-path angle gamma = atan(-v_d / V); pitch = gamma + alpha
+    with the angle of attack alpha = alpha0 * load factor (n = 1/cos(roll)); roll = the
+    coordinated bank atan(V psi_dot / g)."""
+
+    origin_llh: tuple[float, float, float]
+    duration_s: float
+    speed: SmoothProfile
+    heading_rate: SmoothProfile
+    v_down: SmoothProfile
+    heading0_rad: float
+    alpha0_rad: float = math.radians(2.5)
+    g_mps2: float = 9.80
+    events: tuple[tuple[str, float, float], ...] = ()
+
+    def heading(self, t):
+        return self.heading0_rad + self.heading_rate.integral(t)
+
+    def velocity_t(self, t_rel) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t_rel, float))
+        V, psi = self.speed.value(t), self.heading(t)
+        return np.stack([V * np.cos(psi), V * np.sin(psi), self.v_down.value(t)], axis=-1)
+
+    def attitude_t(self, t_rel) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(t_rel, float))
+        V, psi = self.speed.value(t), self.heading(t)
+        roll = np.arctan(V * self.heading_rate.value(t) / self.g_mps2)
+        gamma = np.arctan2(-self.v_down.value(t), V)
+        pitch = gamma + self.alpha0_rad / np.cos(roll)
+        return euler_to_dcm_vec(roll, pitch, psi)
+
+
+def survey_aircraft(origin_llh, heading0_rad: float = math.radians(80.0)) -> FixedWingTrajectory:
+    """The 'attitude' flight, 10 min (seed 003 flew 2.6 h; shorter here to keep a Monte Carlo run
+    at a few seconds): a light survey aircraft at 55-65 m/s.
+
+    straight 40 s; climb 300 m at 5 m/s; 180-deg standard-rate turn right (3 deg/s, bank ~17 deg);
+    survey line 90 s; 180-deg turn left; survey line 90 s with a 150-m descent; 270-deg turn right at
+    4 deg/s (bank ~23 deg) while speeding up to 65 m/s; line 60 s; 90-deg turn left; rest of the time
+    straight and level.  All profiles are smootherstep steps (C2)."""
+    r = _Route()
+    r.v = 55.0
+    vd_steps = []
+    r.hold("straight", 40.0)
+    vd_steps += [(r.t, 5.0, -5.0), (r.t + 60.0, 5.0, 5.0)]
+    r.hold("climb 300 m", 65.0)
+    r.hold("level", 10.0)
+    r.turn(180.0, 3.0, ramp_s=4.0, name="turn1 (180 right)")
+    r.hold("line1", 90.0)
+    r.turn(-180.0, 3.0, ramp_s=4.0, name="turn2 (180 left)")
+    vd_steps += [(r.t + 20.0, 5.0, 3.0), (r.t + 70.0, 5.0, -3.0)]
+    r.hold("line2 (descent 150 m)", 90.0)
+    r.speed_steps.append((r.t, 20.0, 10.0))
+    r.turn(270.0, 4.0, ramp_s=4.0, name="turn3 (270 right, speed up)")
+    r.hold("line3", 60.0)
+    r.turn(-90.0, 3.0, ramp_s=4.0, name="turn4 (90 left)")
+    duration = 600.0
+    r.hold("line4", duration - r.t)
+    return FixedWingTrajectory(origin_llh=tuple(origin_llh), duration_s=duration,
+                               speed=SmoothProfile(55.0, tuple(r.speed_steps)),
+                               heading_rate=SmoothProfile(0.0, tuple(r.hr_steps)),
+                               v_down=SmoothProfile(0.0, tuple(vd_steps)),
+                               heading0_rad=heading0_rad, events=tuple(r.events))

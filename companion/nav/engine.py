@@ -24,12 +24,13 @@ import numpy as np
 
 from ..gnss.ephemeris_store import EphemerisStore
 from ..gnss.prepare import prepare_epoch
-from ..messages import BaseStationPosition, GnssEpoch, GnssFix, GpsEphemeris, ImuSample, NavSolution
+from ..messages import (BaseStationPosition, GnssAttitude, GnssEpoch, GnssFix, GpsEphemeris, ImuSample,
+                        NavSolution)
 from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
-from .measurements import (InsPoint, PhaseRecord, antenna_state, doppler_batch, line_of_sight,
-                           position_fix_batch, pseudorange_batch, tdcp_batch, velocity_fix_batch,
-                           zero_rate_batch, zero_velocity_batch)
+from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, doppler_batch, line_of_sight,
+                           nhc_batch, position_fix_batch, pseudorange_batch, single_difference, tdcp_batch,
+                           velocity_fix_batch, zero_rate_batch, zero_velocity_batch)
 from .strapdown import strapdown_step_with_force
 
 log = logging.getLogger(__name__)
@@ -77,6 +78,18 @@ class EngineConfig:
     zupt_max_speed_mps: float = 0.5         # the INS must agree that it is (nearly) still
     zupt_sigma_mps: float = 0.02
     zaru_sigma_floor_radps: float = 2e-4
+    # non-holonomic constraint for ground vehicles (seed 002); suspended after repeated rejections
+    nhc_enabled: bool = False
+    nhc_rate_hz: float = 10.0
+    nhc_sigma_lateral_mps: float = 0.1
+    nhc_sigma_vertical_mps: float = 0.1
+    nhc_min_speed_mps: float = 1.0
+    nhc_suspend_after_rejections: int = 3
+    nhc_suspend_s: float = 5.0
+    # 'undifferenced' or 'single_difference' (between satellites, seed 004: no clock states needed)
+    measurement_form: str = "undifferenced"
+    # measurement kinds gated leave-one-out (their rows share the clock; see filter.gate)
+    leave_one_out_kinds: tuple = ("tdcp", "pseudorange")
     gravity_gradient_refresh_m: float = 200.0
     klobuchar: tuple | None = None
 
@@ -121,6 +134,10 @@ class NavEngine:
         self._phase: dict[str, PhaseRecord] = {}
         self._base_phase: dict[str, deque] = {}
         self._still = _StillnessDetector(config) if config.zupt_enabled else None
+        self.ground_mode = True           # NHC applies only on the ground (the shell may say otherwise)
+        self._nhc_countdown_s = 0.0
+        self._nhc_rejections = 0
+        self._nhc_suspended_until = -math.inf
         self._last_epoch_t = math.nan
         self._grad = None
         self._grad_r = None
@@ -184,6 +201,8 @@ class NavEngine:
             return None
         if isinstance(msg, GnssFix):
             return self.process_fix(msg)
+        if isinstance(msg, GnssAttitude):
+            return self.process_attitude(msg)
         self.counters["unknown message"] += 1
         return None
 
@@ -280,15 +299,54 @@ class NavEngine:
         self._push_history()
         if self._still is not None and self._still.add(th, dvl, tau):
             self._zero_motion_update()
+        if self.cfg.nhc_enabled:
+            self._nhc_countdown_s -= tau
+            if self._nhc_countdown_s <= 0.0:
+                self._nhc_countdown_s += 1.0 / self.cfg.nhc_rate_hz
+                self._nhc_update()
         if self._pending and self._pending[0].t_gps <= self.t_gps:
             ready = [e for e in self._pending if e.t_gps <= self.t_gps]
             self._pending = [e for e in self._pending if e.t_gps > self.t_gps]
             for e in ready:
                 if isinstance(e, GnssFix):
                     self._process_fix(e)
+                elif isinstance(e, GnssAttitude):
+                    self._process_attitude(e)
                 else:
                     self._process_epoch(e)
         return None
+
+    def set_ground_mode(self, on_ground: bool) -> None:
+        """The shell tells the engine whether the vehicle is on the ground (e.g. MAVLink
+        EXTENDED_SYS_STATE.landed_state); the non-holonomic constraint is off in flight."""
+        if on_ground != self.ground_mode:
+            self.counters["ground mode on" if on_ground else "ground mode off (flight)"] += 1
+        self.ground_mode = on_ground
+
+    def _nhc_update(self) -> None:
+        """Non-holonomic constraint while moving on the ground.  Repeated gate rejections mean the
+        assumption is broken (skid, lift, a vehicle that is not a car): suspend it for a while."""
+        if not self.ground_mode or self.t_gps < self._nhc_suspended_until:
+            return
+        if float(self.v_e @ self.v_e) < self.cfg.nhc_min_speed_mps ** 2:
+            return
+        b = nhc_batch(self.v_e, self.C_b_e, self.cfg.nhc_sigma_lateral_mps, self.cfg.nhc_sigma_vertical_mps)
+        rep = self.kf.gate(b)
+        if rep.n_accepted < len(b):
+            self._nhc_rejections += 1
+            self.counters["nhc rejected: innovation gate"] += len(b) - rep.n_accepted
+            if self._nhc_rejections >= self.cfg.nhc_suspend_after_rejections:
+                self._nhc_suspended_until = self.t_gps + self.cfg.nhc_suspend_s
+                self._nhc_rejections = 0
+                self.counters["nhc suspended"] += 1
+                log.info("non-holonomic constraint violated repeatedly: suspended for %.0f s", self.cfg.nhc_suspend_s)
+                return
+        else:
+            self._nhc_rejections = 0
+        self.counters["nhc used"] += rep.n_accepted
+        dx = self.kf.update([b], [rep])
+        if rep.n_accepted:
+            self._feedback(dx)
 
     def _zero_motion_update(self) -> None:
         """ZUPT + ZARU from the still window (only if the INS agrees it is nearly at rest)."""
@@ -389,6 +447,7 @@ class NavEngine:
             if cfg.use_doppler and len(prep.sats):
                 batches.append(doppler_batch(ins, prep, self.lever_arm_b, cfg.sigma_doppler_mps))
             if cfg.use_tdcp:
+                self._drop_slipped_phase(prep)
                 corr = None
                 if cfg.tdcp_base_correction != "off" and self._phase:
                     t_prev = max(p.t_gps for p in self._phase.values())
@@ -399,7 +458,14 @@ class NavEngine:
                                           phase_correction_m=corr,
                                           elevation_scaling=cfg.sigma_phase_elevation_scaling))
         batches = [b for b in batches if len(b)]
-        reports = [self.kf.gate(b) for b in batches]
+        if cfg.measurement_form == "single_difference" and batches and len(prep.sats):
+            # reference: the highest satellite that every GNSS batch contains
+            common = set.intersection(*(set(b.labels) for b in batches))
+            order = np.argsort(-prep.elevation_rad)
+            ref = next((prep.sats[i] for i in order if prep.sats[i] in common), None)
+            batches = [single_difference(b, ref) for b in batches] if ref else []
+            batches = [b for b in batches if len(b)]
+        reports = [self.kf.gate(b, leave_one_out=b.kind in cfg.leave_one_out_kinds) for b in batches]
         for r in reports:
             self.counters[f"{r.kind} used"] += r.n_accepted
             for reason in r.rejected_reason.values():
@@ -502,6 +568,35 @@ class NavEngine:
             self.last_gnss_update_t = fix.t_gps
         return reports
 
+    def process_attitude(self, att: GnssAttitude):
+        """Multi-antenna GNSS attitude at its GPS time (seed 003)."""
+        if not self.initialized:
+            self.counters["attitude before init"] += 1
+            return None
+        if att.t_gps > self.t_gps:
+            self._wait_for_imu(att)
+            return None
+        return self._process_attitude(att)
+
+    def _process_attitude(self, att: GnssAttitude):
+        ins = self.ins_at(att.t_gps)
+        if ins is None:
+            self.counters["attitude older than INS history"] += 1
+            return None
+        lat, lon, _ = ecef_to_geodetic(ins.r_e)
+        b = attitude_batch(ins.C_b_e, C_n_e(lat, lon), att)
+        if not len(b):
+            self.counters["attitude without angles"] += 1
+            return None
+        rep = self.kf.gate(b)
+        self.counters["attitude used"] += rep.n_accepted
+        for reason in rep.rejected_reason.values():
+            self.counters[f"attitude rejected: {reason}"] += 1
+        dx = self.kf.update([b], [rep])
+        if rep.n_accepted:
+            self._feedback(dx)
+        return rep
+
     def _feedback(self, dx: np.ndarray) -> None:
         """Closed loop: fold the estimated errors into the nominal state (error state back to zero)."""
         L = LAYOUT
@@ -516,10 +611,23 @@ class NavEngine:
         # the newest history sample is "now": keep it consistent with the corrected state
         self._history[-1] = (self.t_gps, self.r_e, self.v_e, self.C_b_e)
 
+    def _drop_slipped_phase(self, prep) -> None:
+        """Before TDCP is formed: a receiver slip flag, a half-cycle flag or a lock time that went
+        down means the carrier of that satellite is not continuous with the stored one."""
+        for i, sat in enumerate(prep.sats):
+            prev = self._phase.get(sat)
+            if prev is None:
+                continue
+            lock = float(prep.lock_time_s[i])
+            if (bool(prep.loss_of_lock[i]) or bool(prep.half_cycle[i])
+                    or (math.isfinite(lock) and math.isfinite(prev.lock_time_s) and lock < prev.lock_time_s)):
+                del self._phase[sat]
+                self.counters["carrier bookkeeping restarted (slip flag / lock time)"] += 1
+
     def _remember_phase(self, ins: InsPoint, dx: np.ndarray, prep) -> None:
         """Store each satellite's carrier and its geometric range from the *corrected* INS state,
-        for the next epoch's TDCP.  A slip flag, a lock-time reset or a half-cycle ambiguity
-        restarts the satellite's bookkeeping."""
+        for the next epoch's TDCP.  Every epoch replaces the record, so a slip that the gate caught
+        spoils one interval only; a half-cycle-ambiguous carrier is not stored."""
         if not self.cfg.use_tdcp:
             return
         L = LAYOUT
@@ -533,18 +641,11 @@ class NavEngine:
             rho, u = line_of_sight(prep.r_sat_e[finite], r_ant)
             for j, i in enumerate(np.flatnonzero(finite)):
                 sat = prep.sats[i]
-                prev = self._phase.get(sat)
-                lock = float(prep.lock_time_s[i])
-                slipped = bool(prep.loss_of_lock[i]) or bool(prep.half_cycle[i]) or (
-                    prev is not None and math.isfinite(lock) and math.isfinite(prev.lock_time_s)
-                    and lock < prev.lock_time_s)
-                if slipped:
-                    self.counters["carrier bookkeeping restarted (slip flag / lock time)"] += 1
-                    self._phase.pop(sat, None)
-                    if bool(prep.half_cycle[i]):
-                        continue
+                if bool(prep.half_cycle[i]):
+                    continue   # unresolved half-cycle: do not build on this carrier
                 self._phase[sat] = PhaseRecord(ins.t_gps, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]),
-                                               float(rho[j]), float(prep.sat_clock_bias_m[i]), u[j], lock)
+                                               float(rho[j]), float(prep.sat_clock_bias_m[i]), u[j],
+                                               float(prep.lock_time_s[i]))
                 seen.add(sat)
         for sat in [s for s in self._phase if s not in seen]:
             del self._phase[sat]

@@ -196,3 +196,73 @@ def zero_rate_batch(omega_meas_b: np.ndarray, C_b_e: np.ndarray, b_g: np.ndarray
     H[:, layout.bg] = np.eye(3)
     z = np.asarray(omega_meas_b, float) - earth_b - b_g
     return MeasurementBatch("zaru", ["wx", "wy", "wz"], z, H, np.full(3, sigma_radps ** 2))
+
+
+def nhc_batch(v_e: np.ndarray, C_b_e: np.ndarray, sigma_lateral_mps: float, sigma_vertical_mps: float,
+              layout=LAYOUT) -> MeasurementBatch:
+    """Non-holonomic constraint (seed 002): a land vehicle does not move sideways or vertically in
+    its own body frame, z = [v_y^b, v_z^b] = 0.  With v_b = C^T v and C(true) = (I + [psi x]) C:
+    dv_b = C^T dv + C^T [v x] psi."""
+    Ct = C_b_e.T
+    v_b = Ct @ v_e
+    H = np.zeros((2, layout.n))
+    H[:, layout.vel] = Ct[1:3]
+    H[:, layout.att] = (Ct @ skew(v_e))[1:3]
+    return MeasurementBatch("nhc", ["v_lateral", "v_vertical"], -v_b[1:3], H,
+                            np.array([sigma_lateral_mps ** 2, sigma_vertical_mps ** 2]))
+
+
+def _euler_of(C_b_e: np.ndarray, C_e_n: np.ndarray) -> np.ndarray:
+    C = C_e_n @ C_b_e
+    return np.array([math.atan2(C[2, 1], C[2, 2]), -math.asin(max(-1.0, min(1.0, C[2, 0]))),
+                     math.atan2(C[1, 0], C[0, 0])])
+
+
+def attitude_batch(C_b_e: np.ndarray, C_n_e_: np.ndarray, meas, layout=LAYOUT) -> MeasurementBatch:
+    """Euler angles from a multi-antenna GNSS receiver (seed 003).  The Jacobian of the Euler angles
+    with respect to the misalignment psi (the relation between Euler-angle errors and the platform
+    misalignment) is evaluated by central differences of the exact Euler map, which stays correct
+    at any attitude short of pitch +-90 deg."""
+    from .earth import rotation_from_rotvec
+
+    C_e_n = C_n_e_.T
+    e0 = _euler_of(C_b_e, C_e_n)
+    J = np.empty((3, 3))
+    h = 1e-6
+    for j in range(3):
+        d = np.zeros(3)
+        d[j] = h
+        ep = _euler_of(rotation_from_rotvec(d) @ C_b_e, C_e_n)
+        em = _euler_of(rotation_from_rotvec(-d) @ C_b_e, C_e_n)
+        J[:, j] = _wrap_pi(ep - em) / (2 * h)
+    values = [(0, "roll", meas.roll_rad, meas.sigma_roll_rad), (1, "pitch", meas.pitch_rad, meas.sigma_pitch_rad),
+              (2, "heading", meas.heading_rad, meas.sigma_heading_rad)]
+    rows = [(i, name, v, s) for i, name, v, s in values if math.isfinite(v)]
+    H = np.zeros((len(rows), layout.n))
+    z = np.empty(len(rows))
+    r = np.empty(len(rows))
+    for k, (i, _, v, s) in enumerate(rows):
+        H[k, layout.att] = J[i]
+        z[k] = _wrap_pi(np.array([v - e0[i]]))[0]
+        r[k] = s * s
+    return MeasurementBatch("attitude", [name for _, name, _, _ in rows], z, H, r)
+
+
+def _wrap_pi(a: np.ndarray) -> np.ndarray:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def single_difference(batch: MeasurementBatch, ref_label: str) -> MeasurementBatch:
+    """Between-satellite single differences (seed 004): every row minus the reference satellite's.
+    The receiver clock bias and drift columns cancel exactly, so no clock state is needed.  The
+    differenced noise is correlated through the reference (R = D diag(r) D^T); it is whitened so the
+    filter's per-row gating and diagonal noise still apply (row k of the result then mixes rows 1..k)."""
+    labels = list(batch.labels)
+    if ref_label not in labels or len(labels) < 2:
+        return MeasurementBatch(batch.kind + "_sd", [], np.zeros(0), np.zeros((0, batch.H.shape[1])), np.zeros(0))
+    ref = labels.index(ref_label)
+    others = [i for i in range(len(labels)) if i != ref]
+    z = batch.z[others] - batch.z[ref]
+    H = batch.H[others] - batch.H[ref]
+    R = np.diag(batch.r_var[others]) + batch.r_var[ref]
+    return _whitened(batch.kind + "_sd", [f"{labels[i]}-{ref_label}" for i in others], z, H, R)

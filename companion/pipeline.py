@@ -1,0 +1,465 @@
+"""The navigation pipeline: logged bytes -> decoders -> core messages -> engine -> solutions.
+
+:class:`NavPipeline` is synchronous and deterministic: its output is a pure function of the sequence
+of ``feed(kind, t_rx_ns, data)`` calls, i.e. of the field log.  The live service
+(:mod:`companion.service`) writes every input to the field log and hands the same record to the
+pipeline, in the same order, with no ``await`` in between; ``companion replay`` feeds the logged
+records to a fresh pipeline built from the logged configuration and gets the same solutions bit
+for bit.  Nothing in here reads a clock, a socket or a random number generator; receive times
+(``t_rx_ns``) are only used as data, and only to order/diagnose (never for navigation maths).
+
+Kinds: ``mavlink`` (one MAVLink frame as received), ``ubx`` (receiver bytes from a local serial
+port), ``rtcm`` (correction bytes), ``event`` (JSON: configuration, start/stop; ignored here),
+``solution`` (our own outputs; ignored here).
+
+What it does with the inputs
+----------------------------
+* IMU (HIGHRES_IMU / RAW_IMU / SCALED_IMU2/3) -> :class:`~companion.messages.ImuSample` via
+  :class:`~companion.io.mavlink.ImuDecoder`, GPS time from :class:`~companion.io.mavlink.BootToGpsTime`
+  (SYSTEM_TIME).  A solution is produced every ``k``-th decoded IMU sample, ``k`` =
+  round(``mavlink.imu_rate_hz`` / ``output.rate_hz``): decimation of the IMU stream, not a timer,
+  so the output rate follows the data and replays identically.
+* SERIAL_CONTROL replies from the autopilot's GPS port, or ``ubx`` records -> UBX decoder ->
+  rover epochs (RXM-RAWX), ephemerides (RXM-SFRBX), receiver fixes (NAV-PVT, unused for fusion).
+* ``rtcm`` -> RTCM decoder -> base epochs, base position, ephemerides.
+* GPS_RAW_INT -> :class:`~companion.messages.GnssFix`: the loosely coupled fallback when no raw
+  observations arrived for ``raw_timeout_s`` of IMU time (or ``gnss.source = 'none'``).
+* ATTITUDE -> initial attitude; HEARTBEAT ``system_status`` STANDBY (disarmed) = on the ground.
+
+Initialisation (status ``init`` until then, nothing injected): position and receiver clock from
+SPP (DGPS-corrected when a base is there) of the first rover epoch with enough satellites, or the
+GPS_RAW_INT fix in loose mode; attitude from the autopilot's latest ATTITUDE; velocity from the
+epoch's Doppler (SPP), else zero when the autopilot is disarmed (on the ground), else GPS_RAW_INT.
+The engine starts at the newest IMU sample; ``engine.reset_counter`` counts (re)initialisations.
+
+Re-initialisation (logged, counted, announced): autopilot reboot, IMU time jump larger than
+``REINIT_GAP_S`` in either direction (clock jump, long link loss), or an untrusted solution.
+
+Injection rule (``solution.extras['inject']``): status ``nav`` or ``coasting`` and horizontal
+1-sigma <= ``output.max_sigma_h_m`` and vertical <= ``output.max_sigma_v_m``, everything finite.
+A coasting filter (no GNSS update for ``filter.coasting_after_s``) is still injected while its
+own covariance says it is good enough: the autopilot gets the growing sigma with every estimate
+and the injection stops when the thresholds are crossed.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import struct
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
+
+from .gnss.spp import spp_epoch  # noqa: E402
+from .io.mavlink import BootToGpsTime, ImuDecoder, gps_fix_from_gps_raw_int  # noqa: E402
+from .io.rtcm import RtcmDecoder  # noqa: E402
+from .io.ubx import UbxDecoder  # noqa: E402
+from .messages import (BaseStationPosition, GnssEpoch, GnssFix, GpsEphemeris, ImuSample,  # noqa: E402
+                       NavSolution)
+from .nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm  # noqa: E402
+from .nav.engine import NavEngine  # noqa: E402
+
+log = logging.getLogger(__name__)
+m = mavlink2
+
+REINIT_GAP_S = 1.0            # IMU time step (either direction) that restarts the filter
+RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GPS_RAW_INT fusion
+ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used to initialise
+
+
+@dataclass(frozen=True)
+class InitSigmas:
+    """Initial 1-sigma uncertainties (the [filter] section has no keys for them yet)."""
+    att_rad: float = 0.02            # the autopilot's own EKF attitude (ATTITUDE), ~1 deg
+    pos_dgps_m: float = 1.5
+    pos_standalone_m: float = 5.0
+    vel_doppler_mps: float = 0.3
+    vel_ground_mps: float = 0.1
+    vel_gps_raw_mps: float = 1.5     # GPS_RAW_INT has no vertical velocity
+    ba_mps2: float = 0.15            # MEMS turn-on accelerometer bias
+    bg_radps: float = 0.006          # MEMS turn-on gyro bias (~0.35 deg/s)
+    clk_m: float = 100.0
+    drift_mps: float = 5.0
+
+
+STATUS_CODES = {"init": 0, "nav": 1, "coasting": 2, "untrusted": 3}
+STATUS_NAMES = {v: k for k, v in STATUS_CODES.items()}
+MODE_CODES = {"none": 0, "tight": 1, "loose": 2}
+MODE_NAMES = {v: k for k, v in MODE_CODES.items()}
+
+# solution record: version, status, inject, mode, reset_counter, imu_count, t_boot_us, t_gps,
+# r_e(3) v_e(3) C_b_e(9) sigma_r(3) sigma_v(3) sigma_att(3), last_gnss_update_t_gps
+_SOL = struct.Struct("<BBBBIQq d 3d 3d 9d 3d 3d 3d d".replace(" ", ""))
+SOLUTION_RECORD_VERSION = 1
+
+
+def encode_solution(sol: NavSolution) -> bytes:
+    """Compact binary encoding of a solution for the field log (every float64 bit kept)."""
+    x = sol.extras
+    return _SOL.pack(SOLUTION_RECORD_VERSION, STATUS_CODES.get(sol.status, 255), int(bool(x.get("inject"))),
+                     MODE_CODES.get(x.get("mode", "none"), 0), int(sol.reset_counter) & 0xFFFFFFFF,
+                     int(x.get("imu_count", 0)), int(x.get("t_boot_us", -1)), float(sol.t_gps),
+                     *np.asarray(sol.r_e, float).tolist(), *np.asarray(sol.v_e, float).tolist(),
+                     *np.asarray(sol.C_b_e, float).reshape(9).tolist(),
+                     *np.asarray(sol.sigma_r_n_m, float).tolist(), *np.asarray(sol.sigma_v_n_mps, float).tolist(),
+                     *np.asarray(sol.sigma_att_rad, float).tolist(), float(sol.last_gnss_update_t_gps))
+
+
+def decode_solution(data: bytes) -> NavSolution:
+    v = _SOL.unpack(data)
+    _ver, st, inj, mode, rc, n, tb, t = v[:8]
+    f = np.array(v[8:], float)
+    return NavSolution(t, f[0:3], f[3:6], f[6:15].reshape(3, 3), f[15:18], f[18:21], f[21:24],
+                       STATUS_NAMES.get(st, "untrusted"), float(f[24]), rc,
+                       {"inject": bool(inj), "mode": MODE_NAMES.get(mode, "none"), "imu_count": n,
+                        "t_boot_us": tb})
+
+
+def config_event(config) -> bytes:
+    """The 'event' record that makes a log self-describing (replay rebuilds the pipeline from it)."""
+    return json.dumps({"event": "config", "toml": config.to_toml(comments=False)}).encode()
+
+
+class NavPipeline:
+    """Synchronous, deterministic: ``feed(kind, t_rx_ns, data) -> list[NavSolution]``."""
+
+    def __init__(self, config, init_sigmas: InitSigmas = InitSigmas()):
+        self.cfg = config
+        self.init_sigmas = init_sigmas
+        mc = config.mavlink
+        self.target = (mc.target_system, mc.target_component)
+        self.time_map = BootToGpsTime(leap_seconds=config.gnss.leap_seconds)
+        self.imu_dec = ImuDecoder(mc.imu_message, rate_hz=mc.imu_rate_hz, leap_seconds=config.gnss.leap_seconds)
+        self.parser = mavlink2.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.ubx = UbxDecoder(week_hint=self._t_ref)
+        self.rtcm = RtcmDecoder(week_hint=self._t_ref, leap_seconds=config.gnss.leap_seconds)
+        self.engine = NavEngine(config.engine_config())
+        self.lever_b = np.asarray(config.gnss.lever_arm_b_m, float)
+        self.decimation = max(1, int(round(mc.imu_rate_hz / config.output.rate_hz)))
+        self.serial_device = m.SERIAL_CONTROL_DEV_GPS1 if config.gnss.serial_control_device == "GPS1" \
+            else m.SERIAL_CONTROL_DEV_GPS2
+        self.raw_expected = config.gnss.source != "none"
+        self.counters: Counter = Counter()
+        self.events: list[tuple[int, str]] = []   # (MAV_SEVERITY, text): state changes to announce
+        self.imu_count = 0
+        self.last_imu: ImuSample | None = None
+        self.last_imu_boot_us: int | None = None
+        self.last_raw_t: float = -math.inf        # GPS time (IMU clock) of the last rover epoch
+        self.attitude = None                      # (time_boot_ms, roll, pitch, yaw)
+        self.on_ground = False
+        self.last_fix: GnssFix | None = None
+        self._last_fix_key = None
+        self._boot_epoch = 0
+        self.mode = "none"
+        self.output_state = "init"
+        self.last_solution: NavSolution | None = None
+        self.last_init_reason = ""
+        self.base_seen = False
+        self._base_override_sent = False
+
+    # ------------------------------------------------------------------ helpers
+    def _t_ref(self):
+        """Current GPS time estimate from the data (week resolution for the decoders)."""
+        if self.engine.initialized:
+            return self.engine.t_gps
+        if self.last_imu is not None:
+            return self.last_imu.t_gps
+        return None
+
+    def _event(self, severity: int, text: str) -> None:
+        self.events.append((severity, text))
+        (log.warning if severity <= m.MAV_SEVERITY_WARNING else log.info)("%s", text)
+
+    def _reinit(self, reason: str) -> None:
+        if self.engine.initialized:
+            self.engine.initialized = False
+            self.counters[f"re-init: {reason}"] += 1
+            self._event(m.MAV_SEVERITY_WARNING, f"nav re-init: {reason}")
+
+    # ------------------------------------------------------------------ input
+    def feed(self, kind: str, t_rx_ns: int, data: bytes) -> list[NavSolution]:
+        self.counters[f"records {kind}"] += 1
+        if kind == "mavlink":
+            try:
+                msgs = self.parser.parse_buffer(bytes(data)) or []
+            except Exception:
+                self.counters["mavlink parse errors"] += 1
+                return []
+            out: list[NavSolution] = []
+            for msg in msgs:
+                out += self.feed_mavlink(t_rx_ns, msg)
+            return out
+        if kind == "ubx":
+            return self._feed_messages(self.ubx.feed(bytes(data)))
+        if kind == "rtcm":
+            msgs = self.rtcm.feed(bytes(data))
+            ov = self.cfg.corrections.base_position_ecef_m
+            if ov is not None:
+                # surveyed coordinates from the configuration replace the caster's 1005/1006
+                if not self._base_override_sent:
+                    msgs = [BaseStationPosition(0, np.asarray(ov, float))] + msgs
+                    self._base_override_sent = True
+                msgs = [BaseStationPosition(x.station_id, np.asarray(ov, float), x.antenna_height_m)
+                        if isinstance(x, BaseStationPosition) else x for x in msgs]
+            return self._feed_messages(msgs)
+        return []
+
+    def feed_mavlink_record(self, t_rx_ns: int, msg) -> list[NavSolution]:
+        """Live path: the link already parsed the frame that is logged; same result as
+        ``feed('mavlink', t, msg.get_msgbuf())``."""
+        self.counters["records mavlink"] += 1
+        return self.feed_mavlink(t_rx_ns, msg)
+
+    def feed_mavlink(self, t_rx_ns: int, msg) -> list[NavSolution]:
+        """One parsed MAVLink message (the live service passes the link's parsed object; replay
+        parses the logged frame: the same bytes give the same fields)."""
+        mt = msg.get_type()
+        if mt == "BAD_DATA" or mt.startswith("UNKNOWN"):
+            self.counters["mavlink bad data"] += 1
+            return []
+        if (msg.get_srcSystem(), msg.get_srcComponent()) != self.target:
+            self.counters["mavlink from other components"] += 1
+            return []
+        out: list[NavSolution] = []
+        if mt in ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"):
+            out = self._imu(msg)
+        elif mt == "SYSTEM_TIME":
+            self.time_map.update_from_message(msg)
+            self._check_reboot()
+        elif mt == "ATTITUDE":
+            self.time_map.update_from_message(msg)
+            self._check_reboot()
+            vals = (msg.roll, msg.pitch, msg.yaw)
+            if all(math.isfinite(v) for v in vals):
+                self.attitude = (int(msg.time_boot_ms), *vals)
+            else:
+                self.counters["attitude not finite"] += 1
+        elif mt == "SERIAL_CONTROL":
+            if msg.flags & m.SERIAL_CONTROL_FLAG_REPLY and msg.device == self.serial_device:
+                n = max(0, min(int(msg.count), 70))
+                if n:
+                    out = self._feed_messages(self.ubx.feed(bytes(msg.data[:n])))
+        elif mt == "GPS_RAW_INT":
+            out = self._gps_raw(msg)
+        elif mt == "HEARTBEAT":
+            self.on_ground = msg.system_status == m.MAV_STATE_STANDBY
+        return out
+
+    def _check_reboot(self) -> None:
+        if self.time_map.boot_epoch != self._boot_epoch:
+            self._boot_epoch = self.time_map.boot_epoch
+            self.counters["autopilot reboots"] += 1
+            self.attitude = None
+            self.last_imu = None
+            self._reinit("autopilot reboot")
+
+    def _feed_messages(self, msgs) -> list[NavSolution]:
+        for msg in msgs:
+            if isinstance(msg, GnssEpoch):
+                if msg.source == "base":
+                    self.base_seen = True
+                    self.engine.process(msg)
+                else:
+                    self._rover_epoch(msg)
+            elif isinstance(msg, (GpsEphemeris, BaseStationPosition)):
+                self.engine.process(msg)
+            elif isinstance(msg, GnssFix):
+                self.counters["receiver fixes (NAV-PVT, not fused)"] += 1
+        return []
+
+    # ------------------------------------------------------------------ IMU
+    def _imu(self, msg) -> list[NavSolution]:
+        s = self.imu_dec.decode(msg, self.time_map)
+        self._check_reboot()
+        if s is None:
+            return []
+        if not all(math.isfinite(x) for x in (*s.dtheta_b.tolist(), *s.dv_b.tolist())):
+            self.counters["imu sample not finite (dropped)"] += 1
+            return []
+        self.imu_count += 1
+        eng = self.engine
+        if eng.initialized:
+            step = s.t_gps - eng.t_gps
+            if step > REINIT_GAP_S:
+                self._reinit(f"IMU time jump +{step:.1f} s")
+            elif step < -REINIT_GAP_S:
+                self._reinit(f"IMU time jump {step:.1f} s")
+        self.last_imu = s
+        self.last_imu_boot_us = int(getattr(msg, "time_usec", getattr(msg, "time_boot_ms", 0) * 1000))
+        if not eng.initialized:
+            if not self.raw_expected or s.t_gps - self.last_raw_t > RAW_TIMEOUT_S:
+                self._try_init_loose()
+            return []
+        eng.process(s)
+        if self.imu_count % self.decimation:
+            return []
+        sol = eng.solution()
+        if sol.status == "untrusted":
+            self._reinit("solution untrusted")
+        return [self._finish(sol)]
+
+    def _finish(self, sol: NavSolution) -> NavSolution:
+        o = self.cfg.output
+        sr = sol.sigma_r_n_m
+        inject = (sol.status in ("nav", "coasting") and bool(np.all(np.isfinite(sol.r_e)))
+                  and bool(np.all(np.isfinite(sr))) and math.hypot(sr[0], sr[1]) <= o.max_sigma_h_m
+                  and sr[2] <= o.max_sigma_v_m)
+        sol.extras.update({"inject": inject, "mode": self.mode, "imu_count": self.imu_count,
+                           "t_boot_us": self.last_imu_boot_us})
+        state = "injecting" if inject else f"not injecting ({sol.status})"
+        if state != self.output_state:
+            if inject:
+                self._event(m.MAV_SEVERITY_INFO, f"nav OK {self.mode}: sigma_h {math.hypot(sr[0], sr[1]):.2f} m")
+            else:
+                self._event(m.MAV_SEVERITY_WARNING,
+                            f"nav not injected: {sol.status} sigma_h {math.hypot(sr[0], sr[1]):.1f} m")
+            self.output_state = state
+        self.counters["solutions"] += 1
+        self.counters["solutions injectable" if inject else "solutions withheld"] += 1
+        self.last_solution = sol
+        return sol
+
+    # ------------------------------------------------------------------ GNSS
+    def _rover_epoch(self, epoch: GnssEpoch) -> None:
+        self.counters["rover epochs"] += 1
+        if self.last_imu is not None:
+            self.last_raw_t = self.last_imu.t_gps
+        if self.mode != "tight" and self.engine.initialized:
+            self._event(m.MAV_SEVERITY_INFO, "nav: raw GNSS observations, tight coupling")
+        if self.engine.initialized:
+            self.mode = "tight"
+            self.engine.process(epoch)
+            return
+        self._try_init_tight(epoch)
+
+    def _attitude_C_b_e(self, r_e) -> np.ndarray | None:
+        if self.attitude is None or self.last_imu_boot_us is None:
+            self.counters["init: waiting for ATTITUDE"] += 1
+            return None
+        t_ms, roll, pitch, yaw = self.attitude
+        if abs(self.last_imu_boot_us * 1e-3 - t_ms) > ATTITUDE_MAX_AGE_S * 1e3:
+            self.counters["init: ATTITUDE too old"] += 1
+            return None
+        lat, lon, _ = ecef_to_geodetic(r_e)
+        return C_n_e(lat, lon) @ euler_to_dcm(roll, pitch, yaw)
+
+    def _try_init_tight(self, epoch: GnssEpoch) -> None:
+        s = self.last_imu
+        if s is None:
+            self.counters["init: waiting for IMU"] += 1
+            return
+        if s.t_gps - epoch.t_gps > 0.5 or s.t_gps < epoch.t_gps - 0.5:
+            self.counters["init: epoch and IMU times apart"] += 1
+            return
+        eng = self.engine
+        use_dgps = self.cfg.filter.use_dgps and eng.dgps is not None
+        sol = spp_epoch(epoch, eng.ephemerides, dgps=eng.dgps if use_dgps else None,
+                        klobuchar=eng.cfg.klobuchar,
+                        elevation_mask_rad=math.radians(self.cfg.filter.elevation_mask_deg))
+        if sol is None or not np.all(np.isfinite(sol.r_e)):
+            self.counters["init: no SPP solution"] += 1
+            return
+        C = self._attitude_C_b_e(sol.r_e)
+        if C is None:
+            return
+        sig = self.init_sigmas
+        dt = s.t_gps - epoch.t_gps
+        if sol.v_e is not None and np.all(np.isfinite(sol.v_e)):
+            v, sv = np.asarray(sol.v_e, float), sig.vel_doppler_mps
+        elif self.on_ground:
+            v, sv = np.zeros(3), sig.vel_ground_mps
+        elif self.last_fix is not None and self.last_fix.v_e is not None:
+            v, sv = np.asarray(self.last_fix.v_e, float), sig.vel_gps_raw_mps
+        else:
+            self.counters["init: no velocity"] += 1
+            return
+        r_imu = sol.r_e - C @ self.lever_b + v * dt
+        self._initialize(s.t_gps, r_imu, v, C, sig.pos_dgps_m if use_dgps else sig.pos_standalone_m, sv,
+                         clock_bias_m=sol.clock_bias_m + sol.clock_drift_mps * dt,
+                         clock_drift_mps=sol.clock_drift_mps if math.isfinite(sol.clock_drift_mps) else 0.0,
+                         how=f"SPP {'DGPS' if use_dgps else 'standalone'} {sol.n_sats} sats")
+        self.mode = "tight"
+
+    def _gps_raw(self, msg) -> list[NavSolution]:
+        fix = gps_fix_from_gps_raw_int(msg, self.time_map, leap_seconds=self.cfg.gnss.leap_seconds)
+        if fix is None:
+            self.counters["GPS_RAW_INT without fix/time"] += 1
+            return []
+        key = int(msg.time_usec)
+        if key == self._last_fix_key:
+            return []                       # the same fix repeated at the stream rate
+        self._last_fix_key = key
+        self.last_fix = fix
+        self.counters["GPS_RAW_INT fixes"] += 1
+        eng = self.engine
+        s = self.last_imu
+        loose = not self.raw_expected or (s is not None and s.t_gps - self.last_raw_t > RAW_TIMEOUT_S)
+        if not loose:
+            return []
+        if not eng.initialized:
+            self._try_init_loose()
+            return []
+        if self.mode != "loose":
+            self.mode = "loose"
+            self._event(m.MAV_SEVERITY_WARNING, "nav: no raw GNSS, loose GPS_RAW_INT fusion")
+        eng.process(fix)
+        self.counters["loose fixes fused"] += 1
+        return []
+
+    def _try_init_loose(self) -> None:
+        fix, s = self.last_fix, self.last_imu
+        if fix is None or s is None or fix.fix_type < 3 or abs(s.t_gps - fix.t_gps) > 1.5:
+            return
+        C = self._attitude_C_b_e(fix.r_e)
+        if C is None:
+            return
+        sig = self.init_sigmas
+        if self.on_ground:
+            v, sv = np.zeros(3), sig.vel_ground_mps
+        elif fix.v_e is not None:
+            v, sv = np.asarray(fix.v_e, float), sig.vel_gps_raw_mps
+        else:
+            return
+        r_imu = fix.r_e - C @ self.lever_b + v * (s.t_gps - fix.t_gps)
+        self._initialize(s.t_gps, r_imu, v, C, max(fix.sigma_h_m, fix.sigma_v_m, 1.0), sv, clock_bias_m=None,
+                         clock_drift_mps=0.0, how="GPS_RAW_INT fix (loose)")
+        self.mode = "loose"
+
+    def _initialize(self, t_gps, r, v, C, sig_pos, sig_vel, *, clock_bias_m, clock_drift_mps, how) -> None:
+        sig = self.init_sigmas
+        p0 = {"att_rad": sig.att_rad, "pos_m": sig_pos, "vel_mps": sig_vel, "ba_mps2": sig.ba_mps2,
+              "bg_radps": sig.bg_radps, "clk_m": sig.clk_m, "drift_mps": sig.drift_mps}
+        self.engine.initialize(t_gps, r, v, C, p0, clock_bias_m=clock_bias_m, clock_drift_mps=clock_drift_mps)
+        self.counters["initialisations"] += 1
+        self.last_init_reason = how
+        self.output_state = "init"
+        self._event(m.MAV_SEVERITY_INFO, f"nav init #{self.engine.reset_counter}: {how}")
+
+    # ------------------------------------------------------------------ reporting
+    def drain_events(self) -> list[tuple[int, str]]:
+        ev, self.events = self.events, []
+        return ev
+
+    def health(self) -> dict:
+        sol = self.last_solution
+        filt = {"initialized": self.engine.initialized, "mode": self.mode, "init": self.last_init_reason,
+                "reset_counter": self.engine.reset_counter}
+        if sol is not None:
+            filt.update({"status": sol.status, "t_gps": sol.t_gps,
+                         "sigma_r_ned_m": [round(float(x), 3) for x in sol.sigma_r_n_m],
+                         "sigma_v_ned_mps": [round(float(x), 3) for x in sol.sigma_v_n_mps],
+                         "inject": sol.extras.get("inject")})
+        return {"filter": filt, "pipeline": dict(self.counters), "engine": dict(self.engine.counters),
+                "imu": dict(self.imu_dec.counters), "time_map": dict(self.time_map.counters),
+                "ubx": dict(self.ubx.counters), "rtcm": dict(self.rtcm.counters)}
+
+
+__all__ = ["NavPipeline", "InitSigmas", "encode_solution", "decode_solution", "config_event",
+           "STATUS_CODES", "REINIT_GAP_S", "RAW_TIMEOUT_S"]

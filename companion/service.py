@@ -1,0 +1,398 @@
+"""The companion service: asyncio wiring around the deterministic :class:`~companion.pipeline.NavPipeline`.
+
+``Service(config).run()`` runs until SIGINT/SIGTERM (or :meth:`Service.stop`):
+
+* **Supervised tasks** (:meth:`Service._supervise`): ``mavlink`` (link to the autopilot, the
+  SERIAL_CONTROL poller for a receiver on the autopilot's GPS port, the IMU/attitude/time inputs and
+  the estimate outputs), ``gnss-serial`` (a receiver on a local serial port), ``corrections``
+  (NTRIP / serial radio / MQTT / file), ``output`` (EKF origin repeats), ``health`` and
+  ``telemetry`` (MQTT).  A task that raises is logged with its traceback, counted and restarted
+  after an exponential backoff (0.5 s doubling to 30 s, reset after a minute of good running).
+* **Determinism**: every input is written to the field log (kinds ``mavlink`` = one frame as
+  received, ``ubx``, ``rtcm``; ``event`` for the configuration, start, origin, stop and periodic
+  health) *and then* handed to the pipeline, synchronously, in the same order.  The pipeline
+  produces solutions by decimating the IMU stream, so ``companion replay`` of the log reproduces
+  every ``solution`` record bit for bit.  Frames that fail the MAVLink CRC are counted by the link
+  and never reach the log or the pipeline (they carry nothing usable).
+* **Outputs**: each solution is logged (kind ``solution``, :func:`~companion.pipeline.encode_solution`)
+  and, when the pipeline marks it injectable (status nav/coasting within the configured sigmas),
+  sent at once -- no timer, no queue: VISION_POSITION_ESTIMATE (default, ``reset_counter`` =
+  number of filter (re)initialisations, time stamp = boot time of the IMU sample the estimate is
+  valid for), ODOMETRY or GPS_INPUT.  Before the first VISION/ODOMETRY output the EKF origin is
+  fixed at the first injectable position, rounded to what SET_GPS_GLOBAL_ORIGIN carries (1e-7 deg,
+  mm), and sent (``output.set_ekf_origin``; repeated once a second for 10 s since UDP may drop
+  it and ArduPilot ignores repeats once set).  State changes of the filter (initialised,
+  re-initialised, injecting / not injecting, tight / loose) are announced with STATUSTEXT.
+* **Health**: every ``HEALTH_INTERVAL_S`` a one-line summary is logged (inputs and rates, filter
+  status and sigmas, outputs, rejections) and the full report (:meth:`health`) is written to the
+  field log and MQTT; SIGUSR1 logs the full report at once.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import signal
+import time
+from collections import Counter
+
+from .pipeline import NavPipeline, config_event, encode_solution
+
+log = logging.getLogger(__name__)
+
+HEALTH_INTERVAL_S = 5.0
+BACKOFF_INITIAL_S = 0.5
+BACKOFF_MAX_S = 30.0
+BACKOFF_RESET_AFTER_S = 60.0
+ORIGIN_REPEAT_S = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
+
+
+class Service:
+    def __init__(self, config, *, install_signal_handlers: bool = True):
+        self.cfg = config
+        self.install_signal_handlers = install_signal_handlers
+        self.pipeline = NavPipeline(config)
+        self.fieldlog = None
+        self.link = None
+        self.tunnel = None
+        self.telemetry = None
+        self.origin = None
+        self._origin_t0 = None
+        self.counters: Counter = Counter()
+        self.restarts: Counter = Counter()
+        self.task_errors: dict[str, str] = {}
+        self.record_counts: Counter = Counter()
+        self.record_bytes: Counter = Counter()
+        self._rate_prev = (time.monotonic(), Counter())
+        self._stop = None
+        self._tasks: list[asyncio.Task] = []
+        self._t_start = time.monotonic()
+        self._last_telemetry = 0.0
+        self._fragmenter = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def stop(self) -> None:
+        if self._stop is not None:
+            self._stop.set()
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        if self.install_signal_handlers:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, self._on_signal, sig)
+            loop.add_signal_handler(signal.SIGUSR1, self._log_full_health)
+        lc = self.cfg.log
+        if lc.enabled:
+            from .io.fieldlog import FieldLogWriter
+            self.fieldlog = FieldLogWriter(lc.dir, max_bytes=lc.max_bytes, fsync_interval_s=lc.fsync_interval_s)
+            log.info("field log %s", self.fieldlog.current_path)
+        self._event({"event": "start", "config": self.cfg.source_path})
+        self._record("event", time.monotonic_ns(), config_event(self.cfg))
+        specs = [("mavlink", self._mavlink_task), ("output", self._output_task), ("health", self._health_task)]
+        if self.cfg.gnss.source == "serial":
+            specs.append(("gnss-serial", self._gnss_serial_task))
+        if self.cfg.corrections.source != "none":
+            specs.append(("corrections", self._corrections_task))
+        if self.cfg.telemetry.enabled:
+            specs.append(("telemetry", self._telemetry_task))
+        self._tasks = [asyncio.create_task(self._supervise(n, f), name=n) for n, f in specs]
+        log.info("companion running: %s", ", ".join(n for n, _ in specs))
+        try:
+            await self._stop.wait()
+        finally:
+            await self._shutdown()
+
+    def _on_signal(self, sig) -> None:
+        log.info("%s received: shutting down", signal.Signals(sig).name)
+        self.stop()
+
+    async def _shutdown(self) -> None:
+        for t in self._tasks:
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks = []
+        if self.link is not None:
+            await self.link.close()
+            self.link = None
+        self._event({"event": "stop", "health": self.health()})
+        if self.fieldlog is not None:
+            self.fieldlog.close()
+            log.info("field log closed: %d records in %s", self.fieldlog.records_written,
+                     ", ".join(str(p) for p in self.fieldlog.files))
+        log.info("companion stopped")
+
+    async def _supervise(self, name: str, factory) -> None:
+        backoff = BACKOFF_INITIAL_S
+        while True:
+            t0 = time.monotonic()
+            try:
+                await factory()
+                log.info("task %s finished", name)
+                return
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:
+                self.restarts[name] += 1
+                self.task_errors[name] = repr(exc)
+                if time.monotonic() - t0 > BACKOFF_RESET_AFTER_S:
+                    backoff = BACKOFF_INITIAL_S
+                log.exception("task %s failed (restart %d in %.1f s)", name, self.restarts[name], backoff)
+                await asyncio.sleep(backoff)
+                backoff = min(BACKOFF_MAX_S, backoff * 2.0)
+
+    # ------------------------------------------------------------------ field log
+    def _record(self, kind: str, t_ns: int, data: bytes) -> None:
+        self.record_counts[kind] += 1
+        self.record_bytes[kind] += len(data)
+        if self.fieldlog is not None:
+            try:
+                self.fieldlog.write(kind, data, t_ns)
+            except Exception:
+                self.counters["field log write errors"] += 1
+                log.exception("field log write failed")
+
+    def _event(self, obj: dict) -> None:
+        self._record("event", time.monotonic_ns(), json.dumps(obj, default=str).encode())
+
+    # ------------------------------------------------------------------ MAVLink
+    async def _mavlink_task(self) -> None:
+        from .io.mavlink import SerialControlTunnel, link_from_config
+        link = link_from_config(self.cfg.mavlink)
+        await link.start()
+        self.link = link
+        children = []
+        try:
+            g = self.cfg.gnss
+            if g.source == "mavlink_serial_control":
+                from .io.mavlink import SERIAL_CONTROL_DEV_GPS1, SERIAL_CONTROL_DEV_GPS2
+                dev = SERIAL_CONTROL_DEV_GPS1 if g.serial_control_device == "GPS1" else SERIAL_CONTROL_DEV_GPS2
+                self.tunnel = SerialControlTunnel(link, dev, poll_interval_s=g.serial_control_poll_interval_s,
+                                                  baudrate=g.serial_control_baud)
+                children.append(asyncio.create_task(self._tunnel_poll(), name="serial-control-poll"))
+                # the replies reach the pipeline through the logged MAVLink stream; the tunnel's own
+                # copy is discarded
+                children.append(asyncio.create_task(self._drain(self.tunnel), name="serial-control-drain"))
+            pipe = self.pipeline
+            async for lm in link:
+                self._record("mavlink", lm.t_mono_ns, lm.raw)
+                sols = pipe.feed_mavlink_record(lm.t_mono_ns, lm.msg)
+                if sols:
+                    self._outputs(sols)
+                if pipe.events:
+                    self._announce()
+        finally:
+            for c in children:
+                c.cancel()
+            await asyncio.gather(*children, return_exceptions=True)
+            if self.link is link:
+                self.link = None
+            await link.close()
+
+    async def _tunnel_poll(self) -> None:
+        while True:
+            if self.link is not None and self.link.connected:
+                self.tunnel.poll()
+            await asyncio.sleep(self.tunnel.poll_interval_s)
+
+    @staticmethod
+    async def _drain(tunnel) -> None:
+        async for _ in tunnel:
+            pass
+
+    # ------------------------------------------------------------------ outputs
+    def _outputs(self, sols) -> None:
+        for sol in sols:
+            self._record("solution", time.monotonic_ns(), encode_solution(sol))
+            self.counters["solutions"] += 1
+            if sol.extras.get("inject"):
+                self._send_estimate(sol)
+            else:
+                self.counters["estimates withheld"] += 1
+        tc = self.cfg.telemetry
+        if self.telemetry is not None and sols:
+            now = time.monotonic()
+            if now - self._last_telemetry >= 1.0 / tc.rate_hz:
+                self._last_telemetry = now
+                self.telemetry.publish_solution(sols[-1])
+
+    def _send_estimate(self, sol) -> None:
+        from .io import mavlink as mv
+        link = self.link
+        if link is None or not link.connected:
+            self.counters["estimates not sent: link down"] += 1
+            return
+        o = self.cfg.output
+        t_boot_us = int(sol.extras.get("t_boot_us") or 0)
+        if o.mode == "gps_input":
+            msg = mv.gps_input(sol, t_boot_us=t_boot_us, gps_id=o.gps_input_id,
+                               geoid_undulation_m=o.geoid_undulation_m)
+        else:
+            if self.origin is None:
+                self._set_origin(sol)
+            if o.mode == "odometry":
+                sr = sol.sigma_r_n_m
+                msg = mv.odometry(sol, self.origin, sol.reset_counter, t_boot_us,
+                                  quality=mv.quality_from_sigma(math.hypot(sr[0], sr[1]), o.max_sigma_h_m),
+                                  geoid_undulation_m=o.geoid_undulation_m)
+            else:
+                msg = mv.vision_position_estimate(sol, self.origin, sol.reset_counter, t_boot_us,
+                                                  geoid_undulation_m=o.geoid_undulation_m)
+        if link.send(msg):
+            self.counters[f"sent {msg.get_type()}"] += 1
+        else:
+            self.counters["estimates not sent: send error"] += 1
+
+    def _set_origin(self, sol) -> None:
+        from .io.mavlink import Origin
+        o = Origin.from_ecef(sol.r_e, self.cfg.output.geoid_undulation_m)
+        # exactly what SET_GPS_GLOBAL_ORIGIN can carry, so our NED and the autopilot's agree
+        self.origin = Origin(math.radians(o.lat_e7() * 1e-7), math.radians(o.lon_e7() * 1e-7),
+                             round(o.alt_m * 1000.0) / 1000.0)
+        self._origin_t0 = time.monotonic()
+        self._origin_sent = set()
+        self._event({"event": "origin", "lat_e7": o.lat_e7(), "lon_e7": o.lon_e7(), "alt_mm": round(o.alt_m * 1000)})
+        log.info("EKF origin %.7f %.7f %.3f m", math.degrees(self.origin.lat_rad), math.degrees(self.origin.lon_rad),
+                 self.origin.alt_m)
+        self._maybe_send_origin()
+
+    def _maybe_send_origin(self) -> None:
+        if self.origin is None or not self.cfg.output.set_ekf_origin or self.cfg.output.mode == "gps_input":
+            return
+        if self.link is None:
+            return
+        from .io.mavlink import set_gps_global_origin_from
+        dt = time.monotonic() - self._origin_t0
+        for i, t in enumerate(ORIGIN_REPEAT_S):
+            if dt >= t and i not in self._origin_sent:
+                self._origin_sent.add(i)
+                self.link.send(set_gps_global_origin_from(self.origin, self.cfg.mavlink.target_system))
+                self.counters["sent SET_GPS_GLOBAL_ORIGIN"] += 1
+
+    def _announce(self) -> None:
+        from .io.mavlink import statustext
+        for sev, text in self.pipeline.drain_events():
+            self._event({"event": "status", "severity": sev, "text": text})
+            if self.link is not None:
+                self.link.send(statustext(sev, "CC: " + text))
+                self.counters["sent STATUSTEXT"] += 1
+
+    async def _output_task(self) -> None:
+        while True:
+            self._maybe_send_origin()
+            if self.pipeline.events:
+                self._announce()
+            await asyncio.sleep(0.25)
+
+    # ------------------------------------------------------------------ GNSS receiver on a local port
+    async def _gnss_serial_task(self) -> None:
+        from .io.corrections import SerialCorrectionSource
+        sc = self.cfg.gnss.serial
+        src = SerialCorrectionSource(sc.port, sc.baud)
+        pipe = self.pipeline
+        async for raw in src.stream():
+            t = time.monotonic_ns()
+            self._record("ubx", t, raw)
+            pipe.feed("ubx", t, raw)
+
+    # ------------------------------------------------------------------ corrections
+    async def _corrections_task(self) -> None:
+        from .io.corrections import correction_source_from_config
+        from .io.rtcm import GpsRtcmDataFragmenter, RtcmFramer
+        c = self.cfg.corrections
+        src = correction_source_from_config(c, position_cb=self._position_llh)
+        self.corrections_source = src
+        framer = RtcmFramer() if c.forward_to_autopilot else None
+        if framer is not None and self._fragmenter is None:
+            self._fragmenter = GpsRtcmDataFragmenter()
+        pipe = self.pipeline
+        try:
+            async for raw in src.stream():
+                t = time.monotonic_ns()
+                self._record("rtcm", t, raw)
+                pipe.feed("rtcm", t, raw)
+                if framer is not None and self.link is not None:
+                    from .io.mavlink import gps_rtcm_data_messages
+                    for frame in framer.feed(raw):
+                        for msg in gps_rtcm_data_messages(frame, self._fragmenter):
+                            self.link.send(msg)
+                            self.counters["sent GPS_RTCM_DATA"] += 1
+        finally:
+            close = getattr(src, "close", None)
+            if close is not None:
+                close()
+
+    def _position_llh(self):
+        sol = self.pipeline.last_solution
+        if sol is None or not math.isfinite(float(sol.r_e[0])):
+            return None
+        from .nav.earth import ecef_to_geodetic
+        lat, lon, h = ecef_to_geodetic(sol.r_e)
+        return math.degrees(lat), math.degrees(lon), h - self.cfg.output.geoid_undulation_m
+
+    # ------------------------------------------------------------------ telemetry
+    async def _telemetry_task(self) -> None:
+        from .io.mqtt import MqttTelemetryPublisher
+        tc = self.cfg.telemetry
+        self.telemetry = MqttTelemetryPublisher(tc.host, tc.port, tc.topic_prefix, rate_hz=tc.rate_hz)
+        await self.telemetry.run()
+
+    # ------------------------------------------------------------------ health
+    def health(self) -> dict:
+        now = time.monotonic()
+        t_prev, c_prev = self._rate_prev
+        dt = max(now - t_prev, 1e-6)
+        rates = {k: round((self.record_counts[k] - c_prev.get(k, 0)) / dt, 1) for k in self.record_counts}
+        ph = self.pipeline.health()
+        out = {"uptime_s": round(now - self._t_start, 1),
+               "inputs": {"records": dict(self.record_counts), "bytes": dict(self.record_bytes),
+                          "rates_per_s": rates},
+               "filter": ph["filter"],
+               "outputs": {k: v for k, v in self.counters.items()},
+               "task_restarts": dict(self.restarts), "task_errors": dict(self.task_errors),
+               "pipeline": ph["pipeline"], "engine": ph["engine"], "imu_decoder": ph["imu"],
+               "time_map": ph["time_map"], "ubx": ph["ubx"], "rtcm": ph["rtcm"]}
+        if self.link is not None:
+            out["link"] = self.link.health()
+        if self.tunnel is not None:
+            out["serial_control"] = dict(self.tunnel.counters)
+        src = getattr(self, "corrections_source", None)
+        if src is not None and hasattr(src, "health"):
+            out["corrections_source"] = src.health()
+        return out
+
+    def health_line(self, h: dict | None = None) -> str:
+        h = h or self.health()
+        f = h["filter"]
+        r = h["inputs"]["rates_per_s"]
+        sig = f.get("sigma_r_ned_m")
+        rej = sum(v for k, v in h["engine"].items() if "rejected" in k or "dropped" in k)
+        link = h.get("link", {})
+        return (f"health: mavlink {r.get('mavlink', 0):.0f}/s rtcm {r.get('rtcm', 0):.1f}/s ubx {r.get('ubx', 0):.1f}/s; "
+                f"rover epochs {h['pipeline'].get('rover epochs', 0)} base {h['engine'].get('base epochs', 0)}; "
+                f"filter {f.get('status', 'init')} mode {f.get('mode')} init#{f.get('reset_counter')} "
+                f"sigma NED {sig}; out {sum(v for k, v in h['outputs'].items() if k.startswith('sent ') and 'STATUS' not in k)} "
+                f"withheld {h['outputs'].get('estimates withheld', 0)}; rejected {rej}; "
+                f"link {'up' if link.get('connected') else 'down'} bad {link.get('bad_data', 0)} "
+                f"reboots {h['pipeline'].get('autopilot reboots', 0)} restarts {sum(h['task_restarts'].values())}")
+
+    def _log_full_health(self) -> None:
+        log.warning("health report (SIGUSR1): %s", json.dumps(self.health(), default=str, indent=1))
+
+    async def _health_task(self) -> None:
+        while True:
+            await asyncio.sleep(HEALTH_INTERVAL_S)
+            h = self.health()
+            self._rate_prev = (time.monotonic(), Counter(self.record_counts))
+            log.info("%s", self.health_line(h))
+            self._event({"event": "health", "health": h})
+            if self.telemetry is not None:
+                self.telemetry.publish_health(h)
+
+
+async def run_service(config) -> None:
+    await Service(config).run()
+
+
+__all__ = ["Service", "run_service", "HEALTH_INTERVAL_S"]

@@ -1,0 +1,449 @@
+"""An emulated autopilot on loopback UDP (MAVLink 2, pymavlink encoders), driven by a simulated flight.
+
+What it does (ArduPilot-like, system 1 component 1, ``MAV_AUTOPILOT_ARDUPILOTMEGA``/``MAV_TYPE_QUADROTOR``):
+
+* sends to the companion's UDP port (the companion listens, ``udpin``; like ArduPilot's
+  ``SERIALn_PROTOCOL=2`` telemetry port or ``--out udp:``) and receives its replies on the same socket;
+* HEARTBEAT at 1 Hz (``system_status`` STANDBY while the simulated vehicle is at rest before take-off,
+  i.e. disarmed, else ACTIVE) and SYSTEM_TIME at 1 Hz by default (ArduPilot sends it in its EXTRA3
+  stream group); everything else only after the companion asks for it with
+  MAV_CMD_SET_MESSAGE_INTERVAL (answered with COMMAND_ACK; -1 disables, 0 restores the default);
+* HIGHRES_IMU (or RAW_IMU, in mG and mrad/s, int16, like ArduPilot) from the simulated IMU samples:
+  rate = increment / dt, ``time_usec`` = boot time of the end of the sample interval; up to the
+  simulated IMU rate (200 Hz for 'uav'), decimated for lower requested rates;
+* SYSTEM_TIME sent at whole boot milliseconds, ``time_unix_usec`` = UTC = GPS - ``leap_seconds``
+  (13 s in 2005, the 'uav' scenario's epoch): exact, so the companion's boot-to-GPS mapping is exact;
+* ATTITUDE (truth + Gaussian noise of ``attitude_noise_deg``, a stand-in for the autopilot's own EKF);
+* GPS_RAW_INT from the rover's epochs: truth antenna position + ``gps_noise_m`` white noise, speed and
+  course from the truth, ``time_usec`` = boot time the fix "arrived" (epoch + ``receiver_latency_s``,
+  as ArduPilot's ``last_fix_time_ms``), fix type 0 during a rover outage;
+* SERIAL_CONTROL on device GPS1: the simulated receiver's UBX byte stream (RXM-RAWX built with
+  pyubx2's ``UBXMessage`` from the rover GnssEpochs, appended to the port buffer ``receiver_latency_s``
+  after each epoch) is returned only in answer to requests with RESPOND, <= 70 bytes per reply,
+  more replies while full ones were sent and MULTI is set (ArduPilot ``handle_serial_control``).
+  Ephemerides are *not* sent as RXM-SFRBX: the base station's RTCM 1019 (sitl.caster) carries them;
+* TIMESYNC: answers requests (tc1 = boot time in ns);
+* records every VISION_POSITION_ESTIMATE, ODOMETRY, GPS_INPUT, SET_GPS_GLOBAL_ORIGIN and STATUSTEXT
+  it receives with its arrival time (monotonic ns), and the send time of every IMU sample, so the
+  estimates can be scored against the truth and their latency measured.
+
+Pacing: a :class:`SimClock` maps simulated GPS time to the monotonic clock (``speedup`` x real time).
+Each IMU sample is sent when the clock reaches it; a late loop sends what is due at once (no
+catch-up drift).  Faults for the tests: ``corrupt`` (garbage datagrams and bit-flipped frames),
+``reboot`` (silence, then boot time restarts from 0 and the stream requests are forgotten),
+``clock_jump`` (the boot clock steps forward), ``gnss_outage`` (the receiver outputs nothing).
+"""
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import random
+import socket
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
+
+from companion.messages import SECONDS_PER_WEEK  # noqa: E402
+from companion.nav.earth import C_n_e, dcm_to_euler, ecef_to_geodetic  # noqa: E402
+
+m = mavlink2
+GPS_EPOCH_UNIX_S = 315964800           # 1980-01-06 00:00:00 UTC
+STANDARD_GRAVITY_MPS2 = 9.80665
+
+
+class SimClock:
+    """Simulated GPS time <-> monotonic clock, ``speedup`` x real time, started once."""
+
+    def __init__(self, speedup: float = 1.0):
+        self.speedup = float(speedup)
+        self.started = asyncio.Event()
+        self.m0 = 0.0
+        self.t_start_gps = 0.0
+
+    def start(self, t_start_gps: float) -> None:
+        self.t_start_gps = float(t_start_gps)
+        self.m0 = time.monotonic()
+        self.started.set()
+
+    def now_gps(self) -> float:
+        return self.t_start_gps + (time.monotonic() - self.m0) * self.speedup
+
+    def mono_at(self, t_gps: float) -> float:
+        return self.m0 + (t_gps - self.t_start_gps) / self.speedup
+
+    async def sleep_until(self, t_gps: float) -> None:
+        await self.started.wait()
+        d = self.mono_at(t_gps) - time.monotonic()
+        if d > 0:
+            await asyncio.sleep(d)
+
+
+def rawx_frame(epoch, leap_seconds: int) -> bytes:
+    """UBX RXM-RAWX for a rover GnssEpoch (GPS L1C/A), built with pyubx2."""
+    from pyubx2 import GET, UBXMessage
+    week = int(epoch.t_gps // SECONDS_PER_WEEK)
+    tow = epoch.t_gps - week * SECONDS_PER_WEEK
+    kw = {}
+    n = 0
+    for o in epoch.observations:
+        if not o.sat.startswith("G") or o.signal != "L1C":
+            continue
+        n += 1
+        s = f"_{n:02d}"
+        pr_ok = math.isfinite(o.pseudorange_m)
+        cp_ok = math.isfinite(o.carrier_cycles)
+        kw.update({f"prMes{s}": o.pseudorange_m if pr_ok else 0.0,
+                   f"cpMes{s}": o.carrier_cycles if cp_ok else 0.0,
+                   f"doMes{s}": o.doppler_hz if math.isfinite(o.doppler_hz) else 0.0,
+                   f"gnssId{s}": 0, f"svId{s}": int(o.sat[1:]), f"sigId{s}": 0, f"freqId{s}": 0,
+                   f"locktime{s}": int(min(64500, max(0, round((o.lock_time_s if math.isfinite(o.lock_time_s) else 0) * 1000)))),
+                   f"cno{s}": int(max(0, min(255, round(o.cn0_dbhz if math.isfinite(o.cn0_dbhz) else 0)))),
+                   f"prStdev{s}": 5, f"cpStdev{s}": 2, f"doStdev{s}": 4,
+                   f"prValid{s}": int(pr_ok), f"cpValid{s}": int(cp_ok),
+                   f"halfCyc{s}": int(cp_ok and not o.half_cycle_ambiguous), f"subHalfCyc{s}": 0})
+    msg = UBXMessage("RXM", "RXM-RAWX", GET, rcvTow=tow, week=week, leapS=leap_seconds, numMeas=n,
+                     leapSec=1, version=1, **kw)
+    return msg.serialize()
+
+
+@dataclass
+class Received:
+    t_mono_ns: int
+    msg_type: str
+    msg: object
+
+
+@dataclass
+class Faults:
+    """Scheduled faults, times in seconds from the start of the simulated run."""
+    corrupt: list = field(default_factory=list)          # (t_start, t_end, probability per frame)
+    reboot: list = field(default_factory=list)           # (t, silent_s)
+    clock_jump: list = field(default_factory=list)       # (t, jump_s): boot clock steps forward
+    gnss_outage: list = field(default_factory=list)      # (t_start, t_end): no UBX bytes
+
+
+class EmulatedAutopilot:
+    def __init__(self, sim, *, companion_port: int, speedup: float = 1.0, leap_seconds: int = 13,
+                 imu_message: str = "HIGHRES_IMU", attitude_noise_deg: float = 0.3, gps_noise_m: float = 0.7,
+                 receiver_latency_s: float = 0.06, boot_lead_s: float = 30.0, seed: int = 0,
+                 faults: Faults | None = None, clock: SimClock | None = None):
+        self.sim = sim
+        self.addr = ("127.0.0.1", companion_port)
+        self.clock = clock or SimClock(speedup)
+        self.leap_seconds = leap_seconds
+        self.imu_message = imu_message
+        self.attitude_noise_rad = math.radians(attitude_noise_deg)
+        self.gps_noise_m = gps_noise_m
+        self.receiver_latency_s = receiver_latency_s
+        self.faults = faults or Faults()
+        self.rng = np.random.default_rng([seed, 777])
+        self.prng = random.Random(seed)
+        t0 = float(sim.truth.t_gps[0])
+        self.t0 = t0
+        # GPS time of boot time 0: a whole number of seconds before the first sample
+        self.boot0_gps = math.floor(t0) - boot_lead_s
+        self.boot_epoch = 0
+        self.mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.parser = m.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.imu_rate_hz = sim.scenario.imu.rate_hz
+        self.default_intervals = {m.MAVLINK_MSG_ID_HEARTBEAT: 1e6, m.MAVLINK_MSG_ID_SYSTEM_TIME: 1e6}
+        self.intervals: dict[int, float] = dict(self.default_intervals)
+        self.gps1 = bytearray()
+        self.received: list[Received] = []
+        self.imu_sent: dict[int, list] = defaultdict(list)    # boot_us -> [(send_mono_ns, t_gps)]
+        self.counters = defaultdict(int)
+        self.companion_seen = asyncio.Event()
+        self.silent_until_gps = -1e18
+        self._next_due: dict[int, float] = {}
+        self._ubx_frames = []
+        self._build_receiver_stream()
+        self._fix_list = self._build_fixes()
+        self.done = asyncio.Event()
+
+    # -- simulated receiver ------------------------------------------------------------------
+    def _build_receiver_stream(self) -> None:
+        lat = self.receiver_latency_s
+        for ep in self.sim.rover_epochs:
+            self._ubx_frames.append((ep.t_gps + lat, ep))
+
+    def _build_fixes(self):
+        out = []
+        for ep in self.sim.rover_epochs:
+            r = self.sim.antenna_at(ep.t_gps)
+            r = r + self.rng.normal(0.0, self.gps_noise_m, 3)
+            _, v, _ = self.sim.truth_at(ep.t_gps)
+            out.append((ep.t_gps, r, v, len(ep.observations)))
+        return out
+
+    # -- time --------------------------------------------------------------------------------
+    def boot_us(self, t_gps: float) -> int:
+        return int(round((t_gps - self.boot0_gps) * 1e6))
+
+    # -- sending -----------------------------------------------------------------------------
+    def send(self, msg) -> None:
+        data = bytes(msg.pack(self.mav))
+        t_rel = self.clock.now_gps() - self.t0
+        for (a, b, p) in self.faults.corrupt:
+            if a <= t_rel < b and self.prng.random() < p:
+                self.counters["corrupted_frames"] += 1
+                bad = bytearray(data)
+                k = self.prng.randrange(len(bad))
+                bad[k] ^= 0xFF
+                data = bytes(bad)
+                if self.prng.random() < 0.5:
+                    self._sendto(bytes(self.prng.randrange(256) for _ in range(self.prng.randrange(1, 40))))
+                break
+        self._sendto(data)
+
+    def _sendto(self, data: bytes) -> None:
+        try:
+            self.sock.sendto(data, self.addr)
+            self.counters["tx_datagrams"] += 1
+        except OSError:
+            self.counters["tx_errors"] += 1
+
+    def _interval_due(self, msg_id: int, t_gps: float) -> bool:
+        iv = self.intervals.get(msg_id)
+        if iv is None or iv <= 0:
+            return False
+        nd = self._next_due.get(msg_id)
+        if nd is None or t_gps >= nd - 1e-9:
+            period = iv * 1e-6
+            base = nd if nd is not None and t_gps - nd < period else t_gps
+            self._next_due[msg_id] = base + period
+            return True
+        return False
+
+    # -- receiving ---------------------------------------------------------------------------
+    def _on_readable(self) -> None:
+        while True:
+            try:
+                data, addr = self.sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                return
+            t = time.monotonic_ns()
+            try:
+                msgs = self.parser.parse_buffer(data) or []
+            except Exception:
+                self.counters["rx_parse_errors"] += 1
+                continue
+            for msg in msgs:
+                self._handle(msg, t)
+
+    def _handle(self, msg, t_ns: int) -> None:
+        mt = msg.get_type()
+        self.counters["rx_" + mt] += 1
+        if mt == "HEARTBEAT":
+            self.companion_seen.set()
+            return
+        if self.clock.started.is_set() and self.clock.now_gps() < self.silent_until_gps:
+            return                      # rebooting: deaf
+        if mt in ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT", "SET_GPS_GLOBAL_ORIGIN", "STATUSTEXT",
+                  "GPS_RTCM_DATA"):
+            self.received.append(Received(t_ns, mt, msg))
+        elif mt == "COMMAND_LONG" and msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL:
+            mid, iv = int(msg.param1), float(msg.param2)
+            if iv == 0:
+                self.intervals[mid] = self.default_intervals.get(mid, 0.0)
+            elif iv < 0:
+                self.intervals[mid] = 0.0
+            else:
+                self.intervals[mid] = max(iv, 1e6 / self.imu_rate_hz if mid in (
+                    m.MAVLINK_MSG_ID_HIGHRES_IMU, m.MAVLINK_MSG_ID_RAW_IMU) else 1e3)
+            self._next_due.pop(mid, None)
+            self.send(self.mav.command_ack_encode(msg.command, m.MAV_RESULT_ACCEPTED))
+        elif mt == "TIMESYNC" and msg.tc1 == 0 and self.clock.started.is_set():
+            now_boot_ns = int((self.clock.now_gps() - self.boot0_gps) * 1e9)
+            self.send(self.mav.timesync_encode(now_boot_ns, msg.ts1))
+        elif mt == "SERIAL_CONTROL" and msg.device == m.SERIAL_CONTROL_DEV_GPS1:
+            self.counters["serial_control_requests"] += 1
+            if not (msg.flags & m.SERIAL_CONTROL_FLAG_RESPOND):
+                return
+            replies = 0
+            while True:
+                n = min(70, len(self.gps1))
+                chunk = bytes(self.gps1[:n])
+                del self.gps1[:n]
+                self.send(self.mav.serial_control_encode(msg.device, m.SERIAL_CONTROL_FLAG_REPLY, 0, 0, n,
+                                                         list(chunk) + [0] * (70 - n)))
+                replies += 1
+                if not (msg.flags & m.SERIAL_CONTROL_FLAG_MULTI and n >= 70 and replies < 16):
+                    break
+
+    # -- the stream --------------------------------------------------------------------------
+    async def wait_for_companion(self, timeout_s: float = 30.0) -> bool:
+        """HEARTBEATs (only) until the companion answers; True when it did."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            self.send(self.mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
+                                                m.MAV_STATE_STANDBY))
+            try:
+                await asyncio.wait_for(self.companion_seen.wait(), 0.5)
+                return True
+            except asyncio.TimeoutError:
+                pass
+        return False
+
+    async def run(self, duration_s: float, warmup_s: float = 1.0) -> None:
+        loop = asyncio.get_running_loop()
+        loop.add_reader(self.sock.fileno(), self._on_readable)
+        try:
+            await self.wait_for_companion()
+            # warm-up: heartbeats while the companion sets up its streams (in real time)
+            t_end_w = time.monotonic() + warmup_s
+            while time.monotonic() < t_end_w:
+                self.send(self.mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
+                                                    m.MAV_STATE_STANDBY))
+                await asyncio.sleep(0.2)
+            self.clock.start(self.t0)
+            await self._stream(duration_s)
+        finally:
+            loop.remove_reader(self.sock.fileno())
+            self.done.set()
+
+    def _rest_until_gps(self) -> float:
+        events = getattr(self.sim.scenario.trajectory, "events", None) or []
+        for ev in events:
+            if ev[0] == "rest":
+                return self.t0 + ev[2]
+        return self.t0 + 8.0
+
+    async def _stream(self, duration_s: float) -> None:
+        sim = self.sim
+        imu = sim.imu
+        t_end = self.t0 + duration_s
+        dec = 1
+        i_ubx = 0
+        i_fix = 0
+        last_fix = None
+        armed_at = self._rest_until_gps()
+        faults = self.faults
+        reboots = sorted(faults.reboot)
+        jumps = sorted(faults.clock_jump)
+        for k, s in enumerate(imu):
+            t = s.t_gps
+            if t > t_end:
+                break
+            due = self.clock.mono_at(t)
+            d = due - time.monotonic()
+            if d > 0.0005:
+                await asyncio.sleep(d)
+            elif k % 20 == 0:
+                await asyncio.sleep(0)
+            t_rel = t - self.t0
+            # faults: reboot / clock jump
+            if reboots and t_rel >= reboots[0][0]:
+                _, silent = reboots.pop(0)
+                self.silent_until_gps = t + silent
+                self.boot0_gps = t + silent          # boot time restarts at 0 after the silence
+                self.boot_epoch += 1
+                self.intervals = dict(self.default_intervals)
+                self._next_due.clear()
+                self.gps1.clear()
+                self.counters["reboots"] += 1
+            if jumps and t_rel >= jumps[0][0]:
+                _, j = jumps.pop(0)
+                self.boot0_gps -= j
+                self.counters["clock_jumps"] += 1
+            if t < self.silent_until_gps:
+                continue
+            # receiver: UBX bytes into the GPS1 port buffer
+            while i_ubx < len(self._ubx_frames) and self._ubx_frames[i_ubx][0] <= t:
+                t_out, ep = self._ubx_frames[i_ubx]
+                i_ubx += 1
+                if any(a <= ep.t_gps - self.t0 < b for a, b in faults.gnss_outage):
+                    continue
+                self.gps1 += rawx_frame(ep, self.leap_seconds)
+                if len(self.gps1) > 16384:          # a UART buffer overflows: oldest bytes lost
+                    del self.gps1[:len(self.gps1) - 16384]
+            while i_fix < len(self._fix_list) and self._fix_list[i_fix][0] + self.receiver_latency_s <= t:
+                last_fix = self._fix_list[i_fix]
+                i_fix += 1
+            boot_us = self.boot_us(t)
+            # IMU
+            iv = self.intervals.get(m.MAVLINK_MSG_ID_HIGHRES_IMU if self.imu_message == "HIGHRES_IMU"
+                                    else m.MAVLINK_MSG_ID_RAW_IMU, 0.0)
+            if iv and iv > 0:
+                dec = max(1, int(round(iv * 1e-6 * self.imu_rate_hz)))
+                if k % dec == 0:
+                    w = s.dtheta_b / s.dt_s
+                    a = s.dv_b / s.dt_s
+                    if self.imu_message == "HIGHRES_IMU":
+                        msg = self.mav.highres_imu_encode(boot_us, a[0], a[1], a[2], w[0], w[1], w[2],
+                                                          0, 0, 0, 0, 0, 0, 25.0, 0x3F, 0)
+                    else:
+                        ka = 1000.0 / STANDARD_GRAVITY_MPS2
+                        q = [int(max(-32768, min(32767, round(x)))) for x in (*(a * ka), *(w * 1000.0))]
+                        msg = self.mav.raw_imu_encode(boot_us, q[0], q[1], q[2], q[3], q[4], q[5], 0, 0, 0, 0, 25)
+                    self.send(msg)
+                    self.imu_sent[boot_us].append((time.monotonic_ns(), t))
+                    self.counters["imu_sent"] += 1
+            # other streams
+            if self._interval_due(m.MAVLINK_MSG_ID_HEARTBEAT, t):
+                status = m.MAV_STATE_STANDBY if t < armed_at else m.MAV_STATE_ACTIVE
+                self.send(self.mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                    0, 0, status))
+            if self._interval_due(m.MAVLINK_MSG_ID_SYSTEM_TIME, t):
+                boot_ms = boot_us // 1000
+                t_gps_ms = self.boot0_gps + boot_ms * 1e-3
+                unix_us = int(round((t_gps_ms + GPS_EPOCH_UNIX_S - self.leap_seconds) * 1e6))
+                self.send(self.mav.system_time_encode(unix_us, boot_ms))
+            if self._interval_due(m.MAVLINK_MSG_ID_ATTITUDE, t):
+                r, v, C = sim.truth_at(t)
+                lat, lon, _ = ecef_to_geodetic(r)
+                roll, pitch, yaw = dcm_to_euler(C_n_e(lat, lon).T @ C)
+                nz = self.rng.normal(0.0, self.attitude_noise_rad, 3)
+                self.send(self.mav.attitude_encode(boot_us // 1000, roll + nz[0], pitch + nz[1],
+                                                   (yaw + nz[2] + math.pi) % (2 * math.pi) - math.pi, 0, 0, 0))
+            if self._interval_due(m.MAVLINK_MSG_ID_GPS_RAW_INT, t):
+                self._send_gps_raw(last_fix, t)
+        self.counters["sim_seconds"] = int(t - self.t0)
+
+    def _send_gps_raw(self, fix, t: float) -> None:
+        outage = fix is None or t - fix[0] > 1.5
+        if outage:
+            self.send(self.mav.gps_raw_int_encode(self.boot_us(t), 1, 0, 0, 0, 65535, 65535, 65535, 65535, 0))
+            return
+        t_fix, r, v, nsat = fix
+        lat, lon, h = ecef_to_geodetic(r)
+        v_n = C_n_e(lat, lon).T @ v
+        speed = math.hypot(v_n[0], v_n[1])
+        cog = (math.degrees(math.atan2(v_n[1], v_n[0])) + 360.0) % 360.0
+        self.send(self.mav.gps_raw_int_encode(
+            self.boot_us(t_fix + self.receiver_latency_s), 3, int(round(math.degrees(lat) * 1e7)),
+            int(round(math.degrees(lon) * 1e7)), int(round(h * 1000)), 120, 180, int(round(speed * 100)),
+            int(round(cog * 100)) % 36000, nsat, int(round(h * 1000)), int(self.gps_noise_m * 1500),
+            int(self.gps_noise_m * 2500), 300, 0, 0))
+
+    # -- results -----------------------------------------------------------------------------
+    def estimates(self):
+        return [r for r in self.received if r.msg_type in ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT")]
+
+    def imu_send_record(self, boot_us: int, arrival_ns: int):
+        """(send_mono_ns, t_gps) of the IMU sample with this boot time sent last before ``arrival_ns``."""
+        best = None
+        for rec in self.imu_sent.get(int(boot_us), ()):
+            if rec[0] <= arrival_ns and (best is None or rec[0] > best[0]):
+                best = rec
+        return best
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+
+__all__ = ["EmulatedAutopilot", "SimClock", "Faults", "rawx_frame", "Received"]

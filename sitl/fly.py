@@ -1,0 +1,339 @@
+"""``python -m sitl fly``: the whole system on loopback, scored against the truth.
+
+* simulates the scenario (``sitl.simulate``; cached as a pickle under ``~/.cache/companion-sitl``);
+* starts the base station (:class:`sitl.caster.RtcmSource`) behind an NTRIP caster (RTKLIB
+  ``str2str`` when installed, else :class:`sitl.caster.MiniNtripCaster`);
+* writes a configuration (MAVLink ``udpin`` on a free port, raw GNSS through SERIAL_CONTROL on
+  GPS1, NTRIP corrections, filter noise from :func:`sitl.tuning.tuning_for` -- the simulator's own
+  sensor models, nothing tuned on the truth) and starts ``companion run`` as its own process
+  (``python -m companion.run_cli run --config ...``);
+* runs the emulated autopilot (:class:`sitl.autopilot.EmulatedAutopilot`) in real time x
+  ``speedup`` once the companion's HEARTBEAT arrives;
+* scores the estimates the autopilot actually received: position error against the truth at the
+  GPS time of the IMU sample each estimate is stamped with (VISION_POSITION_ESTIMATE NED is turned
+  back into ECEF with the origin the autopilot received, inverting ArduPilot's spherical
+  ``get_distance_NED``), latency = arrival of the estimate minus the emulator's send time of that
+  IMU sample, CPU and RSS of the companion process from ``/proc``.
+
+Rates are per *simulated* second (equal to wall-clock rates at ``--speedup 1``).
+"""
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+import math
+import os
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from companion.nav.earth import C_n_e, ecef_to_geodetic, geodetic_to_ecef
+
+LOCATION_SCALING_FACTOR_M = 0.011131884502145034
+CACHE_DIR = Path(os.environ.get("COMPANION_SITL_CACHE", Path.home() / ".cache" / "companion-sitl"))
+
+
+def load_sim(scenario: str, seed: int, duration_s: float | None):
+    from .scenario import build_scenario
+    from .simulate import simulate
+    scn = build_scenario(scenario)
+    if duration_s is not None and duration_s < scn.duration_s:
+        scn = dataclasses.replace(scn, duration_s=float(duration_s))
+    key = CACHE_DIR / f"{scenario}-s{seed}-d{scn.duration_s:g}.pkl"
+    try:
+        with key.open("rb") as fh:
+            return pickle.load(fh)
+    except Exception:
+        pass
+    sim = simulate(scn, seed)
+    try:
+        CACHE_DIR.mkdir(parents=True, exist_ok=True)
+        tmp = key.with_suffix(".tmp")
+        with tmp.open("wb") as fh:
+            pickle.dump(sim, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        tmp.replace(key)
+    except Exception:
+        pass
+    return sim
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: float, output_mode: str,
+                          max_sigma_h_m: float, max_sigma_v_m: float, leap_seconds: int, imu_message: str,
+                          gnss_source: str = "mavlink_serial_control") -> str:
+    from .tuning import tuning_for
+    t = tuning_for(sim.scenario)
+    n = t.noise
+    la = [float(x) for x in sim.lever_arm_b]
+    corr = "none" if caster is None else "ntrip"
+    lines = [
+        "[mavlink]", f'connection = "udpin:127.0.0.1:{udp_port}"', f'imu_message = "{imu_message}"',
+        f"imu_rate_hz = {float(sim.scenario.imu.rate_hz)}", "attitude_rate_hz = 10.0", "gps_raw_rate_hz = 5.0",
+        "link_timeout_s = 3.0", "",
+        "[gnss]", f'source = "{gnss_source}"', 'serial_control_device = "GPS1"',
+        "serial_control_poll_interval_s = 0.02", f"lever_arm_b_m = [{la[0]!r}, {la[1]!r}, {la[2]!r}]",
+        f"leap_seconds = {leap_seconds}", "",
+        "[corrections]", f'source = "{corr}"', "forward_to_autopilot = false", "",
+    ]
+    if caster is not None:
+        lines += ["[corrections.ntrip]", 'host = "127.0.0.1"', f"port = {caster.port}",
+                  f'mountpoint = "{caster.mountpoint}"', f'user = "{caster.user}"', f'password = "{caster.password}"',
+                  "version = 1", "timeout_s = 10.0", ""]
+    lines += [
+        "[output]", f'mode = "{output_mode}"', f"rate_hz = {float(rate_hz)}", "set_ekf_origin = true",
+        f"max_sigma_h_m = {float(max_sigma_h_m)}", f"max_sigma_v_m = {float(max_sigma_v_m)}", "",
+        "[filter]",
+        f"gyro_arw_rad_per_sqrt_s = {n.gyro_arw_rad_per_sqrt_s!r}",
+        f"accel_vrw_mps_per_sqrt_s = {n.accel_vrw_mps_per_sqrt_s!r}",
+        f"gyro_bias_rw_radps_per_sqrt_s = {n.gyro_bias_rw_radps_per_sqrt_s!r}",
+        f"accel_bias_rw_mps2_per_sqrt_s = {n.accel_bias_rw_mps2_per_sqrt_s!r}",
+        f"clock_bias_psd_m2ps = {n.clock_bias_psd_m2ps!r}", f"clock_drift_psd_m2ps3 = {n.clock_drift_psd_m2ps3!r}",
+        "use_pseudorange = true", f"use_dgps = {'true' if caster is not None else 'false'}", "use_tdcp = true",
+        f"sigma_phase_m = {t.sigma_phase_m!r}", f"sigma_tdcp_floor_mps = {t.sigma_tdcp_floor_mps!r}",
+        f"sigma_doppler_mps = {t.sigma_doppler_mps!r}", f"elevation_mask_deg = {float(sim.scenario.mask_deg)}", "",
+        "[log]", f'dir = "{log_dir}"', "fsync_interval_s = 1.0", "",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _proc_cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as fh:
+        parts = fh.read().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    return (int(parts[11]) + int(parts[12])) / ticks
+
+
+def _proc_rss_mb(pid: int) -> tuple[float, float]:
+    rss = hwm = float("nan")
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                rss = int(line.split()[1]) / 1024.0
+            elif line.startswith("VmHWM:"):
+                hwm = int(line.split()[1]) / 1024.0
+    return rss, hwm
+
+
+def ned_to_ecef_ardupilot(ned, origin_lat_e7: int, origin_lon_e7: int, origin_alt_mm: int) -> np.ndarray:
+    """Inverse of ArduPilot's ``Location::get_distance_NED`` (as encoded by companion.io.mavlink)."""
+    lat0 = origin_lat_e7 * 1e-7
+    lon0 = origin_lon_e7 * 1e-7
+    lat = lat0 + ned[0] / LOCATION_SCALING_FACTOR_M * 1e-7
+    scale = max(math.cos(math.radians(0.5 * (lat + lat0))), 0.01)
+    lon = lon0 + ned[1] / (LOCATION_SCALING_FACTOR_M * scale) * 1e-7
+    alt = origin_alt_mm * 1e-3 - ned[2]
+    return geodetic_to_ecef(math.radians(lat), math.radians(lon), alt)
+
+
+def score(ap, sim, rate_hz: float, duration_s: float) -> dict:
+    """Errors, rates and latencies of the estimates the emulated autopilot received."""
+    origin = None
+    errs3, errsh, lat_ms, t_list = [], [], [], []
+    unmatched = 0
+    resets = set()
+    for r in ap.received:
+        mt, msg = r.msg_type, r.msg
+        if mt == "SET_GPS_GLOBAL_ORIGIN":
+            origin = (msg.latitude, msg.longitude, msg.altitude)
+            continue
+        if mt not in ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT"):
+            continue
+        boot_us = msg.usec if mt == "VISION_POSITION_ESTIMATE" else msg.time_usec
+        rec = ap.imu_send_record(boot_us, r.t_mono_ns)
+        if rec is None:
+            unmatched += 1
+            continue
+        send_ns, t_gps = rec
+        lat_ms.append((r.t_mono_ns - send_ns) * 1e-6)
+        if mt == "GPS_INPUT":
+            r_est = geodetic_to_ecef(math.radians(msg.lat * 1e-7), math.radians(msg.lon * 1e-7), msg.alt)
+        else:
+            if origin is None:
+                unmatched += 1
+                continue
+            r_est = ned_to_ecef_ardupilot((msg.x, msg.y, msg.z), *origin)
+            resets.add(msg.reset_counter)
+        r_true, _, _ = sim.truth_at(t_gps)
+        d = r_est - r_true
+        lat, lon, _ = ecef_to_geodetic(r_true)
+        d_n = C_n_e(lat, lon).T @ d
+        errs3.append(float(np.linalg.norm(d)))
+        errsh.append(float(math.hypot(d_n[0], d_n[1])))
+        t_list.append(t_gps - ap.t0)
+    n = len(errs3)
+    e3, eh = np.array(errs3), np.array(errsh)
+    out = {"estimates_received": len(ap.estimates()),
+           "estimate_rate_hz": round(len(ap.estimates()) / duration_s, 2),
+           "estimate_rate_fraction": round(len(ap.estimates()) / (rate_hz * duration_s), 4),
+           "rms_3d_m": round(float(np.sqrt(np.mean(e3 ** 2))), 4) if n else None,
+           "rms_h_m": round(float(np.sqrt(np.mean(eh ** 2))), 4) if n else None,
+           "p95_3d_m": round(float(np.percentile(e3, 95)), 4) if n else None,
+           "latency_ms_p50": round(float(np.percentile(lat_ms, 50)), 3) if lat_ms else None,
+           "latency_ms_p99": round(float(np.percentile(lat_ms, 99)), 3) if lat_ms else None,
+           "first_estimate_s": round(min(t_list), 3) if t_list else None,
+           "estimates_scored": n, "estimates_unmatched": unmatched,
+           "max_3d_m": round(float(e3.max()), 4) if n else None,
+           "reset_counters_seen": sorted(resets)}
+    if t_list:
+        t0 = min(t_list)
+        span = max(duration_s - t0, 1e-9)
+        out["estimate_rate_fraction_after_first"] = round(len(t_list) / (rate_hz * span), 4)
+    out["_series"] = {"t_s": t_list, "err_3d_m": errs3, "err_h_m": errsh, "latency_ms": lat_ms}
+    return out
+
+
+async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float = 1.0, *, rate_hz: float = 25.0,
+              seed: int = 0, out_dir: str = "out/fly", output_mode: str = "vision", max_sigma_h_m: float = 2.0,
+              max_sigma_v_m: float = 4.0, faults=None, use_caster: bool = True, imu_message: str = "HIGHRES_IMU",
+              gnss_source: str = "mavlink_serial_control", leap_seconds: int = 13,
+              keep_companion_log: bool = True) -> dict:
+    from .autopilot import EmulatedAutopilot, SimClock
+    from .caster import RtcmSource, start_caster
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t_setup = time.monotonic()
+    sim = load_sim(scenario, seed, duration_s + 3.0)
+    duration_s = min(duration_s, sim.scenario.duration_s - 1.0)
+    clock = SimClock(speedup)
+    src = caster = None
+    if use_caster:
+        src = RtcmSource(sim.base_epochs, sim.ephemerides, sim.base, clock)
+        src_port = await src.start()
+        caster = await start_caster(src_port, log_path=str(out / "str2str.log"))
+    udp_port = free_udp_port()
+    log_dir = out / "fieldlog"
+    if log_dir.exists():
+        for f in log_dir.glob("*.cflog"):
+            f.unlink()
+    cfg_text = companion_config_toml(sim, udp_port=udp_port, caster=caster, log_dir=str(log_dir), rate_hz=rate_hz,
+                                     output_mode=output_mode, max_sigma_h_m=max_sigma_h_m,
+                                     max_sigma_v_m=max_sigma_v_m, leap_seconds=leap_seconds,
+                                     imu_message=imu_message, gnss_source=gnss_source)
+    cfg_path = out / "companion.toml"
+    cfg_path.write_text(cfg_text)
+    comp_log = open(out / "companion.log", "wb")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-m", "companion.run_cli", "-v", "run", "--config", str(cfg_path)],
+                            stdout=comp_log, stderr=subprocess.STDOUT, env=env,
+                            cwd=str(Path(__file__).resolve().parent.parent))
+    ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
+                           leap_seconds=leap_seconds, imu_message=imu_message, seed=seed)
+    cpu0 = cpu1 = None
+    wall0 = wall1 = None
+    rss = hwm = float("nan")
+    try:
+        tasks = [asyncio.create_task(ap.run(duration_s))]
+        if src is not None:
+            tasks.append(asyncio.create_task(src.run()))
+        await clock.started.wait()
+        if proc.poll() is None:
+            cpu0, wall0 = _proc_cpu_s(proc.pid), time.monotonic()
+        await tasks[0]
+        if proc.poll() is None:
+            cpu1, wall1 = _proc_cpu_s(proc.pid), time.monotonic()
+            rss, hwm = _proc_rss_mb(proc.pid)
+        for t in tasks[1:]:
+            t.cancel()
+        await asyncio.sleep(0.3)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        comp_log.close()
+        ap.close()
+        if src is not None:
+            await src.close()
+        if caster is not None:
+            await caster.close()
+    res = score(ap, sim, rate_hz, duration_s)
+    series = res.pop("_series")
+    res.update({
+        "companion_cpu_pct": round(100.0 * (cpu1 - cpu0) / (wall1 - wall0), 2) if cpu1 is not None else None,
+        "companion_rss_mb": round(rss, 1), "companion_peak_rss_mb": round(hwm, 1),
+        "companion_exit_code": proc.returncode,
+        "scenario": scenario, "seed": seed, "duration_s": duration_s, "speedup": speedup,
+        "configured_rate_hz": rate_hz, "imu_rate_hz": sim.scenario.imu.rate_hz, "output_mode": output_mode,
+        "caster": None if caster is None else caster.kind,
+        "autopilot": {k: v for k, v in ap.counters.items() if not k.startswith("rx_") or k in (
+            "rx_VISION_POSITION_ESTIMATE", "rx_SERIAL_CONTROL", "rx_TIMESYNC", "rx_COMMAND_LONG", "rx_STATUSTEXT")},
+        "rtcm_source": None if src is None else dict(src.counters),
+        "statustext": [r.msg.text for r in ap.received if r.msg_type == "STATUSTEXT"],
+        "field_log_dir": str(log_dir), "companion_log": str(out / "companion.log"),
+        "setup_s": round(time.monotonic() - t_setup, 1)})
+    res["_series"] = series
+    return res
+
+
+def format_result(r: dict) -> str:
+    def f(x, fmt):
+        return "n/a" if x is None else format(x, fmt)
+    return "\n".join([
+        f"sitl fly: scenario {r['scenario']} {r['duration_s']:.0f} s x{r['speedup']:g}, {r['output_mode']} at "
+        f"{r['configured_rate_hz']:g} Hz, IMU {r['imu_rate_hz']:g} Hz, caster {r['caster']}",
+        f"  estimates received {r['estimates_received']} ({f(r['estimate_rate_hz'], '.2f')} Hz, "
+        f"{100 * r['estimate_rate_fraction']:.1f} % of configured; first at {f(r['first_estimate_s'], '.2f')} s)",
+        f"  error: RMS 3-D {f(r['rms_3d_m'], '.3f')} m, RMS horizontal {f(r['rms_h_m'], '.3f')} m, "
+        f"p95 3-D {f(r['p95_3d_m'], '.3f')} m, max {f(r['max_3d_m'], '.3f')} m",
+        f"  latency p50 {f(r['latency_ms_p50'], '.2f')} ms, p99 {f(r['latency_ms_p99'], '.2f')} ms",
+        f"  companion CPU {f(r['companion_cpu_pct'], '.1f')} % of one core, RSS {f(r['companion_rss_mb'], '.1f')} MB",
+    ])
+
+
+def cmd_fly(args) -> int:
+    res = asyncio.run(fly(args.scenario, args.duration, args.speedup, rate_hz=args.rate, seed=args.seed,
+                          out_dir=args.out, output_mode=args.output))
+    series = res.pop("_series")
+    print(format_result(res))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        keys = ("estimates_received", "estimate_rate_hz", "estimate_rate_fraction", "rms_3d_m", "rms_h_m", "p95_3d_m",
+                "latency_ms_p50", "latency_ms_p99", "companion_cpu_pct", "companion_rss_mb")
+        obj = {k: res[k] for k in keys}
+        obj["details"] = {k: v for k, v in res.items() if k not in keys}
+        if args.series:
+            obj["series"] = series
+        Path(args.json).write_text(json.dumps(obj, indent=2, default=str))
+        print(f"wrote {args.json}")
+    return 0 if res["estimates_received"] else 1
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("fly", help="companion + emulated autopilot + NTRIP caster on loopback, scored")
+    p.add_argument("--scenario", default="uav")
+    p.add_argument("--duration", type=float, default=120.0, help="simulated seconds (default 120)")
+    p.add_argument("--speedup", type=float, default=1.0, help="simulated time per wall-clock second")
+    p.add_argument("--rate", type=float, default=25.0, help="estimate rate requested from the companion, Hz")
+    p.add_argument("--output", default="vision", choices=("vision", "odometry", "gps_input"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="out/fly", help="directory for config, logs and the field log")
+    p.add_argument("--json", help="write the figures as JSON here")
+    p.add_argument("--series", action="store_true", help="include per-estimate error/latency series in the JSON")
+    p.set_defaults(func=cmd_fly)
+
+
+def main(argv=None) -> int:
+    import argparse
+    p = argparse.ArgumentParser(prog="python -m sitl")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    register(sub)
+    args = p.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
