@@ -26,6 +26,9 @@ from companion.nav.earth import C_n_e, ecef_to_geodetic, rotation_from_rotvec
 from companion.nav.filter import ProcessNoise
 
 MODES = ("ins", "gps", "loose", "tight", "tdcp_dgps")
+# extra modes (not in the paper's table): the proposal with between-satellite single differences
+# (seed 004: no receiver clock states needed) instead of undifferenced measurements
+EXTRA_MODES = ("tdcp_dgps_sd",)
 
 # Table 4 of seed 000, 3-D position error (m)
 PAPER_TABLE4 = {
@@ -71,6 +74,9 @@ def mode_config(mode: str, tuning: FilterTuning, lever_arm_b) -> EngineConfig:
         return EngineConfig(use_pseudorange=True, use_doppler=True, use_tdcp=False, **standalone, **common)
     if mode == "tdcp_dgps":
         return EngineConfig(use_pseudorange=True, use_dgps=True, use_doppler=False, use_tdcp=True, **common)
+    if mode == "tdcp_dgps_sd":
+        return EngineConfig(use_pseudorange=True, use_dgps=True, use_doppler=False, use_tdcp=True,
+                            measurement_form="single_difference", **common)
     if mode == "ins":
         return EngineConfig(use_pseudorange=False, use_dgps=False, use_tdcp=False, **common)
     raise ValueError(f"unknown mode {mode!r}")
@@ -264,7 +270,7 @@ def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progre
 
 
 def format_table(result: dict) -> str:
-    modes = [m for m in MODES if m in result["modes"]]
+    modes = [m for m in MODES + EXTRA_MODES if m in result["modes"]]
     paper = result["scenario"] == "paper"
     head = f"{'t [s]':>6} | " + " | ".join(f"{m:>17}" for m in modes)
     lines = [f"3-D position error (m), mean of {result['runs']} run(s), scenario '{result['scenario']}'"
@@ -277,7 +283,7 @@ def format_table(result: dict) -> str:
                 cells.append(f"{'-':>17}")
                 continue
             txt = f"{ours:8.2f}"
-            if paper:
+            if paper and m in PAPER_TABLE4:
                 txt += f" ({PAPER_TABLE4[m][i]:6g})"
             cells.append(f"{txt:>17}")
         lines.append(f"{t:>6} | " + " | ".join(cells))
@@ -285,7 +291,7 @@ def format_table(result: dict) -> str:
     cells = []
     for m in modes:
         txt = f"{result['modes'][m]['mean_3d_m']:8.2f}"
-        if paper:
+        if paper and m in PAPER_MEAN:
             pm = PAPER_MEAN[m]
             txt += f" ({pm:6g})" if pm is not None else " (     -)"
         cells.append(f"{txt:>17}")
@@ -299,7 +305,7 @@ def plot(result: dict, path: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(9, 5))
-    for m in MODES:
+    for m in MODES + EXTRA_MODES:
         if m in result["modes"]:
             s = result["modes"][m]
             ax.semilogy(s["curve_t_s"], np.maximum(s["curve_3d_m"], 1e-3), label=f"{m} (mean {s['mean_3d_m']:.2f} m)")

@@ -67,3 +67,12 @@ def test_paper_cli_writes_json_and_plot(tmp_path):
     for m in data["modes"].values():
         assert {"mean_3d_m", "rms_3d_m", "max_3d_m", "at_s"} <= set(m)
     assert out_png.stat().st_size > 10_000
+
+
+def test_single_difference_form_is_as_good_as_undifferenced():
+    """Seed 004's between-satellite single differences (no clock states) on the paper scenario."""
+    res = run_experiment("paper", runs=2, seed=21, modes=("tdcp_dgps", "tdcp_dgps_sd"), jobs=2)
+    ud, sd = res["modes"]["tdcp_dgps"]["mean_3d_m"], res["modes"]["tdcp_dgps_sd"]["mean_3d_m"]
+    print(f"undifferenced {ud:.3f} m, single differences {sd:.3f} m")
+    assert sd <= 1.0
+    assert abs(sd - ud) < 0.3
