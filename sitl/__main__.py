@@ -26,6 +26,10 @@ def _progress(done: int, total: int, elapsed_s: float) -> None:
 
 
 def cmd_paper(args) -> int:
+    if args.scenario in ("nhc", "nhc-skid", "attitude", "attitude-mems"):
+        return _cmd_compare(args)
+    if args.runs is None:
+        args.runs = 20
     from .paper import format_table, plot, run_experiment
     from .paper import EXTRA_MODES, MODES
     modes = tuple(args.modes.split(",")) if args.modes else MODES
@@ -52,6 +56,19 @@ def cmd_paper(args) -> int:
     return 0
 
 
+def _cmd_compare(args) -> int:
+    """Seeds 002 and 003: the same flight with and without the constraint / attitude updates."""
+    from . import compare
+    if args.scenario.startswith("nhc"):
+        result = compare.run_nhc(runs=args.runs or 4, seed=args.seed, jobs=args.jobs, scenario_name=args.scenario)
+        print(compare.format_nhc(result))
+    else:
+        result = compare.run_attitude(runs=args.runs or 2, seed=args.seed, jobs=args.jobs, scenario_name=args.scenario)
+        print(compare.format_attitude(result))
+    _write_json(args.json, result)
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import format_bench, run_bench
     result = run_bench(args.duration)
@@ -64,8 +81,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m sitl", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
     pp = sub.add_parser("paper", help="seed 000's experiment: five navigation modes on the same simulated data")
-    pp.add_argument("--scenario", default="paper", help="paper (seed 000 sec 4.1) or uav (realistic survey flight)")
-    pp.add_argument("--runs", type=int, default=20, help="Monte Carlo runs (default 20)")
+    pp.add_argument("--scenario", default="paper",
+                    help="paper (seed 000 sec 4.1), paper-nosa, uav (realistic survey flight), "
+                         "nhc / nhc-skid (seed 002: with vs without NHC), attitude / attitude-mems "
+                         "(seed 003: PV vs PVA)")
+    pp.add_argument("--runs", type=int, default=None,
+                    help="Monte Carlo runs (default 20; nhc 4, attitude 2 to stay under a minute)")
     pp.add_argument("--seed", type=int, default=1, help="seed of the first run; run i uses seed+i")
     pp.add_argument("--jobs", type=int, default=0, help="worker processes (default: one per CPU core)")
     pp.add_argument("--modes", help="comma-separated modes (default: the paper's five; also tdcp_dgps_sd)")

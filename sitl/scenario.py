@@ -96,6 +96,36 @@ its 0.3 m/s rate std also corrupts undifferenced TDCP range rates).
   Satellite clock error 1.0 m (1200 s).  Rover (drone patch antenna): code noise 0.25 m, code MP
   0.4 m (tau 8 s), carrier 2 mm / 8 mm (tau 8 s), all x 1/sin(el); Doppler 0.05 m/s.  Base
   (geodetic choke ring): 0.1 m, 0.1 m, 1 mm, 2 mm, x 1/sin(el).  Clocks steered, tau 30 s.
+
+"nhc" / "nhc-skid" (seed 002, car near GEONET 0759, real 2005-04-02 ephemeris, 00:20 GPST)
+------------------------------------------------------------------------------------------
+* Motion: sitl.trajectory.road_drive, 596 s: rest 15 s, straights, three 90-deg turns, a
+  roundabout (30 right / 210 left / 30 right), a 45-deg curve, braking, a 20-s stop at 249-269 s,
+  5-20 m/s; grade -3..+3 deg (= pitch), crossfall +-1.5 deg, suspension roll 0.4 deg per m/s^2
+  outward, side-slip 0.1 deg per m/s^2 (body lateral speed <= 0.05 m/s); body vertical velocity 0.
+  'nhc-skid': + 2 m/s body-lateral skid held 3 s from t0+320 s (0.5-s ramps), GNSS available.
+* IMU ADIS16405 class, 50 Hz: gyro turn-on (after calibration) 0.05 deg/s, in-run instability GM
+  0.007 deg/s (tau 100 s), ARW 2 deg/sqrt(h); accel turn-on 1 mg, instability GM 0.2 mg (100 s),
+  VRW 0.2 m/s/sqrt(h).  Lever arm IMU->antenna (0.5, 0, -0.9) m.
+* GNSS u-blox EVK-6T class standalone L1, 1 Hz, mask 10 deg, SA off: iono 1.15 x Klobuchar +
+  0.5 m zenith GM (900 s); tropo 1.05 x Saastamoinen + 3 cm; orbit RAC (0.3, 1.0, 0.6) m; satellite
+  clock 1 m; code noise 0.4 m, code multipath 0.6 m GM 10 s, both x 1/sin(el); Doppler 0.1 m/s.
+  Rover outages (no epochs) 135-165 s (30 s, roundabout) and 350-410 s (60 s).  No base.
+
+"attitude" (seed 003) / "attitude-mems"
+---------------------------------------
+* Motion: sitl.trajectory.survey_aircraft, 600 s (the paper flew 2.6 h): 55-65 m/s, 300-m climb,
+  180/180/270/90-deg coordinated turns (bank 17-23 deg), 150-m descent; pitch = flight-path angle +
+  2.5 deg x load factor.  Lever arm (1, 0, -1) m.
+* IMU 200 Hz, seed 003 Table 1: gyro bias 0.05 deg/h, ARW 0.002 deg/sqrt(h), accel bias 250 ug,
+  VRW 0.001 m/s/sqrt(h) (turn-on biases, Gaussian per axis); initial misalignment sigma 0.01 deg
+  tilt, 0.03 deg heading.  'attitude-mems': the 'nhc' ADIS16405 model at 200 Hz, 0.3/3 deg.
+* GNSS: no raw observables; PPK-class GnssFix at 1 Hz (PpkFixModel: position GM 4/4/6 cm N/E/U,
+  tau 60 s, + 1 cm white; velocity 1 cm/s white, the paper's Table 1 figure) and three-antenna
+  GnssAttitude at 1 Hz (AttitudeAntennas: l12 = l13 = 1 m, baseline errors 1.75 mm horizontal,
+  3.5 mm vertical -> heading 0.10, pitch 0.20, roll 0.20 deg).  The paper's own "0.5 cm / 1 cm
+  point errors give 0.1/0.2 deg at 1 m" is inconsistent to first order (0.5 cm / 1 m = 0.29 deg);
+  the errors are scaled to its stated 0.1 deg heading with its 1:2 horizontal:vertical ratio.
 """
 from __future__ import annotations
 
@@ -108,7 +138,7 @@ from companion.messages import SPEED_OF_LIGHT_MPS, GpsEphemeris, gps_time
 from companion.nav.earth import C_n_e, ecef_to_geodetic, geodetic_to_ecef
 
 from . import sky
-from .trajectory import PaperTrajectory, survey_flight
+from .trajectory import PaperTrajectory, road_drive, survey_aircraft, survey_flight
 
 _SQ3 = math.sqrt(3.0)
 
@@ -195,6 +225,65 @@ class ImuModel:
 
 
 @dataclass(frozen=True)
+class PpkFixModel:
+    """Post-processed (PPK-class) antenna position/velocity solutions fed as ``GnssFix``.
+    Position error per local NED axis = 1st-order GM (sigma_pos_ned_m, tau_s: PPK errors wander
+    with the satellite geometry and residual atmosphere) + white noise; velocity error white."""
+
+    rate_hz: float = 1.0
+    sigma_pos_ned_m: tuple[float, float, float] = (0.04, 0.04, 0.06)
+    tau_s: float = 60.0
+    white_pos_m: float = 0.01
+    sigma_vel_mps: float = 0.01              # white velocity error per axis
+    vel_gm_sigma_mps: float = 0.0            # time-correlated velocity error per axis (1st-order GM)
+    vel_gm_tau_s: float = 20.0
+
+    @property
+    def sigma_vel_total_mps(self) -> float:
+        return math.hypot(self.sigma_vel_mps, self.vel_gm_sigma_mps)
+
+    @property
+    def sigma_h_m(self) -> float:
+        """2-D horizontal sigma as GnssFix wants it (per-axis variance = sigma_h^2 / 2)."""
+        s = self.sigma_pos_ned_m
+        return math.sqrt(s[0] ** 2 + s[1] ** 2 + 2.0 * self.white_pos_m ** 2)
+
+    @property
+    def sigma_v_m(self) -> float:
+        return math.hypot(self.sigma_pos_ned_m[2], self.white_pos_m)
+
+
+@dataclass(frozen=True)
+class AttitudeAntennas:
+    """Three GNSS antennas (seed 003 fig 1): antenna 2 at ``l12_m`` along body x, antenna 3 at
+    ``l13_m`` along body y from antenna 1 (perpendicular: the best geometry for roll).  Each
+    baseline vector is measured (carrier-phase moving baseline, fixed ambiguities) with white
+    errors ``sigma_h_m`` per horizontal and ``sigma_v_m`` vertical component, independent between
+    baselines and epochs.  The direct method (seed 003 eqs 3-5) gives heading and pitch from
+    baseline 12 and roll from baseline 13; first order (eqs 9-11):
+    sigma_heading = sigma_h / (l12 cos pitch), sigma_pitch = sigma_v / l12,
+    sigma_roll = sigma_v / l13 (antenna-baseline misalignment: zero, i.e. already calibrated)."""
+
+    l12_m: float = 1.0
+    l13_m: float = 1.0
+    sigma_h_m: float = 0.00175
+    sigma_v_m: float = 0.0035
+    rate_hz: float = 1.0
+
+    @property
+    def sigma_heading_rad(self) -> float:
+        return self.sigma_h_m / self.l12_m
+
+    @property
+    def sigma_pitch_rad(self) -> float:
+        return self.sigma_v_m / self.l12_m
+
+    @property
+    def sigma_roll_rad(self) -> float:
+        return self.sigma_v_m / self.l13_m
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str
@@ -222,6 +311,12 @@ class Scenario:
     rover_outages: tuple[tuple[float, float], ...] = ()      # (t_gps start, t_gps end), no rover epochs
     cycle_slips: tuple[tuple[float, str, int], ...] = ()     # (t_gps, sat, cycles), rover
     default_seed: int = 0
+    # added for seeds 002/003 (defaults reproduce the original scenarios bit for bit)
+    raw_gnss: bool = True                    # simulate rover raw observables
+    simulate_base: bool = True               # simulate base-station raw observables
+    ppk: PpkFixModel | None = None           # also emit PPK-class GnssFix solutions
+    gnss_attitude: AttitudeAntennas | None = None   # also emit three-antenna GnssAttitude
+    initial_attitude_sigma_rad: tuple[float, float] | None = None   # (tilt, heading) alignment
     notes: dict = field(default_factory=dict, compare=False)
 
     @property
@@ -332,11 +427,102 @@ def _paper_nosa() -> Scenario:
                                description=_paper().description + ", SA off")
 
 
-_BUILDERS = {"paper": _paper, "paper-nosa": _paper_nosa, "uav": _uav}
+def _geonet_iono():
+    from companion.gnss.rinex import read_rinex_nav_header_iono
+    iono_ab = read_rinex_nav_header_iono(sky.GEONET_NAV)
+    return (tuple(float(x) for x in iono_ab[0]), tuple(float(x) for x in iono_ab[1])) \
+        if iono_ab is not None else ((0.0,) * 4, (0.0,) * 4)
+
+
+#: the skid of the 'nhc-skid' variant: start (s from t0), body-lateral speed, hold
+NHC_SKID = (320.0, 2.0, 3.0)
+#: the two rover outages of 'nhc' (s from t0): 30 s over the roundabout, 60 s over the end of
+#: the 20-m/s straight, the 45-deg curve and the next straight
+NHC_OUTAGES = ((135.0, 165.0), (350.0, 410.0))
+
+
+def _nhc(skid: bool = False) -> Scenario:
+    deg = math.pi / 180.0
+    mg = 9.80665e-3
+    week = 1316
+    t0 = gps_time(week, 6 * 86400.0 + 20 * 60.0) + 0.0063       # 2005-04-02 00:20:00 GPST
+    lat7, lon7, h7 = ecef_to_geodetic(sky.GEONET_0759_R_E)
+    start = sky.GEONET_0759_R_E + C_n_e(lat7, lon7) @ np.array([-300.0, 200.0, 1.5])
+    lat0, lon0, h0 = ecef_to_geodetic(start)
+    traj = road_drive((lat0, lon0, h0), heading0_rad=math.radians(30.0),
+                      skid_at_s=NHC_SKID[0] if skid else None, skid_mps=NHC_SKID[1], skid_s=NHC_SKID[2])
+    duration = traj.duration_s
+    ephs = sky.select_ephemerides(sky.geonet_ephemerides(), t0, t0 + duration)
+    alpha, beta = _geonet_iono()
+    return Scenario(
+        name="nhc-skid" if skid else "nhc",
+        description="seed 002: car near GEONET 0759, ADIS16405 IMU 50 Hz, u-blox EVK-6T standalone L1 "
+                    "1 Hz, outages of 30 s and 60 s" + (", 2 m/s skid for 3 s" if skid else ""),
+        trajectory=traj, t0_gps=t0, duration_s=duration,
+        imu=ImuModel(rate_hz=50.0,
+                     gyro_bias_sigma_radps=0.05 * deg, gyro_bi_sigma_radps=0.007 * deg, gyro_bi_tau_s=100.0,
+                     gyro_arw_radps_per_sqrthz=2.0 * deg / 60.0,
+                     accel_bias_sigma_mps2=1.0 * mg, accel_bi_sigma_mps2=0.2 * mg, accel_bi_tau_s=100.0,
+                     accel_vrw_mps2_per_sqrthz=0.2 / 60.0),
+        ephemerides=tuple(ephs[s] for s in sorted(ephs)),
+        base_r_e=sky.GEONET_3040_R_E.copy(), base_station_id=3040,
+        lever_arm_b=(0.5, 0.0, -0.9), mask_deg=10.0,
+        iono=SlowError(0.5, 0.0, 900.0, mapping="iono", model="klobuchar", model_scale=1.15),
+        tropo=SlowError(0.03, 0.0, 1800.0, mapping="tropo", model="saastamoinen", model_scale=1.05),
+        sat_clock=SlowError(1.0, 0.0, 1200.0), sa=SlowError(0.0, 0.0, 180.0),
+        orbit=OrbitError(sigma_rac_m=(0.3, 1.0, 0.6), tau_s=1800.0),
+        rover_rx=ReceiverErrors(code_noise_m=0.4, code_mp_m=0.6, code_mp_tau_s=10.0,
+                                carrier_noise_m=0.003, carrier_mp_m=0.01, carrier_mp_tau_s=10.0,
+                                doppler_noise_mps=0.1, el_scaling=True),
+        rover_clock=ClockModel(steer_tau_s=30.0), klobuchar_alpha=alpha, klobuchar_beta=beta,
+        rover_outages=tuple((t0 + a, t0 + b) for a, b in NHC_OUTAGES),
+        simulate_base=False, default_seed=2,
+    )
+
+
+def _attitude() -> Scenario:
+    deg = math.pi / 180.0
+    ug = 9.80665e-6
+    week = 1316
+    t0 = gps_time(week, 6 * 86400.0 + 20 * 60.0) + 0.0063
+    lat7, lon7, h7 = ecef_to_geodetic(sky.GEONET_0759_R_E)
+    start = sky.GEONET_0759_R_E + C_n_e(lat7, lon7) @ np.array([0.0, 0.0, -1200.0])
+    lat0, lon0, h0 = ecef_to_geodetic(start)
+    traj = survey_aircraft((lat0, lon0, h0))
+    return Scenario(
+        name="attitude",
+        description="seed 003: 10-min survey flight, navigation-grade IMU 200 Hz, PPK position/velocity "
+                    "1 Hz, three-antenna GNSS attitude 1 Hz (1 m baselines)",
+        trajectory=traj, t0_gps=t0, duration_s=traj.duration_s,
+        imu=ImuModel(rate_hz=200.0,
+                     gyro_bias_sigma_radps=0.05 * deg / 3600.0, gyro_arw_radps_per_sqrthz=0.002 * deg / 60.0,
+                     accel_bias_sigma_mps2=250.0 * ug, accel_vrw_mps2_per_sqrthz=0.001 / 60.0),
+        ephemerides=(), base_r_e=sky.GEONET_3040_R_E.copy(), base_station_id=3040,
+        lever_arm_b=(1.0, 0.0, -1.0), raw_gnss=False, simulate_base=False,
+        ppk=PpkFixModel(), gnss_attitude=AttitudeAntennas(),
+        initial_attitude_sigma_rad=(0.01 * deg, 0.03 * deg), default_seed=3,
+    )
+
+
+def _attitude_mems() -> Scenario:
+    """'attitude' with the ADIS16405-class MEMS IMU of 'nhc' (at 200 Hz) and a compass-class initial
+    alignment (tilt 0.3 deg, heading 3 deg): where 1-m-baseline GNSS attitude does help roll/pitch."""
+    import dataclasses
+    nhc = _nhc()
+    base = _attitude()
+    return dataclasses.replace(base, name="attitude-mems",
+                               description=base.description.replace("navigation-grade IMU", "ADIS16405-class IMU"),
+                               imu=dataclasses.replace(nhc.imu, rate_hz=200.0),
+                               initial_attitude_sigma_rad=(math.radians(0.3), math.radians(3.0)))
+
+
+_BUILDERS = {"paper": _paper, "paper-nosa": _paper_nosa, "uav": _uav, "nhc": _nhc,
+             "nhc-skid": lambda: _nhc(skid=True), "attitude": _attitude,
+             "attitude-mems": _attitude_mems}
 
 
 def build_scenario(name: str) -> Scenario:
-    """'paper', 'paper-nosa' or 'uav' (see the module docstring for every modelling choice)."""
+    """'paper', 'paper-nosa', 'uav', 'nhc', 'nhc-skid', 'attitude' or 'attitude-mems' (see the module docstring)."""
     try:
         return _BUILDERS[name]()
     except KeyError:

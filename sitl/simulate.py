@@ -30,6 +30,7 @@ _S_IONO_C, _S_IONO_D, _S_TROPO_C, _S_TROPO_D, _S_SATCLK, _S_SA = 10, 11, 12, 13,
 _S_ORB_C, _S_ORB_D, _S_ORB_RAC = 16, 17, 18
 _S_SITE = {"rover": 20, "base": 30}
 _S_AMB = {"rover": 40, "base": 41}
+_S_PPK, _S_ATT = 50, 51
 
 
 @dataclass(eq=False)
@@ -54,6 +55,8 @@ class SimData:
     base: BaseStationPosition
     lever_arm_b: np.ndarray
     errors: dict = field(default_factory=dict)
+    gnss_fixes: list = field(default_factory=list)              # GnssFix (scenario.ppk)
+    attitude_measurements: list = field(default_factory=list)   # GnssAttitude (scenario.gnss_attitude)
 
     @property
     def imu_ideal(self) -> list[ImuSample]:
@@ -336,11 +339,109 @@ def simulate(scenario: Scenario, seed: int | None = None) -> SimData:
     ephs = list(scn.ephemerides)
     lever = np.asarray(scn.lever_arm_b, float)
     atmo = _Atmosphere(scn, seed, [e.sat for e in ephs])
-    rover_epochs, rover_err = _receiver(scn, seed, "rover", tr, atmo, ephs, lever)
-    base_epochs, base_err = _receiver(scn, seed, "base", tr, atmo, ephs, lever)
+    rover_epochs, rover_err = _receiver(scn, seed, "rover", tr, atmo, ephs, lever) if scn.raw_gnss else ([], {})
+    base_epochs, base_err = _receiver(scn, seed, "base", tr, atmo, ephs, lever) if scn.simulate_base else ([], {})
     errors = {"imu": ie, "rover": rover_err, "base": base_err}
+    fixes = attitudes = []
+    if scn.ppk is not None:
+        fixes, errors["ppk"] = _ppk_fixes(scn, seed, tr, lever)
+    if scn.gnss_attitude is not None:
+        attitudes, errors["attitude"] = _gnss_attitudes(scn, seed, tr)
     return SimData(scenario=scn, seed=seed, truth=tr, imu=imu, imu_ideal_dtheta_b=dth,
                    imu_ideal_dv_b=dv, rover_epochs=rover_epochs, base_epochs=base_epochs,
                    ephemerides=ephs,
                    base=BaseStationPosition(scn.base_station_id, np.asarray(scn.base_r_e, float).copy()),
-                   lever_arm_b=lever, errors=errors)
+                   lever_arm_b=lever, errors=errors, gnss_fixes=fixes, attitude_measurements=attitudes)
+
+
+def _solution_times(scn: Scenario, rate_hz: float) -> np.ndarray:
+    """Solution epochs at whole multiples of 1/rate in true GPS time, outside the rover outages."""
+    dt = 1.0 / rate_hz
+    t_end = scn.t0_gps + scn.duration_s
+    k = np.arange(math.ceil(scn.t0_gps / dt), math.floor(t_end / dt) + 1)
+    t = k * dt
+    keep = np.ones(len(t), bool)
+    for a, z in scn.rover_outages:
+        keep &= ~((t >= a) & (t < z))
+    return t[keep]
+
+
+def _ppk_fixes(scn: Scenario, seed: int, tr: Truth, lever_b: np.ndarray):
+    """PPK-class antenna solutions (see scenario.PpkFixModel): truth antenna position/velocity
+    (lever arm included, earth-rotation term of the antenna velocity included) plus errors in the
+    local NED frame of the start point."""
+    from companion.messages import GnssFix
+    from companion.nav.earth import OMEGA_IE_RADPS
+
+    m = scn.ppk
+    t = _solution_times(scn, m.rate_hz)
+    rng = np.random.default_rng([seed, _S_PPK])
+    gm = sensors.gm1(rng, len(t), 1.0 / m.rate_hz, m.tau_s, 1.0, 3) * np.asarray(m.sigma_pos_ned_m)
+    white = rng.standard_normal((len(t), 3)) * m.white_pos_m
+    vel = rng.standard_normal((len(t), 3)) * m.sigma_vel_mps
+    if m.vel_gm_sigma_mps > 0.0:
+        vel = vel + sensors.gm1(rng, len(t), 1.0 / m.rate_hz, m.vel_gm_tau_s, m.vel_gm_sigma_mps, 3)
+    Cne = scn.C_t_e
+    f = scn.imu.rate_hz
+    fixes = []
+    for i, ti in enumerate(t):
+        r, v, Cbe = _truth_at(scn, tr, float(ti))
+        # body rate from the trajectory's attitude (central difference) for the lever-arm velocity
+        h = 0.5 / f
+        C_m = Cte_att(scn, float(ti) - h)
+        C_p = Cte_att(scn, float(ti) + h)
+        dC = C_m.T @ C_p
+        w_b = np.array([dC[2, 1] - dC[1, 2], dC[0, 2] - dC[2, 0], dC[1, 0] - dC[0, 1]]) / (4.0 * h)
+        l_e = Cbe @ lever_b
+        r_ant = r + l_e
+        v_ant = v + Cbe @ np.cross(w_b, lever_b) - np.array([-OMEGA_IE_RADPS * l_e[1], OMEGA_IE_RADPS * l_e[0], 0.0])
+        fixes.append(GnssFix(t_gps=float(ti), r_e=r_ant + Cne @ (gm[i] + white[i]), v_e=v_ant + Cne @ vel[i],
+                             sigma_h_m=m.sigma_h_m, sigma_v_m=m.sigma_v_m, sigma_vel_mps=m.sigma_vel_total_mps,
+                             num_sats=9, fix_type=6))
+    return fixes, {"t_gps": t, "pos_error_ned_m": gm + white, "vel_error_ned_mps": vel}
+
+
+def Cte_att(scn: Scenario, t_gps: float) -> np.ndarray:
+    """Body-to-ECEF attitude of the trajectory at a true GPS time (earth-fixed tangent frame)."""
+    return scn.C_t_e @ scn.trajectory.attitude_t(t_gps - scn.t0_gps)[0]
+
+
+def _gnss_attitudes(scn: Scenario, seed: int, tr: Truth):
+    """Three-antenna attitude by the direct method (seed 003 eqs 3-5) from baseline vectors with
+    white errors (scenario.AttitudeAntennas), expressed in the local NED frame at the IMU."""
+    from companion.messages import GnssAttitude
+    from companion.nav.earth import C_n_e
+
+    m = scn.gnss_attitude
+    t = _solution_times(scn, m.rate_hz)
+    rng = np.random.default_rng([seed, _S_ATT])
+    sig = np.array([m.sigma_h_m, m.sigma_h_m, m.sigma_v_m])
+    e12 = rng.standard_normal((len(t), 3)) * sig
+    e13 = rng.standard_normal((len(t), 3)) * sig
+    out, true_e, meas_e = [], [], []
+    for i, ti in enumerate(t):
+        r, _, Cbe = _truth_at(scn, tr, float(ti))
+        lat, lon, _ = ecef_to_geodetic(r)
+        Cbn = C_n_e(lat, lon).T @ Cbe
+        b12 = Cbn @ np.array([m.l12_m, 0.0, 0.0]) + e12[i]
+        b13 = Cbn @ np.array([0.0, m.l13_m, 0.0]) + e13[i]
+        heading = math.atan2(b12[1], b12[0])
+        pitch = math.atan2(-b12[2], math.hypot(b12[0], b12[1]))
+        # undo heading and pitch: b13 -> Rx(roll) (0, l13, 0) = (0, l13 cos roll, l13 sin roll)
+        ch, sh, cp, sp = math.cos(heading), math.sin(heading), math.cos(pitch), math.sin(pitch)
+        x1, y1, z1 = ch * b13[0] + sh * b13[1], -sh * b13[0] + ch * b13[1], b13[2]
+        y2, z2 = y1, sp * x1 + cp * z1
+        roll = math.atan2(z2, y2)
+        sig_h = m.sigma_heading_rad / max(math.cos(pitch), 0.1)
+        out.append(GnssAttitude(t_gps=float(ti), heading_rad=heading, pitch_rad=pitch, roll_rad=roll,
+                                sigma_heading_rad=sig_h, sigma_pitch_rad=m.sigma_pitch_rad,
+                                sigma_roll_rad=m.sigma_roll_rad))
+        true_e.append(_euler(Cbn))
+        meas_e.append((roll, pitch, heading))
+    return out, {"t_gps": t, "euler_true_rad": np.array(true_e), "euler_meas_rad": np.array(meas_e)}
+
+
+def _euler(Cbn: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, heading) of a body-to-NED rotation (ZYX)."""
+    return (math.atan2(Cbn[2, 1], Cbn[2, 2]), -math.asin(max(-1.0, min(1.0, Cbn[2, 0]))),
+            math.atan2(Cbn[1, 0], Cbn[0, 0]))
