@@ -8,6 +8,11 @@ For each satellite i seen by the base (same signal as the rover will use)::
                  -c x base receiver clock plus the atmosphere common to all satellites)
     PRC_i = raw_i - base_clock
 
+The base-clock estimate is kept *continuous*: from one epoch to the next it moves by the median
+change of raw_i over the satellites seen at both epochs, pulled towards the robust mean by
+``CLOCK_PULL`` per epoch.  A plain per-epoch mean jumps whenever the satellite subset changes (tens
+of metres with Selective Availability), and every such jump lands in the rover's clock as a step.
+
 so the rover gets P_rover + c dt_sat + PRC ~= |r_sat - r_rover| + c dt_rover + residual.
 TGD, ionosphere and troposphere are all inside the PRC (the rover applies none of them).
 The range-rate correction RRC is the least-squares slope of the PRC history of the satellite over
@@ -29,6 +34,8 @@ from .prepare import prepare_epoch
 BASE_ELEVATION_MASK_RAD = math.radians(5.0)   # corrections are produced down to this elevation
 CLOCK_MIN_ELEVATION_RAD = math.radians(10.0)  # satellites used for the base clock estimate
 CLOCK_OUTLIER_FLOOR_M = 3.0
+CLOCK_PULL = 0.02          # per-epoch pull of the continuous base-clock estimate to the robust mean
+CLOCK_MAX_GAP_S = 5.0      # beyond this gap between base epochs the estimate restarts from the mean
 
 
 class DgpsCorrector:
@@ -43,6 +50,7 @@ class DgpsCorrector:
         self._prc: dict[str, tuple[float, float, float, int]] = {}   # sat -> (t, prc, rrc, iode)
         self._hist: dict[str, deque] = {}
         self._phase: dict[str, tuple[float, float, float]] = {}
+        self._raw_prev: dict[str, float] = {}
         self.counters: Counter = Counter()
 
     # ----------------------------------------------------------------------- base side
@@ -77,6 +85,15 @@ class DgpsCorrector:
             if new_use.sum() == use.sum() or new_use.sum() < 2:
                 break
             use = new_use
+        raw_now = {sat: float(raw[i]) for i, sat in enumerate(prep.sats) if ok[i]}
+        prev = self._raw_prev
+        common = [sat for sat in raw_now if sat in prev]
+        if (len(common) >= 2 and self.t_base_gps is not None and 0.0 < t - self.t_base_gps <= CLOCK_MAX_GAP_S
+                and math.isfinite(self.base_clock_m)):
+            step = float(np.median([raw_now[sat] - prev[sat] for sat in common]))
+            continued = self.base_clock_m + step
+            clk = continued + CLOCK_PULL * (clk - continued)
+        self._raw_prev = raw_now
         self.base_clock_m = clk
         self.t_base_gps = t
         n = 0
