@@ -30,7 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0)
     sub = parser.add_subparsers(dest="command", required=True)
     _add_gnss(sub)
-    from . import allan_cli
+    from . import allan_cli, run_cli
+    run_cli.register(sub)
     allan_cli.register(sub)
     return parser
 

@@ -71,6 +71,8 @@ m = mavlink2
 REINIT_GAP_S = 1.0            # IMU time step (either direction) that restarts the filter
 RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GPS_RAW_INT fusion
 ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used to initialise
+BASE_WAIT_S = 0.8             # hold a rover epoch (IMU time) until the base epoch of the same time
+                              # arrived (DGPS without extrapolation, base-corrected TDCP), at most this
 
 
 @dataclass(frozen=True)
@@ -163,6 +165,9 @@ class NavPipeline:
         self.last_init_reason = ""
         self.base_seen = False
         self._base_override_sent = False
+        self._held: list[GnssEpoch] = []          # rover epochs waiting for their base epoch
+        self._base_times: list[float] = []        # recent base epoch times
+        self.wait_for_base = config.corrections.source != "none" and config.filter.use_dgps
 
     # ------------------------------------------------------------------ helpers
     def _t_ref(self):
@@ -180,12 +185,28 @@ class NavPipeline:
     def _reinit(self, reason: str) -> None:
         if self.engine.initialized:
             self.engine.initialized = False
+            self._held.clear()
             self.counters[f"re-init: {reason}"] += 1
             self._event(m.MAV_SEVERITY_WARNING, f"nav re-init: {reason}")
 
     # ------------------------------------------------------------------ input
     def feed(self, kind: str, t_rx_ns: int, data: bytes) -> list[NavSolution]:
         self.counters[f"records {kind}"] += 1
+        try:
+            return self._feed(kind, t_rx_ns, data)
+        except Exception:
+            self._exception(kind)
+            return []
+
+    def _exception(self, kind: str) -> None:
+        """A bug or an input nobody foresaw must not stop the service: count, log (the first ten
+        with a traceback), carry on.  Deterministic: replay takes the same path."""
+        self.counters[f"pipeline exceptions ({kind})"] += 1
+        n = sum(v for k, v in self.counters.items() if k.startswith("pipeline exceptions"))
+        if n <= 10:
+            log.exception("pipeline error on a %s record (%d so far)", kind, n)
+
+    def _feed(self, kind: str, t_rx_ns: int, data: bytes) -> list[NavSolution]:
         if kind == "mavlink":
             try:
                 msgs = self.parser.parse_buffer(bytes(data)) or []
@@ -194,7 +215,10 @@ class NavPipeline:
                 return []
             out: list[NavSolution] = []
             for msg in msgs:
-                out += self.feed_mavlink(t_rx_ns, msg)
+                try:
+                    out += self.feed_mavlink(t_rx_ns, msg)
+                except Exception:
+                    self._exception("mavlink")
             return out
         if kind == "ubx":
             return self._feed_messages(self.ubx.feed(bytes(data)))
@@ -215,7 +239,11 @@ class NavPipeline:
         """Live path: the link already parsed the frame that is logged; same result as
         ``feed('mavlink', t, msg.get_msgbuf())``."""
         self.counters["records mavlink"] += 1
-        return self.feed_mavlink(t_rx_ns, msg)
+        try:
+            return self.feed_mavlink(t_rx_ns, msg)
+        except Exception:
+            self._exception("mavlink")
+            return []
 
     def feed_mavlink(self, t_rx_ns: int, msg) -> list[NavSolution]:
         """One parsed MAVLink message (the live service passes the link's parsed object; replay
@@ -266,6 +294,8 @@ class NavPipeline:
                 if msg.source == "base":
                     self.base_seen = True
                     self.engine.process(msg)
+                    self._base_times = (self._base_times + [msg.t_gps])[-10:]
+                    self._release_held()
                 else:
                     self._rover_epoch(msg)
             elif isinstance(msg, (GpsEphemeris, BaseStationPosition)):
@@ -287,10 +317,13 @@ class NavPipeline:
         eng = self.engine
         if eng.initialized:
             step = s.t_gps - eng.t_gps
-            if step > REINIT_GAP_S:
-                self._reinit(f"IMU time jump +{step:.1f} s")
-            elif step < -REINIT_GAP_S:
-                self._reinit(f"IMU time jump {step:.1f} s")
+            if abs(step) > REINIT_GAP_S:
+                self._reinit(f"IMU time jump {step:+.1f} s")
+                # the boot-to-GPS mapping is in doubt until SYSTEM_TIME confirms it: no loose
+                # (GPS_RAW_INT) initialisation for another RAW_TIMEOUT_S
+                self.last_raw_t = s.t_gps
+        elif self.last_imu is None and self.raw_expected:
+            self.last_raw_t = s.t_gps        # start (or reboot): give raw observations a chance
         self.last_imu = s
         self.last_imu_boot_us = int(getattr(msg, "time_usec", getattr(msg, "time_boot_ms", 0) * 1000))
         if not eng.initialized:
@@ -298,6 +331,8 @@ class NavPipeline:
                 self._try_init_loose()
             return []
         eng.process(s)
+        if self._held:
+            self._release_held(s.t_gps)
         if self.imu_count % self.decimation:
             return []
         sol = eng.solution()
@@ -308,9 +343,9 @@ class NavPipeline:
     def _finish(self, sol: NavSolution) -> NavSolution:
         o = self.cfg.output
         sr = sol.sigma_r_n_m
-        inject = (sol.status in ("nav", "coasting") and bool(np.all(np.isfinite(sol.r_e)))
+        inject = bool(sol.status in ("nav", "coasting") and bool(np.all(np.isfinite(sol.r_e)))
                   and bool(np.all(np.isfinite(sr))) and math.hypot(sr[0], sr[1]) <= o.max_sigma_h_m
-                  and sr[2] <= o.max_sigma_v_m)
+                  and float(sr[2]) <= o.max_sigma_v_m)
         sol.extras.update({"inject": inject, "mode": self.mode, "imu_count": self.imu_count,
                            "t_boot_us": self.last_imu_boot_us})
         state = "injecting" if inject else f"not injecting ({sol.status})"
@@ -329,8 +364,37 @@ class NavPipeline:
     # ------------------------------------------------------------------ GNSS
     def _rover_epoch(self, epoch: GnssEpoch) -> None:
         self.counters["rover epochs"] += 1
-        if self.last_imu is not None:
-            self.last_raw_t = self.last_imu.t_gps
+        have = set(self.engine.ephemerides.sats)
+        usable = sum(1 for o in epoch.observations if o.sat in have) >= 4
+        if not usable:
+            self.counters["rover epochs without ephemerides"] += 1
+        if self.last_imu is not None and usable:
+            self.last_raw_t = self.last_imu.t_gps    # raw observations are usable: no loose fallback
+        if self.wait_for_base and self.base_seen and self.engine.initialized:
+            self._held.append(epoch)
+            self._release_held()
+            return
+        self._use_rover_epoch(epoch)
+
+    def _release_held(self, t_now: float | None = None) -> None:
+        """Process held rover epochs whose base epoch arrived, or that waited BASE_WAIT_S."""
+        if not self._held:
+            return
+        if t_now is None:
+            t_now = self.last_imu.t_gps if self.last_imu is not None else -math.inf
+        keep = []
+        for ep in self._held:
+            have_base = any(abs(tb - ep.t_gps) < 0.05 for tb in self._base_times)
+            if have_base:
+                self._use_rover_epoch(ep)
+            elif t_now - ep.t_gps > BASE_WAIT_S:
+                self.counters["rover epoch used without its base epoch"] += 1
+                self._use_rover_epoch(ep)
+            else:
+                keep.append(ep)
+        self._held = keep
+
+    def _use_rover_epoch(self, epoch: GnssEpoch) -> None:
         if self.mode != "tight" and self.engine.initialized:
             self._event(m.MAV_SEVERITY_INFO, "nav: raw GNSS observations, tight coupling")
         if self.engine.initialized:

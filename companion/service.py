@@ -48,6 +48,13 @@ BACKOFF_RESET_AFTER_S = 60.0
 ORIGIN_REPEAT_S = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
 
 
+def _json_default(x):
+    try:
+        return x.item()          # numpy scalars
+    except Exception:
+        return str(x)
+
+
 class Service:
     def __init__(self, config, *, install_signal_handlers: bool = True):
         self.cfg = config
@@ -113,10 +120,11 @@ class Service:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks = []
+        h = self.health()
         if self.link is not None:
             await self.link.close()
             self.link = None
-        self._event({"event": "stop", "health": self.health()})
+        self._event({"event": "stop", "health": h})
         if self.fieldlog is not None:
             self.fieldlog.close()
             log.info("field log closed: %d records in %s", self.fieldlog.records_written,
@@ -154,7 +162,7 @@ class Service:
                 log.exception("field log write failed")
 
     def _event(self, obj: dict) -> None:
-        self._record("event", time.monotonic_ns(), json.dumps(obj, default=str).encode())
+        self._record("event", time.monotonic_ns(), json.dumps(obj, default=_json_default).encode())
 
     # ------------------------------------------------------------------ MAVLink
     async def _mavlink_task(self) -> None:
@@ -186,6 +194,7 @@ class Service:
             for c in children:
                 c.cancel()
             await asyncio.gather(*children, return_exceptions=True)
+            self._last_link_health = link.health()
             if self.link is link:
                 self.link = None
             await link.close()
@@ -355,6 +364,8 @@ class Service:
                "time_map": ph["time_map"], "ubx": ph["ubx"], "rtcm": ph["rtcm"]}
         if self.link is not None:
             out["link"] = self.link.health()
+        elif getattr(self, "_last_link_health", None) is not None:
+            out["link"] = self._last_link_health
         if self.tunnel is not None:
             out["serial_control"] = dict(self.tunnel.counters)
         src = getattr(self, "corrections_source", None)

@@ -97,7 +97,8 @@ def main(argv=None) -> int:
     pb.add_argument("--duration", type=float, default=None, help="seconds of the uav flight to use (default: all)")
     pb.add_argument("--json", help="write the figures as JSON here")
     pb.set_defaults(func=cmd_bench)
-    from . import ins_errors, slips
+    from . import fly, ins_errors, slips
+    fly.register(sub)
     ins_errors.register(sub)
     slips.register(sub)
     args = p.parse_args(argv)

@@ -125,7 +125,7 @@ class Faults:
     corrupt: list = field(default_factory=list)          # (t_start, t_end, probability per frame)
     reboot: list = field(default_factory=list)           # (t, silent_s)
     clock_jump: list = field(default_factory=list)       # (t, jump_s): boot clock steps forward
-    gnss_outage: list = field(default_factory=list)      # (t_start, t_end): no UBX bytes
+    gnss_outage: list = field(default_factory=list)      # (t_start, t_end): no UBX bytes, GPS_RAW_INT no fix
 
 
 class EmulatedAutopilot:
@@ -412,7 +412,8 @@ class EmulatedAutopilot:
         self.counters["sim_seconds"] = int(t - self.t0)
 
     def _send_gps_raw(self, fix, t: float) -> None:
-        outage = fix is None or t - fix[0] > 1.5
+        outage = fix is None or t - fix[0] > 1.5 or self.boot_us(fix[0] + self.receiver_latency_s) < 0 \
+            or any(a <= fix[0] - self.t0 < b for a, b in self.faults.gnss_outage)
         if outage:
             self.send(self.mav.gps_raw_int_encode(self.boot_us(t), 1, 0, 0, 0, 65535, 65535, 65535, 65535, 0))
             return

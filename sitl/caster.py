@@ -217,7 +217,7 @@ class RtcmSource:
         self.counters["clients"] += 1
         try:
             await reader.read()           # until the client goes away
-        except Exception:
+        except (Exception, asyncio.CancelledError):
             pass
         self.clients = [c for c in self.clients if c.writer is not writer]
 
@@ -324,7 +324,7 @@ class MiniNtripCaster:
         self.clients.append(writer)
         try:
             await reader.read()
-        except Exception:
+        except (Exception, asyncio.CancelledError):
             pass
         if writer in self.clients:
             self.clients.remove(writer)

@@ -101,11 +101,25 @@ def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: 
         f"accel_bias_rw_mps2_per_sqrt_s = {n.accel_bias_rw_mps2_per_sqrt_s!r}",
         f"clock_bias_psd_m2ps = {n.clock_bias_psd_m2ps!r}", f"clock_drift_psd_m2ps3 = {n.clock_drift_psd_m2ps3!r}",
         "use_pseudorange = true", f"use_dgps = {'true' if caster is not None else 'false'}", "use_tdcp = true",
-        f"sigma_phase_m = {t.sigma_phase_m!r}", f"sigma_tdcp_floor_mps = {t.sigma_tdcp_floor_mps!r}",
-        f"sigma_doppler_mps = {t.sigma_doppler_mps!r}", f"elevation_mask_deg = {float(sim.scenario.mask_deg)}", "",
+        *_tuning_lines(t), f"elevation_mask_deg = {float(sim.scenario.mask_deg)}", "",
         "[log]", f'dir = "{log_dir}"', "fsync_interval_s = 1.0", "",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _tuning_lines(t) -> list[str]:
+    """Every [filter] key the scenario's tuning (sitl.tuning) sets, in TOML."""
+    from companion.config import FilterConfig, _toml_value
+    out = []
+    for f in dataclasses.fields(FilterConfig):
+        if f.name in ("use_pseudorange", "use_dgps", "use_tdcp", "elevation_mask_deg") or f.name.endswith(
+                ("_per_sqrt_s", "_psd_m2ps", "_psd_m2ps3")):
+            continue
+        if hasattr(t, f.name):
+            v = getattr(t, f.name)
+            if isinstance(v, (bool, int, float, str)):
+                out.append(f"{f.name} = {_toml_value(float(v) if isinstance(v, int) and not isinstance(v, bool) and isinstance(f.default, float) else v)}")
+    return out
 
 
 def _proc_cpu_s(pid: int) -> float:

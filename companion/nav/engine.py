@@ -130,7 +130,7 @@ class NavEngine:
         self._b_g_list = [0.0, 0.0, 0.0]
         self._history: deque = deque()
         self._history_t: deque = deque()
-        self._pending: list[GnssEpoch] = []
+        self._pending: list = []           # GNSS messages waiting for the IMU to pass their time
         self._phase: dict[str, PhaseRecord] = {}
         self._base_phase: dict[str, deque] = {}
         self._still = _StillnessDetector(config) if config.zupt_enabled else None
@@ -151,8 +151,11 @@ class NavEngine:
     def initialize(self, t_gps: float, r_e, v_e, C_b_e, P0_sigmas: dict, *,
                    clock_bias_m: float | None = None, clock_drift_mps: float = 0.0,
                    b_a=None, b_g=None) -> None:
-        """Start navigating from a known state.  ``P0_sigmas`` keys: att_rad, pos_m, vel_mps,
-        ba_mps2, bg_radps, clk_m, drift_mps (1-sigma, isotropic)."""
+        """Start (or restart) navigating from a known state; bumps ``reset_counter``.
+
+        ``P0_sigmas`` (1-sigma): tilt_rad and heading_rad (or att_rad for both), pos_m, vel_mps,
+        ba_mps2, bg_radps, and optionally clk_m, drift_mps.  Without ``clock_bias_m`` the clock is
+        taken from the first epoch's pseudoranges."""
         L = LAYOUT
         d = np.zeros(L.n)
         d[L.pos] = P0_sigmas["pos_m"] ** 2
@@ -184,6 +187,8 @@ class NavEngine:
         self._history_t.clear()
         self._push_history()
         self._phase.clear()
+        self._pending.clear()
+        self._last_epoch_t = math.nan
         self.initialized = True
         self.reset_counter += 1
 
