@@ -194,7 +194,9 @@ def summarize(curves: list[dict], duration_s: float) -> dict:
         v = c["err_3d_m"][j].astype(float)
         v[np.abs(c["t_s"][j] - grid) > 1.0] = np.nan
         stack.append(v)
-    mean_curve = np.nanmean(np.array(stack), axis=0)
+    arr = np.array(stack)
+    counts = np.sum(np.isfinite(arr), axis=0)
+    mean_curve = np.where(counts > 0, np.nansum(arr, axis=0) / np.maximum(counts, 1), np.nan)
     at = {str(int(t)): round(float(mean_curve[int(t)]), 3) for t in PAPER_TABLE4["t_s"] if t < len(grid)}
     valid = np.isfinite(mean_curve)
     all_h = np.concatenate([c["err_h_m"] for c in curves])

@@ -51,6 +51,7 @@ class DgpsCorrector:
         self._hist: dict[str, deque] = {}
         self._phase: dict[str, tuple[float, float, float]] = {}
         self._raw_prev: dict[str, float] = {}
+        self.last_prepared = None
         self.counters: Counter = Counter()
 
     # ----------------------------------------------------------------------- base side
@@ -60,6 +61,7 @@ class DgpsCorrector:
         prep = prepare_epoch(base_epoch, store, r_base, elevation_mask_rad=BASE_ELEVATION_MASK_RAD,
                              signal=self.signal, apply_models=False)
         t = base_epoch.t_gps
+        self.last_prepared = prep      # reused by the engine's base-carrier bookkeeping
         for sat, why in prep.rejected.items():
             self.counters["base: " + why] += 1
         for i, sat in enumerate(prep.sats):

@@ -220,14 +220,14 @@ class NavEngine:
             self.dgps = DgpsCorrector()
         self.dgps.update_base(epoch, self.base, self.ephemerides)
         self.counters["base epochs"] += 1
-        if self.cfg.use_tdcp and self.cfg.tdcp_base_correction != "off":
-            self._remember_base_phase(epoch)
+        if self.cfg.use_tdcp and self.cfg.tdcp_base_correction != "off" and self.dgps.last_prepared is not None:
+            self._remember_base_phase(self.dgps.last_prepared)
         return None
 
-    def _remember_base_phase(self, epoch: GnssEpoch) -> None:
+    def _remember_base_phase(self, prep) -> None:
         """Keep a few seconds of the base's carrier with its geometric range and satellite clock,
-        so that a rover TDCP interval can be corrected by the base's TDCP over the same interval."""
-        prep = prepare_epoch(epoch, self.ephemerides, self.base.r_e, dgps=None, elevation_mask_rad=0.0)
+        so that a rover TDCP interval can be corrected by the base's TDCP over the same interval.
+        ``prep`` is the base epoch as the DGPS corrector prepared it (same satellites, same clocks)."""
         finite = np.isfinite(prep.carrier_cycles)
         if not np.any(finite):
             return

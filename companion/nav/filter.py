@@ -101,6 +101,10 @@ class ErrorStateKalmanFilter:
         self.gate_chi2_1dof = float(chi2.ppf(gate_probability, 1))
         n = layout.n
         self._phi = np.eye(n)   # constant entries stay; the rest is rewritten every step
+        self._phi_T = self._phi.T                  # a view: follows every in-place write to Phi
+        self._phi_att_bg = self._phi[0:3, 12:15]   # views of the blocks rewritten at IMU rate
+        self._phi_vel_ba = self._phi[6:9, 9:12]
+        self._phi_P = np.empty((n, n))             # Phi @ P, preallocated
         self._Qd = np.zeros((n, n))
         self._grad_tau = None
         self._last_tau = -1.0
@@ -142,9 +146,8 @@ class ErrorStateKalmanFilter:
         if gravity_gradient is not self._grad_tau:
             phi[6:9, 3:6] = gravity_gradient * tau
             self._grad_tau = gravity_gradient
-        m_tau_C = C_b_e * -tau
-        phi[0:3, 12:15] = m_tau_C                            # -C dbg
-        phi[6:9, 9:12] = m_tau_C                             # -C dba
+        np.multiply(C_b_e, -tau, out=self._phi_att_bg)       # -C dbg
+        self._phi_vel_ba[...] = self._phi_att_bg              # -C dba
         fx, fy, fz = dv_e                                    # -[f x] psi, times tau
         phi[6, 1] = fz
         phi[6, 2] = -fy
@@ -152,7 +155,8 @@ class ErrorStateKalmanFilter:
         phi[7, 2] = fx
         phi[8, 0] = fy
         phi[8, 1] = -fx
-        P = phi @ self.P @ phi.T
+        np.matmul(phi, self.P, out=self._phi_P)
+        P = self._phi_P @ self._phi_T
         P += self._Qd
         self.P = P
 
