@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter, deque
+from statistics import median
 
 import numpy as np
 
@@ -92,7 +93,7 @@ class DgpsCorrector:
         common = [sat for sat in raw_now if sat in prev]
         if (len(common) >= 2 and self.t_base_gps is not None and 0.0 < t - self.t_base_gps <= CLOCK_MAX_GAP_S
                 and math.isfinite(self.base_clock_m)):
-            step = float(np.median([raw_now[sat] - prev[sat] for sat in common]))
+            step = median([raw_now[sat] - prev[sat] for sat in common])
             continued = self.base_clock_m + step
             clk = continued + CLOCK_PULL * (clk - continued)
         self._raw_prev = raw_now
@@ -114,12 +115,13 @@ class DgpsCorrector:
                 h.popleft()
             rrc = 0.0
             if len(h) >= 2:
-                ts = np.array([x[0] for x in h]) - t
-                ps = np.array([x[1] for x in h])
-                tm = ts.mean()
-                den = float(np.sum((ts - tm) ** 2))
+                # least-squares slope of PRC against time (plain floats: ~30 points, every epoch)
+                n_h = len(h)
+                tm = sum(x[0] - t for x in h) / n_h
+                pm = sum(x[1] for x in h) / n_h
+                den = sum((x[0] - t - tm) ** 2 for x in h)
                 if den > 0:
-                    rrc = float(np.sum((ts - tm) * (ps - ps.mean())) / den)
+                    rrc = sum((x[0] - t - tm) * (x[1] - pm) for x in h) / den
             new_prc[sat] = (t, prc, rrc, iode)
             n += 1
         for sat in list(self._hist):

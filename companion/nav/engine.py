@@ -18,6 +18,7 @@ import bisect
 import logging
 import math
 from collections import Counter, deque
+from statistics import median
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -259,7 +260,7 @@ class NavEngine:
             resid[sat] = b[2] * (b[1] - a[1]) + (b[4] - a[4]) - (b[3] - a[3])
         if len(resid) < 2:
             return {}
-        common = float(np.median(list(resid.values())))
+        common = median(resid.values())
         return {sat: -(e - common) for sat, e in resid.items()}
 
     # ------------------------------------------------------------------ IMU
@@ -503,12 +504,13 @@ class NavEngine:
         innovations (receiver clock reset or steering step, a base-clock step in the corrections)
         re-seeds the clock state.  Common-mode means: the median innovation is far outside what the
         clock's own uncertainty allows, while the innovations agree with each other."""
-        common = float(np.median(pr.z))
+        z = pr.z.tolist()
+        common = median(z)           # statistics.median: much cheaper than numpy's for ~10 values
         L = LAYOUT
         P = self.kf.P
         if self.clock_initialized:
-            r_med = float(np.median(pr.r_var))
-            spread = float(np.median(np.abs(pr.z - common)))
+            r_med = median(pr.r_var.tolist())
+            spread = median([abs(x - common) for x in z])
             if len(pr) < 3 or abs(common) < max(self.cfg.clock_jump_sigmas * math.sqrt(P[L.clk, L.clk] + r_med),
                                                  self.cfg.clock_jump_min_m):
                 return
@@ -520,7 +522,7 @@ class NavEngine:
         pr.z = pr.z - common
         P[L.clk, :] = 0.0
         P[:, L.clk] = 0.0
-        P[L.clk, L.clk] = max(float(np.median(pr.r_var)), 1.0)
+        P[L.clk, L.clk] = max(median(pr.r_var.tolist()), 1.0)
         self.clock_initialized = True
 
     def _loose_batches(self, ins, prep):
@@ -683,38 +685,38 @@ class NavEngine:
 class _StillnessDetector:
     """Stillness test on the last ``zupt_window_s`` of raw IMU rates.
 
-    Samples go into a preallocated ring buffer (one row write per sample); the window statistics
-    are computed with numpy only every quarter window, which keeps the IMU-rate cost to ~1 us.
+    Samples are appended to a bounded deque (no numpy at IMU rate); the window statistics are
+    computed with numpy every half window only.
     """
 
-    def __init__(self, cfg: EngineConfig, max_rate_hz: float = 2000.0):
+    def __init__(self, cfg: EngineConfig):
         self.cfg = cfg
         self.window_s = cfg.zupt_window_s
-        self.buf = np.zeros((int(max_rate_hz * cfg.zupt_window_s) + 1, 6))
-        self.n = 0           # samples written in total
+        self.buf: deque = deque(maxlen=2)   # resized to one window of samples at the IMU's rate
         self._since_check_s = 0.0
         self._since_update_s = 0.0
         self._window: np.ndarray | None = None
 
     def add(self, dtheta, dv, tau: float) -> bool:
         """Add one sample (raw increments); True when the last window is still and an update is due."""
-        i = self.n % len(self.buf)
-        inv = 1.0 / tau
-        self.buf[i] = (dtheta[0] * inv, dtheta[1] * inv, dtheta[2] * inv, dv[0] * inv, dv[1] * inv, dv[2] * inv)
-        self.n += 1
+        self.buf.append((dtheta[0], dtheta[1], dtheta[2], dv[0], dv[1], dv[2], tau))
         self._since_check_s += tau
         self._since_update_s += tau
-        m = min(int(round(self.window_s / tau)), len(self.buf))  # window in samples at the current rate
-        if self.n < m or self._since_check_s < 0.25 * self.window_s:
+        if self._since_check_s < 0.5 * self.window_s:
             return False
         self._since_check_s = 0.0
-        idx = (np.arange(self.n - m, self.n)) % len(self.buf)
-        w = self.buf[idx]
-        std = w.std(axis=0)
+        m = max(2, int(round(self.window_s / tau)))   # one window at the current IMU rate
+        if self.buf.maxlen != m:
+            self.buf = deque(self.buf, maxlen=m)
+        if len(self.buf) < m:
+            return False
+        w = np.array(self.buf)
+        rates = w[:, 0:6] / w[:, 6:7]
+        std = rates.std(axis=0)
         still = bool(std[0:3].max() < self.cfg.zupt_gyro_std_radps and std[3:6].max() < self.cfg.zupt_accel_std_mps2)
         if still and self._since_update_s >= self.window_s:
             self._since_update_s = 0.0
-            self._window = w
+            self._window = rates
             return True
         return False
 
