@@ -213,6 +213,9 @@ def run_replay_cli(args) -> int:
     if getattr(args, "config", None):
         from .config import load_config
         cfg = load_config(args.config)
+    if not Path(args.log).exists() and not list(Path(args.log).parent.glob(Path(args.log).name + "*")):
+        print(f"error: {args.log}: no such field log, directory or .tlog", file=sys.stderr)
+        return 2
     res = replay(args.log, cfg, progress=not getattr(args, "no_progress", False))
     c = res.comparison()
     rate = res.records / res.elapsed_s if res.elapsed_s > 0 else float("nan")
@@ -235,6 +238,10 @@ def run_replay_cli(args) -> int:
     if args.plot:
         plot_replay(res, args.plot)
         print(f"wrote {args.plot}")
+    if res.records == 0:
+        print(f"error: {args.log}: no records found (a field log is a *.cflog file or a directory of them)",
+              file=sys.stderr)
+        return 2
     if res.logged and not c["bit_for_bit"] and res.config_from == "field log":
         return 1
     return 0

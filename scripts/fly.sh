@@ -13,4 +13,4 @@ python3 -m pip install -q -e .
 mkdir -p out
 python3 -m sitl fly --duration 120 --out out/fly --json out/fly.json "$@"
 echo "replaying the field log of that flight (must reproduce every solution bit for bit):"
-python3 -m companion replay out/fly --json out/replay.json
+python3 -m companion replay out/fly/fieldlog --json out/replay.json
