@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .pipeline import NavPipeline, decode_solution, encode_solution
+from .pipeline import NavPipeline, encode_solution
 
 log = logging.getLogger(__name__)
 

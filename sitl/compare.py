@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import time
 
 import numpy as np
@@ -143,12 +142,8 @@ def run_engine(sim, cfg: EngineConfig, p0: dict, seed: int, *, epochs=True, fixe
 
 
 def _pool(fn, args_list, jobs: int):
-    from concurrent.futures import ProcessPoolExecutor
-    jobs = jobs or min(len(args_list), os.cpu_count() or 1)
-    if jobs <= 1:
-        return [fn(*a) for a in args_list]
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        return [f.result() for f in [pool.submit(fn, *a) for a in args_list]]
+    from .montecarlo import run_all
+    return run_all(fn, args_list, jobs)
 
 
 def _rms(x) -> float:

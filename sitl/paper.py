@@ -229,25 +229,10 @@ def _one_run(scenario_name: str, seed: int, modes) -> dict:
 def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progress=None, jobs: int = 0) -> dict:
     """Monte Carlo over ``runs`` simulated flights (seeds seed..seed+runs-1), in parallel worker
     processes.  Each run is deterministic in its seed, so the result does not depend on ``jobs``."""
-    import os
-    from concurrent.futures import ProcessPoolExecutor
+    from .montecarlo import run_all
 
     t_start = time.perf_counter()
-    jobs = jobs or min(runs, os.cpu_count() or 1)
-    seeds = [seed + r for r in range(runs)]
-    results = []
-    if jobs <= 1:
-        for i, sd in enumerate(seeds):
-            results.append(_one_run(scenario_name, sd, modes))
-            if progress:
-                progress(i + 1, runs, time.perf_counter() - t_start)
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = [pool.submit(_one_run, scenario_name, sd, modes) for sd in seeds]
-            for i, f in enumerate(futures):
-                results.append(f.result())
-                if progress:
-                    progress(i + 1, runs, time.perf_counter() - t_start)
+    results = run_all(_one_run, [(scenario_name, seed + r, modes) for r in range(runs)], jobs, progress)
     duration = results[0]["duration_s"]
     out = {"scenario": scenario_name, "runs": runs, "seed": seed, "modes": {}}
     for m in modes:

@@ -173,26 +173,10 @@ def run_slips(scenario_name: str = "paper-nosa", runs: int = 10, seed: int = 1, 
               jobs: int = 0, progress=None) -> dict:
     """Monte Carlo over ``runs`` simulated flights (seeds seed..seed+runs-1).  Deterministic in
     (scenario, runs, seed, spacing); parallel workers do not change the result."""
-    import os
-    from concurrent.futures import ProcessPoolExecutor
+    from .montecarlo import run_all
 
     t_start = time.perf_counter()
-    seeds = [seed + r for r in range(runs)]
-    jobs = jobs or min(runs, os.cpu_count() or 1)
-    if jobs <= 1:
-        results = []
-        for i, sd in enumerate(seeds):
-            results.append(_one_run(scenario_name, sd, spacing_s))
-            if progress:
-                progress(i + 1, runs, time.perf_counter() - t_start)
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futs = [pool.submit(_one_run, scenario_name, sd, spacing_s) for sd in seeds]
-            results = []
-            for i, f in enumerate(futs):
-                results.append(f.result())
-                if progress:
-                    progress(i + 1, runs, time.perf_counter() - t_start)
+    results = run_all(_one_run, [(scenario_name, seed + r, spacing_s) for r in range(runs)], jobs, progress)
     out = {"scenario": scenario_name, "runs": runs, "seed": seed, "spacing_s": spacing_s,
            "true_slips": sum(r["true_slips"] for r in results),
            "flagged_by_receiver": sum(r["flagged_by_receiver"] for r in results)}

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from companion.messages import GnssEpoch, GnssFix, ImuSample, SatObservation
+from companion.messages import GnssEpoch, GnssFix, ImuSample
 from companion.nav.earth import C_n_e, geodetic_to_ecef, rotation_from_rotvec
 from companion.nav.engine import EngineConfig, NavEngine
 from companion.nav.filter import ProcessNoise

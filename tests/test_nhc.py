@@ -1,6 +1,5 @@
 """Seed 002: the non-holonomic constraint on the simulated car ('nhc' scenario, sitl.compare)."""
 import numpy as np
-import pytest
 
 from sitl.compare import _p0, nhc_config, run_engine, run_nhc
 from sitl.scenario import NHC_SKID, build_scenario

@@ -10,7 +10,6 @@ import tty
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 import companion.io.mavlink as M
 from companion.config import loads_config

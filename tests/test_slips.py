@@ -6,11 +6,10 @@ Issue-4 targets: detection >= 99 % for slips >= 2 cycles and >= 90 % for 1 cycle
 epoch, which explain the common receiver clock drift), so even a one-cycle slip (19 cm over 1 s)
 stands out; a slip the receiver flags restarts the bookkeeping before TDCP is formed.
 """
-import dataclasses
 
 import pytest
 
-from sitl.slips import run_slips, strip_slip_flags, true_slips
+from sitl.slips import run_slips, strip_slip_flags
 
 
 @pytest.fixture(scope="module")

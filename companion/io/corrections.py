@@ -30,7 +30,7 @@ from typing import AsyncIterator, Callable, Protocol
 import numpy as np
 
 from ..messages import BaseStationPosition
-from .rtcm import RtcmDecoder, RtcmFramer
+from .rtcm import RtcmDecoder
 from .ubx import WeekHint
 
 log = logging.getLogger(__name__)

@@ -32,23 +32,6 @@ def earth_rotation_transform(tau_s: float) -> np.ndarray:
     return out
 
 
-def _rodrigues(x: float, y: float, z: float) -> np.ndarray:
-    a2 = x * x + y * y + z * z
-    if a2 < 1e-12:  # series to 4th order: exact to rounding for IMU-size increments
-        s = 1.0 - a2 / 6.0
-        c = 0.5 - a2 / 24.0
-    else:
-        a = math.sqrt(a2)
-        s = math.sin(a) / a
-        c = (1.0 - math.cos(a)) / a2
-    # I + s K + c K^2, written out (K = skew(dtheta)); cheaper than building K and K @ K
-    return np.array([
-        [1.0 - c * (y * y + z * z), -s * z + c * x * y, s * y + c * x * z],
-        [s * z + c * x * y, 1.0 - c * (x * x + z * z), -s * x + c * y * z],
-        [-s * y + c * x * z, s * x + c * y * z, 1.0 - c * (x * x + y * y)],
-    ])
-
-
 def strapdown_step(r_e: np.ndarray, v_e: np.ndarray, C_b_e: np.ndarray,
                    dtheta_b, dv_b, tau_s: float, g_e: np.ndarray | None = None):
     """Advance (r_e, v_e, C_b_e) over one IMU interval.  Returns new arrays (inputs untouched).
