@@ -426,9 +426,15 @@ def test_serial_control_tunnel_round_trip_real_ubx():
         transport, ap = await loop.create_datagram_endpoint(lambda: FakeAutopilot(ubx, uart_rate_bps=200_000),
                                                             remote_addr=("127.0.0.1", port))
         tunnel = SerialTunnel = M.SerialControlTunnel(link, M.SERIAL_CONTROL_DEV_GPS1, poll_interval_s=0.01)
+
+        async def heartbeats():          # an autopilot sends HEARTBEAT at 1 Hz for as long as it runs
+            while True:
+                ap.send(mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
+                await asyncio.sleep(1.0)
+
+        beating = asyncio.create_task(heartbeats())
         try:
-            ap.send(mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))     # so udpin learns where to send
-            assert await _wait(lambda: link.connected)
+            assert await _wait(lambda: link.connected)   # the first heartbeat tells udpin where to send
             cfg = bytes.fromhex("b562060401000400") * 12                 # > 70 bytes to the receiver
             tunnel.write(cfg)
             poller = asyncio.create_task(tunnel.run())
@@ -452,7 +458,8 @@ def test_serial_control_tunnel_round_trip_real_ubx():
             assert await _wait(lambda: not ap.locked)
             assert SerialTunnel.counters["replies"] >= len(ubx) // 70
         finally:
+            beating.cancel()
             transport.close()
             await link.close()
 
-    asyncio.run(asyncio.wait_for(main(), 25))
+    asyncio.run(asyncio.wait_for(main(), 60))
