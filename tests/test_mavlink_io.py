@@ -248,7 +248,7 @@ class FakeAutopilot(asyncio.DatagramProtocol):
     """Sends real MAVLink bytes to the link's udpin port; parses what comes back; ACKs commands,
     answers TIMESYNC like ArduPilot, and answers SERIAL_CONTROL like GCS_serial_control.cpp."""
 
-    def __init__(self, uart: bytes = b"", uart_rate_bps: float = 1e9):
+    def __init__(self, uart: bytes = b"", uart_rate_bps: float = 1e9, max_replies_per_request: int = 10):
         self.enc = ap_encoder()
         self.parser = mav.MAVLink(None)
         self.parser.robust_parsing = True
@@ -258,6 +258,9 @@ class FakeAutopilot(asyncio.DatagramProtocol):
         self.uart = uart                       # bytes the 'receiver' on GPS1 produces
         self.uart_rate_bps = uart_rate_bps
         self.uart_pos = 0
+        # ArduPilot's MULTI loop stops when the channel has no room (HAVE_PAYLOAD_SPACE); an unbounded
+        # burst of hundreds of datagrams would also overflow the loopback socket buffer on a busy machine.
+        self.max_replies_per_request = max_replies_per_request
         self.uart_written = bytearray()
         self.locked = False
         self.ack = True
@@ -286,7 +289,7 @@ class FakeAutopilot(asyncio.DatagramProtocol):
         if not msg.flags & mav.SERIAL_CONTROL_FLAG_RESPOND:
             return
         available_end = min(len(self.uart), int((time.monotonic() - self.t0) * self.uart_rate_bps))
-        while True:
+        for _ in range(self.max_replies_per_request):
             n = min(70, max(0, available_end - self.uart_pos))
             if n == 0:
                 return
