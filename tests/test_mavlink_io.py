@@ -334,6 +334,7 @@ def test_link_over_udp_intervals_timesync_imu_and_bad_bytes():
         rates = {"RAW_IMU": 200.0, "SYSTEM_TIME": 1.0, "GPS_RAW_INT": 5.0, "ATTITUDE": 10.0}
         link, ap, transport = await _start_pair(port, message_rates_hz=rates, link_timeout_s=0.6,
                                                 timesync_interval_s=0.2, interval_retry_s=0.3)
+        ap.t0 = -12345.0          # its boot clock reads our monotonic clock + 12345 s
         try:
             hb = mav.MAVLink_heartbeat_message(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3)
             ap.send(hb)
@@ -355,6 +356,14 @@ def test_link_over_udp_intervals_timesync_imu_and_bad_bytes():
             assert await _wait(lambda: any(t.tc1 != 0 and t.ts1 == 123456789 for t in ap.of_type("TIMESYNC")))
             assert await _wait(lambda: link.timesync_rtt_ns is not None)
             assert 0 < link.timesync_rtt_ns < 1e9
+            # once the offset is known, requests are answered in autopilot boot time (what PX4's
+            # sync_stamp needs, since our estimates carry boot-time stamps): within a few RTTs of its clock
+            n_ts = len(ap.of_type("TIMESYNC"))
+            ap.send(mav.MAVLink_timesync_message(0, 987654321))
+            assert await _wait(lambda: any(t.ts1 == 987654321 for t in ap.of_type("TIMESYNC")[n_ts:]))
+            answer = next(t for t in ap.of_type("TIMESYNC")[n_ts:] if t.ts1 == 987654321)
+            ap_boot_ns = (time.monotonic() - ap.t0) * 1e9
+            assert abs(answer.tc1 - ap_boot_ns) < 0.5e9        # not our monotonic clock (12345 s apart)
             # data: SYSTEM_TIME then IMU, plus corrupt and truncated bytes in between
             ap.send(mav.MAVLink_system_time_message(int(1.7e15), 10_000))
             good = bytes(mav.MAVLink_raw_imu_message(10_000_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0, 0, 0).pack(ap.enc))

@@ -663,9 +663,15 @@ class MavlinkLink:
       ``message_rates_hz`` and re-sends each every ``interval_retry_s`` until a COMMAND_ACK
       (result ACCEPTED) names it -- acks cannot name the message id, so commands are sent one at a
       time and the ack is matched to the oldest outstanding one.
-    * Answers TIMESYNC requests (``tc1 == 0``) with ``tc1`` = our monotonic ns; sends its own every
-      ``timesync_interval_s`` and keeps the round trip time and the autopilot-boot minus our
-      monotonic clock offset (:attr:`timesync_offset_ns`, from the lowest-RTT exchange of the last 16).
+    * Sends TIMESYNC requests every ``timesync_interval_s`` and keeps the round trip time and the
+      autopilot-boot minus our monotonic clock offset (:attr:`timesync_offset_ns`, from the
+      lowest-RTT exchange of the last 16; forgotten when the autopilot reboots).
+    * Answers TIMESYNC requests (``tc1 == 0``) with ``tc1`` = our clock *in autopilot boot time*
+      (our monotonic ns + that offset; plain monotonic ns until the first reply).  Our estimates are
+      stamped in autopilot boot time (the IMU samples' own stamps), and PX4 converts every incoming
+      timestamp by the offset it learns from our answers (``Timesync::sync_stamp``): answering in
+      the same time base makes that offset ~0 instead of the boot-to-monotonic difference.
+      ArduPilot learns its own offset (jitter correction) and is indifferent.
     * Link loss: no HEARTBEAT from ``target_system`` for ``link_timeout_s`` -> ``connected`` False,
       counted; a HEARTBEAT brings it back (counted) and re-requests the streams.
     * Bad CRC / unknown ids / truncated frames: counted by reason (``bad_data``), never yielded.
@@ -854,6 +860,8 @@ class MavlinkLink:
         if self.time_map.boot_epoch != self._seen_reboot_epoch:
             self._seen_reboot_epoch = self.time_map.boot_epoch
             self.counters["autopilot_reboots"] += 1
+            self._ts_samples.clear()             # its boot clock restarted: the old offset is void
+            self.timesync_offset_ns = None
             self._request_streams("autopilot reboot")
         for cb in self._subs.get(mtype, ()):
             try:
@@ -879,7 +887,8 @@ class MavlinkLink:
 
     def _on_timesync(self, msg, t_ns: int) -> None:
         if msg.tc1 == 0:
-            reply = _ENC.timesync_encode(t_ns, msg.ts1)
+            ours_ns = t_ns if self.timesync_offset_ns is None else t_ns + self.timesync_offset_ns
+            reply = _ENC.timesync_encode(ours_ns, msg.ts1)
             if hasattr(reply, "target_system"):
                 reply.target_system = msg.get_srcSystem()
                 reply.target_component = msg.get_srcComponent()
