@@ -31,6 +31,7 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from .io.mavlink import IMU_CLUSTER_STREAMS
 
 
 class ConfigError(ValueError):
@@ -57,6 +58,11 @@ class MavlinkConfig:
     imu_message: str = _f("auto", choices=("auto", "HIGHRES_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"),
                           doc="IMU stream to fuse; 'auto' locks onto the first one that arrives")
     imu_rate_hz: float = _f(200.0, min=1.0, max=2000.0, doc="requested IMU message rate")
+    imu_cluster: tuple[str, ...] = _f((), choices=IMU_CLUSTER_STREAMS,
+                                      doc="fuse several IMUs (first = primary, its time grid), dropping a "
+                                          "faulty one, e.g. [\"RAW_IMU\", \"SCALED_IMU2\", \"SCALED_IMU3\"] "
+                                          "(ArduPilot) or [\"HIGHRES_IMU:0\", \"HIGHRES_IMU:1\"]; empty = "
+                                          "imu_message alone")
     system_time_rate_hz: float = _f(1.0, min=0.1, max=50.0)
     gps_raw_rate_hz: float = _f(5.0, min=0.0, max=50.0, doc="GPS_RAW_INT rate (0 = do not request)")
     attitude_rate_hz: float = _f(10.0, min=0.0, max=400.0, doc="ATTITUDE rate (0 = do not request)")
@@ -265,6 +271,13 @@ def _check_value(value: Any, tp, key: str, where: str, md: dict):
         if value is None:
             return None
         return _check_value(value, inner[0], key, where, md)
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis:       # tuple[X, ...]: any length
+        if not isinstance(value, (list, tuple)):
+            err(f"expected an array, got {value!r}")
+        out = tuple(_check_value(v, args[0], f"{key}[{i}]", where, md) for i, v in enumerate(value))
+        if len(set(out)) != len(out):
+            err(f"duplicate entries in {list(out)!r}")
+        return out
     if origin is tuple:
         if not isinstance(value, (list, tuple)) or len(value) != len(args):
             err(f"expected an array of {len(args)} numbers, got {value!r}")

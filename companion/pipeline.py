@@ -16,7 +16,10 @@ What it does with the inputs
 ----------------------------
 * IMU (HIGHRES_IMU / RAW_IMU / SCALED_IMU2/3) -> :class:`~companion.messages.ImuSample` via
   :class:`~companion.io.mavlink.ImuDecoder`, GPS time from :class:`~companion.io.mavlink.BootToGpsTime`
-  (SYSTEM_TIME).  A solution is produced every ``k``-th decoded IMU sample, ``k`` =
+  (SYSTEM_TIME).  With ``mavlink.imu_cluster`` set, every listed stream has its own decoder and
+  the samples go through an :class:`~companion.nav.imu_cluster.ImuCluster` (unit = position in the
+  list, the first is the primary whose time grid the fused samples keep); a unit dropped or
+  re-admitted by its fault test is announced and counted (health ``imu_cluster``).  A solution is produced every ``k``-th decoded IMU sample, ``k`` =
   round(``mavlink.imu_rate_hz`` / ``output.rate_hz``): decimation of the IMU stream, not a timer,
   so the output rate follows the data and replays identically.
 * SERIAL_CONTROL replies from the autopilot's GPS port, or ``ubx`` records -> UBX decoder ->
@@ -57,7 +60,8 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from .gnss.spp import spp_epoch  # noqa: E402
-from .io.mavlink import BootToGpsTime, ImuDecoder, gps_fix_from_gps_raw_int  # noqa: E402
+from .io.mavlink import BootToGpsTime, ImuDecoder, gps_fix_from_gps_raw_int, parse_imu_stream  # noqa: E402
+from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
 from .io.rtcm import RtcmDecoder  # noqa: E402
 from .io.ubx import UbxDecoder  # noqa: E402
 from .messages import (BaseStationPosition, GnssEpoch, GnssFix, GpsEphemeris, ImuSample,  # noqa: E402
@@ -69,6 +73,7 @@ log = logging.getLogger(__name__)
 m = mavlink2
 
 REINIT_GAP_S = 1.0            # IMU time step (either direction) that restarts the filter
+CLUSTER_OUTPUT_ID = 100       # imu_id of the fused samples of an IMU cluster
 RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GPS_RAW_INT fusion
 ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used to initialise
 BASE_WAIT_S = 0.8             # hold a rover epoch (IMU time) until the base epoch of the same time
@@ -138,6 +143,12 @@ class NavPipeline:
         self.target = (mc.target_system, mc.target_component)
         self.time_map = BootToGpsTime(leap_seconds=config.gnss.leap_seconds)
         self.imu_dec = ImuDecoder(mc.imu_message, rate_hz=mc.imu_rate_hz, leap_seconds=config.gnss.leap_seconds)
+        # IMU cluster: (message type, id or None, decoder) per unit, unit number = list position
+        self.cluster_streams = [(*parse_imu_stream(name), ImuDecoder(
+            parse_imu_stream(name)[0], rate_hz=mc.imu_rate_hz, leap_seconds=config.gnss.leap_seconds,
+            imu_id=parse_imu_stream(name)[1])) for name in mc.imu_cluster]
+        self.cluster: ImuCluster | None = self._new_cluster() if self.cluster_streams else None
+        self._primary_boot_us: dict[float, int] = {}   # primary sample t_gps -> its boot time stamp
         self.parser = mavlink2.MAVLink(None)
         self.parser.robust_parsing = True
         self.ubx = UbxDecoder(week_hint=self._t_ref)
@@ -286,6 +297,8 @@ class NavPipeline:
             self.counters["autopilot reboots"] += 1
             self.attitude = None
             self.last_imu = None
+            if self.cluster is not None:
+                self._restart_cluster()
             self._reinit("autopilot reboot")
 
     def _feed_messages(self, msgs) -> list[NavSolution]:
@@ -305,14 +318,76 @@ class NavPipeline:
         return []
 
     # ------------------------------------------------------------------ IMU
+    def _new_cluster(self) -> ImuCluster:
+        """Every unit with the filter's IMU noise densities (units of one autopilot are alike)."""
+        f = self.cfg.filter
+        return ImuCluster(ClusterConfig(noise={}, primary_id=0, output_id=CLUSTER_OUTPUT_ID,
+                                        default_noise=UnitNoise(f.gyro_arw_rad_per_sqrt_s,
+                                                                f.accel_vrw_mps_per_sqrt_s)))
+
+    def _restart_cluster(self) -> None:
+        """After a reboot or a time jump the units' time histories are void: start over (the health
+        report keeps the old cluster's counters under 'imu_cluster (before restart)')."""
+        old = self.cluster
+        for k, v in old.counters.items():
+            self.counters[f"imu cluster before restart: {k}"] += v
+        self.cluster = self._new_cluster()
+        self._primary_boot_us.clear()
+
     def _imu(self, msg) -> list[NavSolution]:
+        if self.cluster is not None:
+            return self._imu_cluster(msg)
         s = self.imu_dec.decode(msg, self.time_map)
         self._check_reboot()
         if s is None:
             return []
-        if not all(math.isfinite(x) for x in (*s.dtheta_b.tolist(), *s.dv_b.tolist())):
-            self.counters["imu sample not finite (dropped)"] += 1
+        if not self._imu_finite(s):
             return []
+        boot_us = int(getattr(msg, "time_usec", getattr(msg, "time_boot_ms", 0) * 1000))
+        return self._imu_sample(s, boot_us)
+
+    def _imu_finite(self, s: ImuSample, unit: str = "") -> bool:
+        if all(math.isfinite(x) for x in (*s.dtheta_b.tolist(), *s.dv_b.tolist())):
+            return True
+        self.counters[f"imu{unit} sample not finite (dropped)"] += 1
+        return False
+
+    def _imu_cluster(self, msg) -> list[NavSolution]:
+        """One message of one cluster unit: decode, push; process the fused samples that are ready."""
+        mt = msg.get_type()
+        msg_id = int(getattr(msg, "id", 0))
+        match = [u for u, (t, i, _) in enumerate(self.cluster_streams) if t == mt and i == msg_id] or \
+                [u for u, (t, i, _) in enumerate(self.cluster_streams) if t == mt and i is None]
+        if not match:
+            self.counters[f"imu stream not in the cluster: {mt}"] += 1
+            return []
+        unit = match[0]
+        s = self.cluster_streams[unit][2].decode(msg, self.time_map)
+        self._check_reboot()
+        if s is None or not self._imu_finite(s, f" {unit}"):
+            return []
+        newest = max((u.t_mid[-1] for u in self.cluster.units.values() if u.t_mid), default=None)
+        if newest is not None and abs(s.t_gps - newest) > REINIT_GAP_S:
+            self._restart_cluster()     # time jump: start the histories over; the engine re-initialises
+            self.counters["imu cluster restarts: time jump"] += 1      # on the fused stream's own jump
+        if unit == 0:
+            self._primary_boot_us[s.t_gps] = int(getattr(msg, "time_usec", getattr(msg, "time_boot_ms", 0) * 1000))
+        n_events = len(self.cluster.events)
+        fused = self.cluster.push(ImuSample(s.t_gps, s.dt_s, s.dtheta_b, s.dv_b, unit))
+        for t, uid, what, detail in self.cluster.events[n_events:]:
+            name = "" if uid is None else f" {uid} ({self.cfg.mavlink.imu_cluster[uid]})"
+            sev = m.MAV_SEVERITY_INFO if what == "readmitted" else m.MAV_SEVERITY_WARNING
+            self._event(sev, f"IMU{name} {what}: {detail}")
+        out: list[NavSolution] = []
+        for f in fused:
+            out += self._imu_sample(f, self._primary_boot_us.pop(f.t_gps, -1))
+        if len(self._primary_boot_us) > 1000:      # primary samples the cluster never emitted
+            for t in sorted(self._primary_boot_us)[:-100]:
+                del self._primary_boot_us[t]
+        return out
+
+    def _imu_sample(self, s: ImuSample, boot_us: int) -> list[NavSolution]:
+        """One IMU sample (of the single stream or fused) into the engine; a solution every k-th."""
         self.imu_count += 1
         eng = self.engine
         if eng.initialized:
@@ -325,7 +400,7 @@ class NavPipeline:
         elif self.last_imu is None and self.raw_expected:
             self.last_raw_t = s.t_gps        # start (or reboot): give raw observations a chance
         self.last_imu = s
-        self.last_imu_boot_us = int(getattr(msg, "time_usec", getattr(msg, "time_boot_ms", 0) * 1000))
+        self.last_imu_boot_us = boot_us
         if not eng.initialized:
             if not self.raw_expected or s.t_gps - self.last_raw_t > RAW_TIMEOUT_S:
                 self._try_init_loose()
@@ -522,7 +597,17 @@ class NavPipeline:
                          "inject": sol.extras.get("inject")})
         return {"filter": filt, "pipeline": dict(self.counters), "engine": dict(self.engine.counters),
                 "imu": dict(self.imu_dec.counters), "time_map": dict(self.time_map.counters),
+                **({"imu_cluster": self.cluster_health()} if self.cluster is not None else {}),
                 "ubx": dict(self.ubx.counters), "rtcm": dict(self.rtcm.counters)}
+
+
+    def cluster_health(self) -> dict:
+        c = self.cluster
+        names = self.cfg.mavlink.imu_cluster
+        return {"units": {names[uid]: {"healthy": u.healthy, "window_stat": round(float(u.last_stat), 3)}
+                          for uid, u in sorted(c.units.items())},
+                "ambiguous": c.ambiguous, "counters": dict(c.counters),
+                "decoders": {names[u]: dict(d.counters) for u, (_, _, d) in enumerate(self.cluster_streams)}}
 
 
 __all__ = ["NavPipeline", "InitSigmas", "encode_solution", "decode_solution", "config_event",

@@ -362,6 +362,8 @@ class Service:
                "task_restarts": dict(self.restarts), "task_errors": dict(self.task_errors),
                "pipeline": ph["pipeline"], "engine": ph["engine"], "imu_decoder": ph["imu"],
                "time_map": ph["time_map"], "ubx": ph["ubx"], "rtcm": ph["rtcm"]}
+        if "imu_cluster" in ph:
+            out["imu_cluster"] = ph["imu_cluster"]
         if self.link is not None:
             out["link"] = self.link.health()
         elif getattr(self, "_last_link_health", None) is not None:
@@ -386,7 +388,9 @@ class Service:
                 f"sigma NED {sig}; out {sum(v for k, v in h['outputs'].items() if k.startswith('sent ') and 'STATUS' not in k)} "
                 f"withheld {h['outputs'].get('estimates withheld', 0)}; rejected {rej}; "
                 f"link {'up' if link.get('connected') else 'down'} bad {link.get('bad_data', 0)} "
-                f"reboots {h['pipeline'].get('autopilot reboots', 0)} restarts {sum(h['task_restarts'].values())}")
+                f"reboots {h['pipeline'].get('autopilot reboots', 0)} restarts {sum(h['task_restarts'].values())}"
+                + ("" if "imu_cluster" not in h else "; IMUs healthy " + ",".join(
+                    name for name, u in h["imu_cluster"]["units"].items() if u["healthy"])))
 
     def _log_full_health(self) -> None:
         log.warning("health report (SIGUSR1): %s", json.dumps(self.health(), default=str, indent=1))

@@ -11,6 +11,9 @@ What it does (ArduPilot-like, system 1 component 1, ``MAV_AUTOPILOT_ARDUPILOTMEG
 * HIGHRES_IMU (or RAW_IMU, in mG and mrad/s, int16, like ArduPilot) from the simulated IMU samples:
   rate = increment / dt, ``time_usec`` = boot time of the end of the sample interval; up to the
   simulated IMU rate (200 Hz for 'uav'), decimated for lower requested rates;
+* with ``imu_units`` 2 or 3: SCALED_IMU2 / SCALED_IMU3 (mG, mrad/s, ``time_boot_ms``) of redundant
+  IMUs with their own error realisations (:meth:`sitl.simulate.SimData.extra_imu_units`);
+  ``Faults.imu_unit_bias`` adds a gyro bias step to one of them;
 * SYSTEM_TIME sent at whole boot milliseconds, ``time_unix_usec`` = UTC = GPS - ``leap_seconds``
   (13 s in 2005, the 'uav' scenario's epoch): exact, so the companion's boot-to-GPS mapping is exact;
 * ATTITUDE (truth + Gaussian noise of ``attitude_noise_deg``, a stand-in for the autopilot's own EKF);
@@ -126,13 +129,14 @@ class Faults:
     reboot: list = field(default_factory=list)           # (t, silent_s)
     clock_jump: list = field(default_factory=list)       # (t, jump_s): boot clock steps forward
     gnss_outage: list = field(default_factory=list)      # (t_start, t_end): no UBX bytes, GPS_RAW_INT no fix
+    imu_unit_bias: list = field(default_factory=list)    # (t, unit, gyro_x_bias_radps): a unit's gyro fails
 
 
 class EmulatedAutopilot:
     def __init__(self, sim, *, companion_port: int, speedup: float = 1.0, leap_seconds: int = 13,
                  imu_message: str = "HIGHRES_IMU", attitude_noise_deg: float = 0.3, gps_noise_m: float = 0.7,
                  receiver_latency_s: float = 0.06, boot_lead_s: float = 30.0, seed: int = 0,
-                 faults: Faults | None = None, clock: SimClock | None = None):
+                 faults: Faults | None = None, clock: SimClock | None = None, imu_units: int = 1):
         self.sim = sim
         self.addr = ("127.0.0.1", companion_port)
         self.clock = clock or SimClock(speedup)
@@ -156,6 +160,10 @@ class EmulatedAutopilot:
         self.sock.bind(("127.0.0.1", 0))
         self.sock.setblocking(False)
         self.imu_rate_hz = sim.scenario.imu.rate_hz
+        # redundant IMUs 1, 2 (SCALED_IMU2, SCALED_IMU3 like ArduPilot): independent error realisations
+        if not 1 <= imu_units <= 3:
+            raise ValueError("imu_units: 1 to 3")
+        self.extra_imu = sim.extra_imu_units(imu_units - 1)
         self.default_intervals = {m.MAVLINK_MSG_ID_HEARTBEAT: 1e6, m.MAVLINK_MSG_ID_SYSTEM_TIME: 1e6}
         self.intervals: dict[int, float] = dict(self.default_intervals)
         self.gps1 = bytearray()
@@ -261,7 +269,8 @@ class EmulatedAutopilot:
                 self.intervals[mid] = 0.0
             else:
                 self.intervals[mid] = max(iv, 1e6 / self.imu_rate_hz if mid in (
-                    m.MAVLINK_MSG_ID_HIGHRES_IMU, m.MAVLINK_MSG_ID_RAW_IMU) else 1e3)
+                    m.MAVLINK_MSG_ID_HIGHRES_IMU, m.MAVLINK_MSG_ID_RAW_IMU, m.MAVLINK_MSG_ID_SCALED_IMU2,
+                    m.MAVLINK_MSG_ID_SCALED_IMU3) else 1e3)
             self._next_due.pop(mid, None)
             self.send(self.mav.command_ack_encode(msg.command, m.MAV_RESULT_ACCEPTED))
         elif mt == "TIMESYNC" and msg.tc1 == 0 and self.clock.started.is_set():
@@ -390,6 +399,21 @@ class EmulatedAutopilot:
                     self.send(msg)
                     self.imu_sent[boot_us].append((time.monotonic_ns(), t))
                     self.counters["imu_sent"] += 1
+            for unit, (dth_u, dv_u) in enumerate(self.extra_imu, start=1):
+                mid = (m.MAVLINK_MSG_ID_SCALED_IMU2, m.MAVLINK_MSG_ID_SCALED_IMU3)[unit - 1]
+                iv = self.intervals.get(mid, 0.0)
+                if not (iv and iv > 0) or k % max(1, int(round(iv * 1e-6 * self.imu_rate_hz))):
+                    continue
+                w = dth_u[k] / s.dt_s
+                a = dv_u[k] / s.dt_s
+                for t_f, u_f, bias in faults.imu_unit_bias:
+                    if u_f == unit and t_rel >= t_f:
+                        w = w + np.array([bias, 0.0, 0.0])
+                ka = 1000.0 / STANDARD_GRAVITY_MPS2     # mG and mrad/s, int16, time_boot_ms
+                q = [int(max(-32768, min(32767, round(x)))) for x in (*(a * ka), *(w * 1000.0))]
+                enc = self.mav.scaled_imu2_encode if unit == 1 else self.mav.scaled_imu3_encode
+                self.send(enc(boot_us // 1000, q[0], q[1], q[2], q[3], q[4], q[5], 0, 0, 0, 0))
+                self.counters[f"imu_unit{unit}_sent"] += 1
             # other streams
             if self._interval_due(m.MAVLINK_MSG_ID_HEARTBEAT, t):
                 status = m.MAV_STATE_STANDBY if t < armed_at else m.MAV_STATE_ACTIVE

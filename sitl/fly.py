@@ -72,7 +72,7 @@ def free_udp_port() -> int:
 
 def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: float, output_mode: str,
                           max_sigma_h_m: float, max_sigma_v_m: float, leap_seconds: int, imu_message: str,
-                          gnss_source: str = "mavlink_serial_control") -> str:
+                          gnss_source: str = "mavlink_serial_control", imu_units: int = 1) -> str:
     from .tuning import tuning_for
     t = tuning_for(sim.scenario)
     n = t.noise
@@ -81,7 +81,9 @@ def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: 
     lines = [
         "[mavlink]", f'connection = "udpin:127.0.0.1:{udp_port}"', f'imu_message = "{imu_message}"',
         f"imu_rate_hz = {float(sim.scenario.imu.rate_hz)}", "attitude_rate_hz = 10.0", "gps_raw_rate_hz = 5.0",
-        "link_timeout_s = 3.0", "",
+        "link_timeout_s = 3.0",
+        *([f"imu_cluster = {json.dumps([imu_message, 'SCALED_IMU2', 'SCALED_IMU3'][:imu_units])}"] if imu_units > 1 else []),
+        "",
         "[gnss]", f'source = "{gnss_source}"', 'serial_control_device = "GPS1"',
         "serial_control_poll_interval_s = 0.02", f"lever_arm_b_m = [{la[0]!r}, {la[1]!r}, {la[2]!r}]",
         f"leap_seconds = {leap_seconds}", "",
@@ -212,7 +214,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               seed: int = 0, out_dir: str = "out/fly", output_mode: str = "vision", max_sigma_h_m: float = 2.0,
               max_sigma_v_m: float = 4.0, faults=None, use_caster: bool = True, imu_message: str = "HIGHRES_IMU",
               gnss_source: str = "mavlink_serial_control", leap_seconds: int = 13,
-              keep_companion_log: bool = True) -> dict:
+              keep_companion_log: bool = True, imu_units: int = 1) -> dict:
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     out = Path(out_dir)
@@ -234,7 +236,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     cfg_text = companion_config_toml(sim, udp_port=udp_port, caster=caster, log_dir=str(log_dir), rate_hz=rate_hz,
                                      output_mode=output_mode, max_sigma_h_m=max_sigma_h_m,
                                      max_sigma_v_m=max_sigma_v_m, leap_seconds=leap_seconds,
-                                     imu_message=imu_message, gnss_source=gnss_source)
+                                     imu_message=imu_message, gnss_source=gnss_source, imu_units=imu_units)
     cfg_path = out / "companion.toml"
     cfg_path.write_text(cfg_text)
     comp_log = open(out / "companion.log", "wb")
@@ -243,7 +245,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                             stdout=comp_log, stderr=subprocess.STDOUT, env=env,
                             cwd=str(Path(__file__).resolve().parent.parent))
     ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
-                           leap_seconds=leap_seconds, imu_message=imu_message, seed=seed)
+                           leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units)
     cpu0 = cpu1 = None
     wall0 = wall1 = None
     rss = hwm = float("nan")
@@ -289,8 +291,22 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
         "statustext": [r.msg.text for r in ap.received if r.msg_type == "STATUSTEXT"],
         "field_log_dir": str(log_dir), "companion_log": str(out / "companion.log"),
         "setup_s": round(time.monotonic() - t_setup, 1)})
+    if imu_units > 1:
+        res["imu_cluster"] = _final_cluster_health(log_dir)
     res["_series"] = series
     return res
+
+
+def _final_cluster_health(field_log_dir) -> dict | None:
+    """The service's last IMU-cluster health (from the health/stop events of its field log)."""
+    from companion.io.fieldlog import read_field_log
+    last = None
+    for rec in read_field_log(field_log_dir):
+        if rec.kind == "event":
+            obj = json.loads(rec.payload)
+            if obj.get("event") in ("stop", "health") and "imu_cluster" in obj.get("health", {}):
+                last = obj["health"]["imu_cluster"]
+    return last
 
 
 def format_result(r: dict) -> str:
@@ -305,12 +321,16 @@ def format_result(r: dict) -> str:
         f"p95 3-D {f(r['p95_3d_m'], '.3f')} m, max {f(r['max_3d_m'], '.3f')} m",
         f"  latency p50 {f(r['latency_ms_p50'], '.2f')} ms, p99 {f(r['latency_ms_p99'], '.2f')} ms",
         f"  companion CPU {f(r['companion_cpu_pct'], '.1f')} % of one core, RSS {f(r['companion_rss_mb'], '.1f')} MB",
-    ])
+    ] + ([] if not r.get("imu_cluster") else [
+        "  IMU cluster: " + ", ".join(f"{name} {'healthy' if u['healthy'] else 'DROPPED'}"
+                                      for name, u in r["imu_cluster"]["units"].items())]))
 
 
 def cmd_fly(args) -> int:
+    from .autopilot import Faults
+    faults = Faults(imu_unit_bias=[(t, int(u), b) for t, u, b in args.imu_fault]) if args.imu_fault else None
     res = asyncio.run(fly(args.scenario, args.duration, args.speedup, rate_hz=args.rate, seed=args.seed,
-                          out_dir=args.out, output_mode=args.output))
+                          out_dir=args.out, output_mode=args.output, imu_units=args.imu_units, faults=faults))
     series = res.pop("_series")
     print(format_result(res))
     if args.json:
@@ -337,6 +357,10 @@ def register(subparsers) -> None:
     p.add_argument("--out", default="out/fly", help="directory for config, logs and the field log")
     p.add_argument("--json", help="write the figures as JSON here")
     p.add_argument("--series", action="store_true", help="include per-estimate error/latency series in the JSON")
+    p.add_argument("--imu-units", type=int, default=1, choices=(1, 2, 3),
+                   help="IMUs the autopilot reports (2, 3: + SCALED_IMU2/3, fused by the companion's IMU cluster)")
+    p.add_argument("--imu-fault", type=float, nargs=3, action="append", metavar=("T_S", "UNIT", "BIAS_RADPS"),
+                   help="from T_S on, unit UNIT's x gyro reads BIAS_RADPS too much (repeatable)")
     p.set_defaults(func=cmd_fly)
 
 

@@ -31,6 +31,7 @@ _S_ORB_C, _S_ORB_D, _S_ORB_RAC = 16, 17, 18
 _S_SITE = {"rover": 20, "base": 30}
 _S_AMB = {"rover": 40, "base": 41}
 _S_PPK, _S_ATT = 50, 51
+_S_IMU_UNIT = 60               # + k: redundant IMU unit k (SimData.extra_imu_units)
 
 
 @dataclass(eq=False)
@@ -64,6 +65,19 @@ class SimData:
         t, dt = self.truth.t_gps, 1.0 / self.scenario.imu.rate_hz
         return [ImuSample(float(t[i + 1]), dt, self.imu_ideal_dtheta_b[i], self.imu_ideal_dv_b[i])
                 for i in range(len(t) - 1)]
+
+    def extra_imu_units(self, n_units: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Increments (dtheta_b (N-1, 3), dv_b (N-1, 3)) of ``n_units`` more IMUs of the scenario's
+        model, mounted with the first and sampled with it (an autopilot's redundant IMUs): the same
+        ideal increments, independent error realisations (unit k draws from stream
+        ``[seed, _S_IMU_UNIT + k]``; unit 0 is ``imu``)."""
+        tau = 1.0 / self.scenario.imu.rate_hz
+        out = []
+        for k in range(1, n_units + 1):
+            ie = sensors.imu_errors(np.random.default_rng([self.seed, _S_IMU_UNIT + k]), self.scenario.imu,
+                                    len(self.imu_ideal_dtheta_b))
+            out.append((self.imu_ideal_dtheta_b + ie["gyro_error"] * tau, self.imu_ideal_dv_b + ie["accel_error"] * tau))
+        return out
 
     def initial_state(self):
         """(t0_gps, r_e, v_e, C_b_e) of the IMU at the first sample (truth)."""

@@ -39,3 +39,37 @@ def test_stock_autopilot_without_raw_gnss_gets_a_loosely_coupled_estimate(tmp_pa
     assert r["rms_h_m"] < 5.0
     health = final_health(d["field_log_dir"])["health"]
     assert health, "the service wrote no health report"
+
+
+def test_imu_cluster_drops_a_failing_unit_in_flight(tmp_path):
+    """Issue 4 (IMU cluster) in the service: the autopilot reports three IMUs (HIGHRES_IMU,
+    SCALED_IMU2, SCALED_IMU3, each with its own turn-on biases); at 12 s unit 2's x gyro gains
+    0.02 rad/s (25 x its per-sample noise).  The companion drops that unit within a fraction of a
+    second, says so to the ground station, keeps navigating on the other two, and the field log
+    still replays bit for bit."""
+    from sitl.autopilot import Faults
+    from companion.replay import replay
+    from tests._flyhelp import run_fly
+    r = run_fly(tmp_path, duration_s=30.0, speedup=2.0, imu_units=3,
+                faults=Faults(imu_unit_bias=[(12.0, 2, 0.02)]))
+    d = r.get("details", r)
+    assert d["companion_exit_code"] == 0
+    assert r["autopilot"]["imu_unit1_sent"] > 5000 and r["autopilot"]["imu_unit2_sent"] > 5000
+    cl = r["imu_cluster"]
+    assert cl is not None, "no IMU-cluster health in the field log"
+    assert cl["units"]["HIGHRES_IMU"]["healthy"] and cl["units"]["SCALED_IMU2"]["healthy"]
+    assert not cl["units"]["SCALED_IMU3"]["healthy"]
+    assert cl["counters"].get("imu 2 dropped") == 1 and not cl["ambiguous"]
+    assert not any(k.startswith(("imu 0", "imu 1")) for k in cl["counters"]), cl["counters"]
+    assert cl["counters"].get("fused from 3 units", 0) > 1000 and cl["counters"].get("fused from 2 units", 0) > 1000
+    drop = [t for t in d["statustext"] if "SCALED_IMU3" in t and "dropped" in t]
+    assert drop, d["statustext"]
+    # the drop time, from the companion's log line (GPS time) against the fault time
+    import re
+    m = re.search(r"unit 2 dropped at t=([0-9.]+)", open(r["companion_log"]).read())
+    from sitl.fly import load_sim
+    t0 = load_sim("uav", 0, 33.0).truth.t_gps[0]
+    assert -0.001 <= float(m.group(1)) - t0 - 12.0 < 0.5       # (the log prints ms)
+    assert r["rms_h_m"] < 1.5 and r["p95_3d_m"] < 3.0
+    c = replay(r["field_log_dir"]).comparison()
+    assert c["bit_for_bit"] and c["logged_solutions"] > 300, c

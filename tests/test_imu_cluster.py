@@ -14,14 +14,21 @@ G_B = np.array([0.0, 0.0, -9.80665])
 T0 = 1.4e9
 
 
-def _units(n, ids=(0, 1, 2), offsets=(0.0, 0.0013, 0.0029), seed=0, fault=None):
-    """Static units with independent white noise; ``fault(uid, k, rates) -> rates`` may alter one.
-    Returns the samples in arrival (time) order."""
+# turn-on biases of real units after calibration differ by far more than their white noise
+# (per-sample sigma here: 0.014 rad/s, 0.14 m/s^2); the primary's bias is zero, so the fused stream,
+# which keeps the primary's bias, should have none
+GYRO_BIAS = {0: 0.0, 1: 0.03, 2: -0.02, 3: 0.01}     # rad/s, every axis
+ACCEL_BIAS = {0: 0.0, 1: 0.3, 2: -0.25, 3: 0.1}      # m/s^2
+
+
+def _units(n, ids=(0, 1, 2), offsets=(0.0, 0.0013, 0.0029), seed=0, fault=None, biased=True):
+    """Static units with independent white noise and their own biases (``biased``);
+    ``fault(uid, k, rates) -> rates`` may alter one.  Returns the samples in arrival (time) order."""
     rng = np.random.default_rng(seed)
     out = []
     for uid, off in zip(ids, offsets):
-        g = rng.standard_normal((n, 3)) * NG / math.sqrt(DT)
-        a = G_B + rng.standard_normal((n, 3)) * NA / math.sqrt(DT)
+        g = rng.standard_normal((n, 3)) * NG / math.sqrt(DT) + (GYRO_BIAS[uid] if biased else 0.0)
+        a = G_B + rng.standard_normal((n, 3)) * NA / math.sqrt(DT) + (ACCEL_BIAS[uid] if biased else 0.0)
         for k in range(n):
             r = np.concatenate([g[k], a[k]])
             if fault is not None:
@@ -91,13 +98,19 @@ def test_step_bias_is_detected_and_dropped():
     fused, c = fuse(samples, _cfg())
     drops = [e for e in c.events if e[2] == "dropped"]
     assert [e[1] for e in drops] == [2]
+    # the step also pulled the healthy units' references (median of two = mean): they stay in
+    assert c.status()[0]["healthy"] and c.status()[1]["healthy"] and not c.status()[2]["healthy"]
+    assert not c.ambiguous
     k_det = int(round((drops[0][0] - T0) / DT)) - 1
     print(f"step bias detected after {k_det - k0} samples")
     assert 0 <= k_det - k0 <= 20
     r = _rates(fused)
     after = r[k_det + 2:, 0]
-    sig2 = NG / math.sqrt(DT) / math.sqrt(2)        # two healthy units
-    assert abs(np.mean(after)) < 4 * sig2 / math.sqrt(len(after))
+    sig = NG / math.sqrt(DT)
+    sig2 = sig / math.sqrt(2)                       # two healthy units
+    # unit 1's bias relative to the primary was learnt from ~k0 samples (difference of two units)
+    sig_mean = math.hypot(sig2 / math.sqrt(len(after)), 0.5 * sig * math.sqrt(2) / math.sqrt(k0))
+    assert abs(np.mean(after)) < 4 * sig_mean
     assert abs(np.std(after) / sig2 - 1.0) < 0.1
     # during the detection latency the fused rate is off by at most bias/3 plus noise
     assert np.max(np.abs(r[k0:k_det + 1, 0])) < bias / 3 + 5 * NG / math.sqrt(DT) / math.sqrt(3)
@@ -138,6 +151,26 @@ def test_two_units_disagreement_is_flagged_and_primary_kept():
     assert c.status()[0]["healthy"] and not c.status()[1]["healthy"]
     # the primary (the faulty one here: it cannot be known) is what comes out
     assert abs(np.mean(_rates(fused)[800:, 0]) - 0.05) < 0.005
+
+
+def test_unit_biases_are_learnt_not_flagged_and_the_primary_bias_kept():
+    """Three units with turn-on biases 2-3 sigma-per-sample apart: no unit is dropped and the fused
+    stream carries the primary's (zero) bias."""
+    samples = _units(6000)
+    fused, c = fuse(samples, _cfg())
+    assert not any("dropped" in k or "majority" in k for k in c.counters), c.counters
+    r = _rates(fused[400:]) - np.concatenate([np.zeros(3), G_B])
+    n = len(r)
+    sig_g, sig_a = NG / math.sqrt(DT), NA / math.sqrt(DT)
+    # the learnt relative biases are means of >= 400 samples of a two-unit difference
+    tol_g = 4 * math.hypot(sig_g / math.sqrt(3 * n), sig_g * math.sqrt(2) / math.sqrt(400))
+    tol_a = 4 * math.hypot(sig_a / math.sqrt(3 * n), sig_a * math.sqrt(2) / math.sqrt(400))
+    print("fused mean gyro", r[:, :3].mean(0), "accel", r[:, 3:].mean(0), "tolerances", tol_g, tol_a)
+    assert np.all(np.abs(r[:, :3].mean(0)) < tol_g) and np.all(np.abs(r[:, 3:].mean(0)) < tol_a)
+    # (the fused noise density with these biased units: test_fused_noise_density_is_one_over_sqrt3)
+    # without bias learning the same units are flagged
+    _, c_naive = fuse(samples, _cfg(learn_biases=False))
+    assert any("dropped" in k or "majority" in k for k in c_naive.counters), c_naive.counters
 
 
 def test_deterministic():

@@ -75,7 +75,17 @@ SERIAL_CONTROL_DEV_GPS1 = m.SERIAL_CONTROL_DEV_GPS1
 SERIAL_CONTROL_DEV_GPS2 = m.SERIAL_CONTROL_DEV_GPS2
 SERIAL_CONTROL_DATA_LEN = 70
 
-IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")
+IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")   # 'auto' picks among these
+# IMU streams an IMU cluster can name: these, PX4's SCALED_IMU, and HIGHRES_IMU of one unit ("HIGHRES_IMU:1")
+IMU_CLUSTER_STREAMS = IMU_MESSAGES + ("SCALED_IMU",) + tuple(f"HIGHRES_IMU:{i}" for i in range(8))
+
+
+def parse_imu_stream(name: str) -> tuple[str, int | None]:
+    """'SCALED_IMU2' -> ('SCALED_IMU2', None); 'HIGHRES_IMU:1' -> ('HIGHRES_IMU', 1) (its ``id`` field)."""
+    if name not in IMU_CLUSTER_STREAMS:
+        raise ValueError(f"unknown IMU stream {name!r} (one of {', '.join(IMU_CLUSTER_STREAMS)})")
+    msg, _, unit = name.partition(":")
+    return msg, (int(unit) if unit else None)
 
 
 def _encoder(src_system: int = 1, src_component: int = MAV_COMP_ID_ONBOARD_COMPUTER):
@@ -265,11 +275,12 @@ class ImuDecoder:
     """
 
     def __init__(self, message: str = "auto", rate_hz: float = 200.0, gap_factor: float = 2.5,
-                 max_dt_s: float = 0.1, leap_seconds: int = DEFAULT_LEAP_SECONDS):
-        if message != "auto" and message not in IMU_MESSAGES:
+                 max_dt_s: float = 0.1, leap_seconds: int = DEFAULT_LEAP_SECONDS, imu_id: int | None = None):
+        if message != "auto" and message not in IMU_MESSAGES + ("SCALED_IMU",):
             raise ValueError(f"unknown IMU message {message!r}")
         self.auto = message == "auto"
         self.message = None if self.auto else message
+        self.imu_id = imu_id                # HIGHRES_IMU/RAW_IMU 'id' to accept (None = any)
         self.nominal_dt_s = 1.0 / rate_hz
         self.gap_factor = gap_factor
         self.max_dt_s = max_dt_s
@@ -281,7 +292,10 @@ class ImuDecoder:
 
     def decode(self, msg, time_map: BootToGpsTime) -> ImuSample | None:
         t = msg.get_type()
-        if t not in IMU_MESSAGES:
+        if t not in IMU_MESSAGES and t != self.message:
+            return None
+        if self.imu_id is not None and int(getattr(msg, "id", 0)) != self.imu_id:
+            self.counters["other_imu"] += 1
             return None
         if self.message is None or (self.auto and t == "HIGHRES_IMU" and self.message != t):
             if self.message is not None:
@@ -1099,10 +1113,14 @@ class SerialControlTunnel:
 def message_rates_from_config(cfg) -> dict[str, float]:
     """The stream rates to request for a :class:`companion.config.MavlinkConfig`."""
     rates: dict[str, float] = {}
-    imu = cfg.imu_message if cfg.imu_message != "auto" else "RAW_IMU"
-    if cfg.imu_message == "auto":
-        rates["HIGHRES_IMU"] = cfg.imu_rate_hz
-    rates[imu] = cfg.imu_rate_hz
+    if cfg.imu_cluster:
+        for name in cfg.imu_cluster:
+            rates[parse_imu_stream(name)[0]] = cfg.imu_rate_hz
+    else:
+        imu = cfg.imu_message if cfg.imu_message != "auto" else "RAW_IMU"
+        if cfg.imu_message == "auto":
+            rates["HIGHRES_IMU"] = cfg.imu_rate_hz
+        rates[imu] = cfg.imu_rate_hz
     rates["SYSTEM_TIME"] = cfg.system_time_rate_hz
     if cfg.gps_raw_rate_hz > 0:
         rates["GPS_RAW_INT"] = cfg.gps_raw_rate_hz
@@ -1121,8 +1139,8 @@ def link_from_config(cfg, time_map: BootToGpsTime | None = None) -> MavlinkLink:
                        time_map=time_map)
 
 
-__all__ = ["BootToGpsTime", "ImuDecoder", "imu_from_mavlink", "imu_rates_from_mavlink",
-           "gps_fix_from_gps_raw_int", "Origin", "ardupilot_ned_from_origin", "vision_position_estimate",
+__all__ = ["BootToGpsTime", "ImuDecoder", "IMU_CLUSTER_STREAMS", "parse_imu_stream", "imu_from_mavlink",
+           "imu_rates_from_mavlink", "gps_fix_from_gps_raw_int", "Origin", "ardupilot_ned_from_origin", "vision_position_estimate",
            "odometry", "gps_input", "set_gps_global_origin", "set_gps_global_origin_from", "statustext",
            "statustext_chunks", "gps_rtcm_data_messages", "heartbeat", "command_set_message_interval",
            "serial_control_request", "quality_from_sigma", "upper_triangle_covariance", "pack",

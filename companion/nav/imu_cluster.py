@@ -12,13 +12,28 @@ id, SCALED_IMU2 -> 1, SCALED_IMU3 -> 2), in arrival order.  Output: one ImuSampl
 * **Weighted average** of the healthy units by their configured noise densities (weights 1/N^2,
   gyro and accelerometer separately): the fused density is 1/sqrt(sum 1/N_i^2), N/sqrt(3) for three
   equal units.
-* **Fault detection.**  For every unit, the difference between its rates and the median of the
-  other units' rates is normalised by its predicted standard deviation (the unit's per-sample
-  noise plus that of the median of the others) and summed over a sliding window of ``window``
-  samples: chi-square with 6*window dof under no fault.  Above the ``1 - false_alarm_prob``
-  quantile the unit is dropped (counter, log line).  A frozen ("stuck") output -- all six rates
-  bit-identical over ``stuck_samples`` samples -- is a fault of that unit alone.  A dropped unit
-  keeps being tested and is re-admitted after ``readmit_quiet_samples`` consecutive quiet samples.
+* **Unit biases.**  Real units disagree by their own turn-on biases (a few mrad/s, tens of mg even
+  after calibration), far beyond their white noise.  Each unit's bias *relative to the primary*
+  is learnt -- a plain mean over its first ``learn_samples`` samples, then an exponential average
+  with time constant ``bias_tau_s`` -- and removed before testing and fusing, so the fused stream
+  keeps the primary's bias (no step in it when a unit is dropped or re-admitted).  A unit's
+  relative bias is only updated while it and the primary are healthy and unflagged: a failed unit
+  cannot teach the cluster its fault.  A unit is not tested during its learning period (a unit
+  broken from power-on is indistinguishable from one with a large turn-on bias), and a slow drift
+  (ramp much slower than ``bias_tau_s``) is followed, not flagged: the navigation filter's bias
+  states take those.
+* **Fault detection.**  For every unit, the difference between its (bias-corrected) rates and
+  the median of the other *healthy* units' rates is normalised by its predicted standard
+  deviation (the unit's per-sample noise plus that of the median of the others, plus
+  ``relative_scale_sigma`` times the rate magnitude for the units' scale-factor/misalignment
+  mismatch) and summed over a sliding window of ``window`` samples: chi-square with 6*window dof
+  under no fault.  Above the ``1 - false_alarm_prob`` quantile a unit is flagged.  With three or
+  more healthy units a fault in one also pulls the others' references (the median of two is their
+  mean), so only the *worst* flagged unit is dropped (counter, log line) and the remaining units'
+  windows restart without it.  A frozen ("stuck") output -- all six rates bit-identical over
+  ``stuck_samples`` samples -- is a fault of that unit alone.  A dropped unit keeps being tested
+  against the healthy ones and is re-admitted after ``readmit_quiet_samples`` consecutive quiet
+  samples.
 * **Two units**: a disagreement cannot be attributed to either.  The cluster raises ``ambiguous``
   (counter, log line) and keeps the primary (or the other unit if the primary is the stuck one);
   the navigation filter's own innovation tests must arbitrate.  With one unit there is no test.
@@ -59,6 +74,10 @@ class ClusterConfig:
     readmit_quiet_samples: int = 500
     max_wait_s: float = 0.05
     history: int = 64                       # samples kept per unit for interpolation
+    learn_samples: int = 200                # plain-mean relative-bias learning before a unit is tested
+    bias_tau_s: float = 60.0                # then: time constant of the relative-bias average
+    relative_scale_sigma: float = 0.002     # scale/misalignment mismatch between units (fraction of the rate)
+    learn_biases: bool = True               # False: units are assumed to share one bias (test only)
 
 
 @dataclass
@@ -75,6 +94,8 @@ class _Unit:
     last_raw: tuple | None = None
     _stuck: bool = False
     _faulty: bool = False
+    rel_bias: np.ndarray = field(default_factory=lambda: np.zeros(6))   # rates minus the primary's
+    n_learnt: int = 0
 
 
 class ImuCluster:
@@ -155,68 +176,100 @@ class ImuCluster:
         return out
 
     # ------------------------------------------------------------------ test and fuse
+    def _learn_biases(self, p: ImuSample, raw: dict) -> None:
+        """Update each healthy, unflagged unit's bias relative to the primary (see module doc)."""
+        pid = self.cfg.primary_id
+        prim = self.units.get(pid)
+        if not self.cfg.learn_biases:
+            for u in self.units.values():
+                u.n_learnt = self.cfg.learn_samples
+            return
+        if pid not in raw or prim is None or not prim.healthy or prim._faulty:
+            return
+        for uid, r in raw.items():
+            u = self.units[uid]
+            if uid == pid or not u.healthy or u._faulty:
+                continue
+            u.n_learnt += 1
+            alpha = max(1.0 / u.n_learnt, p.dt_s / self.cfg.bias_tau_s)
+            u.rel_bias = u.rel_bias + alpha * ((r - raw[pid]) - u.rel_bias)
+
     def _test(self, p: ImuSample, rates: dict) -> None:
+        """Window chi-square of every unit against the median of the other *healthy*, learnt units;
+        with three or more healthy units the worst flagged one is dropped (one per sample, and the
+        others' windows, which it contaminated, restart); with two, see the module doc."""
+        cfg = self.cfg
         ids = sorted(rates)
         if len(ids) < 2:
             return
         dt = p.dt_s
+        ready = [o for o in ids if self.units[o].healthy and (o == cfg.primary_id
+                                                              or self.units[o].n_learnt >= cfg.learn_samples)]
         for uid in ids:
             u = self.units[uid]
-            others = [o for o in ids if o != uid]
+            u._stuck = u.same_count >= cfg.stuck_samples - 1
+            u._faulty = u._stuck
+            learning = uid != cfg.primary_id and u.n_learnt < cfg.learn_samples and u.healthy
+            others = [o for o in ready if o != uid]
+            if learning or not others:
+                u.quiet = 0 if u._stuck else u.quiet + 1
+                continue
             med = np.median(np.array([rates[o] for o in others]), axis=0)
             so = np.mean([self._sigma(o, dt) ** 2 for o in others], axis=0)
             var_med = so * (math.pi / 2.0 / len(others) if len(others) >= 3 else 1.0 / len(others))
-            var = self._sigma(uid, dt) ** 2 + var_med
+            var = self._sigma(uid, dt) ** 2 + var_med + (cfg.relative_scale_sigma * med) ** 2
             q = float(np.sum((rates[uid] - med) ** 2 / var))
             u.win.append(q)
             u.win_sum += q
-            if len(u.win) > self.cfg.window:
+            if len(u.win) > cfg.window:
                 u.win_sum -= u.win.popleft()
             u.last_stat = u.win_sum / (6 * len(u.win))
-            stuck = u.same_count >= self.cfg.stuck_samples - 1
-            faulty = stuck or (len(u.win) == self.cfg.window and u.win_sum > self._thr)
-            u.quiet = 0 if faulty else u.quiet + 1
-            u._stuck = stuck
-            u._faulty = faulty
+            u._faulty = u._stuck or (len(u.win) == cfg.window and u.win_sum > self._thr)
+            u.quiet = 0 if u._faulty else u.quiet + 1
 
-        faulty = [uid for uid in ids if self.units[uid]._faulty]
-        if len(ids) == 2 and faulty:
-            stuck = [uid for uid in ids if self.units[uid]._stuck]
+        healthy = [uid for uid in ids if self.units[uid].healthy]
+        flagged = [uid for uid in healthy if self.units[uid]._faulty]
+        bad = [uid for uid in flagged if self.units[uid]._stuck]
+        if len(healthy) == 2 and flagged and not bad:
             if not self.ambiguous:
                 self.ambiguous = True
                 self.counters["ambiguous disagreement (2 units)"] += 1
                 self.events.append((p.t_gps, None, "ambiguous", "2 units disagree"))
-                log.warning("IMU cluster: 2 units disagree at t=%.3f; cannot attribute, keeping %s", p.t_gps,
-                            "the non-stuck unit" if len(stuck) == 1 else "the primary")
-            if len(stuck) == 1:
-                bad = stuck
-            else:
-                bad = [uid for uid in ids if uid != self.cfg.primary_id]
-        else:
-            bad = faulty
-            if len(ids) >= 3 and len(faulty) * 2 >= len(ids):
-                # no majority: cannot attribute either
-                self.counters["no healthy majority"] += 1
-                bad = [uid for uid in faulty if self.units[uid]._stuck]
+                log.warning("IMU cluster: 2 units disagree at t=%.3f; cannot attribute, keeping the primary",
+                            p.t_gps)
+            bad = [uid for uid in healthy if uid != cfg.primary_id]
+        elif len(healthy) >= 3 and flagged and not bad:
+            bad = [max(flagged, key=lambda uid: self.units[uid].win_sum)]
+        for uid in bad:
+            u = self.units[uid]
+            u.healthy = False
+            self.counters[f"imu {uid} dropped"] += 1
+            why = "stuck output" if u._stuck else f"chi-square {u.win_sum:.1f} > {self._thr:.1f}"
+            self.events.append((p.t_gps, uid, "dropped", why))
+            log.warning("IMU cluster: unit %d dropped at t=%.3f (%s)", uid, p.t_gps, why)
+        if bad:
+            for uid in ids:                 # their windows held the dropped unit's contamination
+                u = self.units[uid]
+                if u.healthy:
+                    u.win.clear()
+                    u.win_sum = 0.0
         for uid in ids:
             u = self.units[uid]
-            if uid in bad and u.healthy:
-                u.healthy = False
-                self.counters[f"imu {uid} dropped"] += 1
-                why = "stuck output" if u._stuck else f"chi-square {u.win_sum:.1f} > {self._thr:.1f}"
-                self.events.append((p.t_gps, uid, "dropped", why))
-                log.warning("IMU cluster: unit %d dropped at t=%.3f (%s)", uid, p.t_gps, why)
-            elif not u.healthy and u.quiet >= self.cfg.readmit_quiet_samples:
+            if not u.healthy and uid not in bad and u.quiet >= cfg.readmit_quiet_samples:
                 u.healthy = True
+                u.win.clear()
+                u.win_sum = 0.0
                 self.counters[f"imu {uid} readmitted"] += 1
                 self.events.append((p.t_gps, uid, "readmitted", f"{u.quiet} quiet samples"))
                 log.info("IMU cluster: unit %d re-admitted at t=%.3f", uid, p.t_gps)
         if self.ambiguous and len(ids) == 2 and all(
-                self.units[uid].quiet >= self.cfg.readmit_quiet_samples for uid in ids):
+                self.units[uid].quiet >= cfg.readmit_quiet_samples for uid in ids):
             self.ambiguous = False      # latched until both have been quiet for the re-admission period
 
-    def _fuse(self, p: ImuSample, rates: dict) -> ImuSample:
+    def _fuse(self, p: ImuSample, raw: dict) -> ImuSample:
+        rates = {uid: r - self.units[uid].rel_bias for uid, r in raw.items()}    # primary's bias for all
         self._test(p, rates)
+        self._learn_biases(p, raw)
         use = [uid for uid in sorted(rates) if self.units[uid].healthy]
         if not use:
             use = [self.cfg.primary_id] if self.cfg.primary_id in rates else sorted(rates)[:1]
