@@ -289,6 +289,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
             "rx_VISION_POSITION_ESTIMATE", "rx_SERIAL_CONTROL", "rx_TIMESYNC", "rx_COMMAND_LONG", "rx_STATUSTEXT")},
         "rtcm_source": None if src is None else dict(src.counters),
         "statustext": [r.msg.text for r in ap.received if r.msg_type == "STATUSTEXT"],
+        "last_output": {r.msg_type: r.msg.to_dict() for r in ap.received
+                        if r.msg_type in ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT")},
         "field_log_dir": str(log_dir), "companion_log": str(out / "companion.log"),
         "setup_s": round(time.monotonic() - t_setup, 1)})
     if imu_units > 1:

@@ -73,3 +73,28 @@ def test_imu_cluster_drops_a_failing_unit_in_flight(tmp_path):
     assert r["rms_h_m"] < 1.5 and r["p95_3d_m"] < 3.0
     c = replay(r["field_log_dir"]).comparison()
     assert c["bit_for_bit"] and c["logged_solutions"] > 300, c
+
+
+def test_odometry_and_gps_input_outputs_end_to_end(tmp_path):
+    """Issue 3: the two other output modes reach the emulated autopilot as real MAVLink with the
+    fields ArduPilot requires, and the positions they carry are as good as the vision output's."""
+    import math
+    from tests._flyhelp import run_fly
+    for mode in ("odometry", "gps_input"):
+        r = run_fly(tmp_path / mode, duration_s=20.0, speedup=2.0, output_mode=mode)
+        assert r["companion_exit_code"] == 0
+        assert r["estimates_received"] > 0.7 * 25 * 20 * (17 / 20), mode     # first ~3 s: init
+        assert r["rms_h_m"] < 1.5 and r["p95_3d_m"] < 3.0, (mode, r["rms_h_m"], r["p95_3d_m"])
+        last = r["last_output"]
+        if mode == "odometry":
+            o = last["ODOMETRY"]
+            assert o["frame_id"] == 20 and o["child_frame_id"] == 12          # LOCAL_FRD, BODY_FRD
+            assert abs(math.sqrt(sum(q * q for q in o["q"])) - 1.0) < 1e-6
+            assert all(math.isfinite(v) for v in (o["x"], o["y"], o["z"], o["vx"], o["vy"], o["vz"]))
+            assert o["pose_covariance"][0] > 0 and 0 <= o["quality"] <= 100
+            assert "VISION_POSITION_ESTIMATE" not in last
+        else:
+            g = last["GPS_INPUT"]
+            assert g["fix_type"] >= 3 and g["time_week"] > 1000 and 0 <= g["time_week_ms"] < 604800000
+            assert g["ignore_flags"] == 0 and g["horiz_accuracy"] > 0 and g["satellites_visible"] > 0
+            assert "ODOMETRY" not in last
