@@ -42,22 +42,22 @@ def test_stock_autopilot_without_raw_gnss_gets_a_loosely_coupled_estimate(tmp_pa
 
 
 def test_imu_cluster_drops_a_failing_unit_in_flight(tmp_path):
-    """Issue 4 (IMU cluster) in the service: the autopilot reports three IMUs (HIGHRES_IMU,
-    SCALED_IMU2, SCALED_IMU3, each with its own turn-on biases); at 12 s unit 2's x gyro gains
+    """Issue 4 (IMU cluster) in the service: the autopilot reports three IMUs as ArduPilot does
+    (RAW_IMU, SCALED_IMU2, SCALED_IMU3: int16 mG and mrad/s, each unit with its own turn-on biases); at 12 s unit 2's x gyro gains
     0.02 rad/s (25 x its per-sample noise).  The companion drops that unit within a fraction of a
     second, says so to the ground station, keeps navigating on the other two, and the field log
     still replays bit for bit."""
     from sitl.autopilot import Faults
     from companion.replay import replay
     from tests._flyhelp import run_fly
-    r = run_fly(tmp_path, duration_s=30.0, speedup=2.0, imu_units=3,
+    r = run_fly(tmp_path, duration_s=30.0, speedup=2.0, imu_units=3, imu_message="RAW_IMU",
                 faults=Faults(imu_unit_bias=[(12.0, 2, 0.02)]))
     d = r.get("details", r)
     assert d["companion_exit_code"] == 0
     assert r["autopilot"]["imu_unit1_sent"] > 5000 and r["autopilot"]["imu_unit2_sent"] > 5000
     cl = r["imu_cluster"]
     assert cl is not None, "no IMU-cluster health in the field log"
-    assert cl["units"]["HIGHRES_IMU"]["healthy"] and cl["units"]["SCALED_IMU2"]["healthy"]
+    assert cl["units"]["RAW_IMU"]["healthy"] and cl["units"]["SCALED_IMU2"]["healthy"]
     assert not cl["units"]["SCALED_IMU3"]["healthy"]
     assert cl["counters"].get("imu 2 dropped") == 1 and not cl["ambiguous"]
     assert not any(k.startswith(("imu 0", "imu 1")) for k in cl["counters"]), cl["counters"]
