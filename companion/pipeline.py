@@ -19,9 +19,12 @@ What it does with the inputs
   (SYSTEM_TIME).  With ``mavlink.imu_cluster`` set, every listed stream has its own decoder and
   the samples go through an :class:`~companion.nav.imu_cluster.ImuCluster` (unit = position in the
   list, the first is the primary whose time grid the fused samples keep); a unit dropped or
-  re-admitted by its fault test is announced and counted (health ``imu_cluster``).  A solution is produced every ``k``-th decoded IMU sample, ``k`` =
-  round(``mavlink.imu_rate_hz`` / ``output.rate_hz``): decimation of the IMU stream, not a timer,
-  so the output rate follows the data and replays identically.
+  re-admitted by its fault test is announced and counted (health ``imu_cluster``).
+  A solution is produced at the first IMU sample of every ``1 / output.rate_hz`` slot of GPS
+  time (slot = floor(t_gps * rate)): paced by the data's own time, not a timer, so it replays
+  identically, and the output rate holds whatever IMU rate the autopilot actually delivers
+  (ArduPilot may stream fewer than the ``mavlink.imu_rate_hz`` asked for); an IMU slower than the
+  output rate gives one solution per sample.
 * SERIAL_CONTROL replies from the autopilot's GPS port, or ``ubx`` records -> UBX decoder ->
   rover epochs (RXM-RAWX), ephemerides (RXM-SFRBX), receiver fixes (NAV-PVT, unused for fusion).
 * ``rtcm`` -> RTCM decoder -> base epochs, base position, ephemerides.
@@ -155,7 +158,8 @@ class NavPipeline:
         self.rtcm = RtcmDecoder(week_hint=self._t_ref, leap_seconds=config.gnss.leap_seconds)
         self.engine = NavEngine(config.engine_config())
         self.lever_b = np.asarray(config.gnss.lever_arm_b_m, float)
-        self.decimation = max(1, int(round(mc.imu_rate_hz / config.output.rate_hz)))
+        self.output_rate_hz = float(config.output.rate_hz)
+        self._last_output_slot: int | None = None     # floor(t_gps * output rate) of the last solution
         self.serial_device = m.SERIAL_CONTROL_DEV_GPS1 if config.gnss.serial_control_device == "GPS1" \
             else m.SERIAL_CONTROL_DEV_GPS2
         self.raw_expected = config.gnss.source != "none"
@@ -408,8 +412,10 @@ class NavPipeline:
         eng.process(s)
         if self._held:
             self._release_held(s.t_gps)
-        if self.imu_count % self.decimation:
+        slot = math.floor(s.t_gps * self.output_rate_hz)
+        if slot == self._last_output_slot:
             return []
+        self._last_output_slot = slot
         sol = eng.solution()
         if sol.status == "untrusted":
             self._reinit("solution untrusted")

@@ -136,7 +136,8 @@ class EmulatedAutopilot:
     def __init__(self, sim, *, companion_port: int, speedup: float = 1.0, leap_seconds: int = 13,
                  imu_message: str = "HIGHRES_IMU", attitude_noise_deg: float = 0.3, gps_noise_m: float = 0.7,
                  receiver_latency_s: float = 0.06, boot_lead_s: float = 30.0, seed: int = 0,
-                 faults: Faults | None = None, clock: SimClock | None = None, imu_units: int = 1):
+                 faults: Faults | None = None, clock: SimClock | None = None, imu_units: int = 1,
+                 max_imu_rate_hz: float | None = None):
         self.sim = sim
         self.addr = ("127.0.0.1", companion_port)
         self.clock = clock or SimClock(speedup)
@@ -160,6 +161,8 @@ class EmulatedAutopilot:
         self.sock.bind(("127.0.0.1", 0))
         self.sock.setblocking(False)
         self.imu_rate_hz = sim.scenario.imu.rate_hz
+        # an autopilot that streams the IMU slower than asked (ArduPilot's scheduler/link budget)
+        self.imu_stream_max_hz = min(self.imu_rate_hz, max_imu_rate_hz or self.imu_rate_hz)
         # redundant IMUs 1, 2 (SCALED_IMU2, SCALED_IMU3 like ArduPilot): independent error realisations
         if not 1 <= imu_units <= 3:
             raise ValueError("imu_units: 1 to 3")
@@ -268,7 +271,7 @@ class EmulatedAutopilot:
             elif iv < 0:
                 self.intervals[mid] = 0.0
             else:
-                self.intervals[mid] = max(iv, 1e6 / self.imu_rate_hz if mid in (
+                self.intervals[mid] = max(iv, 1e6 / self.imu_stream_max_hz if mid in (
                     m.MAVLINK_MSG_ID_HIGHRES_IMU, m.MAVLINK_MSG_ID_RAW_IMU, m.MAVLINK_MSG_ID_SCALED_IMU2,
                     m.MAVLINK_MSG_ID_SCALED_IMU3) else 1e3)
             self._next_due.pop(mid, None)

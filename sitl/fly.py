@@ -214,7 +214,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               seed: int = 0, out_dir: str = "out/fly", output_mode: str = "vision", max_sigma_h_m: float = 2.0,
               max_sigma_v_m: float = 4.0, faults=None, use_caster: bool = True, imu_message: str = "HIGHRES_IMU",
               gnss_source: str = "mavlink_serial_control", leap_seconds: int = 13,
-              keep_companion_log: bool = True, imu_units: int = 1) -> dict:
+              keep_companion_log: bool = True, imu_units: int = 1, max_imu_rate_hz: float | None = None) -> dict:
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     out = Path(out_dir)
@@ -245,7 +245,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                             stdout=comp_log, stderr=subprocess.STDOUT, env=env,
                             cwd=str(Path(__file__).resolve().parent.parent))
     ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
-                           leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units)
+                           leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
+                           max_imu_rate_hz=max_imu_rate_hz)
     cpu0 = cpu1 = None
     wall0 = wall1 = None
     rss = hwm = float("nan")

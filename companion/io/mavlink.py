@@ -271,7 +271,8 @@ class ImuDecoder:
     consecutive time stamps: a sample not later than the previous one is rejected
     (``non_monotonic``); an interval longer than ``gap_factor`` nominal periods is counted as a
     ``gap`` and, if longer than ``max_dt_s``, the sample only restarts the chain (``gap_reset``)
-    because a rate times a long interval is not an increment.
+    because a rate times a long interval is not an increment.  The nominal period starts at
+    ``1 / rate_hz`` and follows the intervals actually delivered (exponential average).
     """
 
     def __init__(self, message: str = "auto", rate_hz: float = 200.0, gap_factor: float = 2.5,
@@ -332,6 +333,9 @@ class ImuDecoder:
             if dt > self.max_dt_s:
                 self.counters["gap_reset"] += 1
                 return None
+        # the interval actually delivered (the autopilot may stream slower than requested): a slow
+        # average, so a stream at a quarter of the requested rate is not one long series of 'gaps'
+        self.nominal_dt_s += 0.05 * (dt - self.nominal_dt_s)
         if unix:
             t_gps = unix_to_gps_s(t_us * 1e-6, self.leap_seconds)
         else:
