@@ -90,6 +90,13 @@ class GnssConfig:
     serial: SerialPortConfig = field(default_factory=SerialPortConfig)
     lever_arm_b_m: tuple[float, float, float] = _f((0.0, 0.0, 0.0),
                                                    doc="IMU to antenna phase centre, body FRD, m")
+    moving_baseline_b_m: tuple[float, float, float] | None = _f(
+        None, doc="dual-antenna heading: body FRD vector (m) from the moving-base antenna to the antenna "
+                  "of the receiver that outputs UBX NAV-RELPOSNED; unset = NAV-RELPOSNED not used")
+    baseline_length_tol_m: float = _f(0.03, min=0.0, doc="a NAV-RELPOSNED length further than this (+3 sigma) "
+                                      "from the installed one is a wrong carrier fix and is rejected")
+    gps_raw_yaw_sigma_deg: float = _f(1.0, min=0.0, doc="1-sigma of the GPS yaw in GPS_RAW_INT (an autopilot "
+                                      "with a dual-antenna GPS fills it); 0 = do not fuse it")
     leap_seconds: int = _f(18, min=0, max=100, doc="GPS - UTC (18 s since 2017-01-01)")
 
 
@@ -246,8 +253,11 @@ class Config:
     source_path: str = field(default="", compare=False, metadata={"internal": True})
 
     def engine_config(self):
-        """The nav engine configuration (filter section + the GNSS lever arm)."""
-        return self.filter.engine_config(self.gnss.lever_arm_b_m)
+        """The nav engine configuration (filter section + the GNSS installation)."""
+        g = self.gnss
+        return dataclasses.replace(self.filter.engine_config(g.lever_arm_b_m),
+                                   moving_baseline_b_m=g.moving_baseline_b_m,
+                                   baseline_length_tol_m=g.baseline_length_tol_m)
 
     def to_toml(self, comments: bool = True) -> str:
         return _to_toml(self, comments)

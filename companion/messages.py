@@ -160,6 +160,21 @@ class GnssAttitude:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class GnssBaseline:
+    """Moving-baseline vector of a dual-antenna receiver pair (UBX NAV-RELPOSNED of the rover
+    receiver): from the moving-base antenna to the rover antenna, local NED at the vehicle, m, with
+    per-axis 1-sigma.  Only carrier-fixed vectors are useful for attitude (a float solution has
+    decimetre errors); ``carrier_fixed`` says which this is.  The body-frame vector between the two
+    antennas is installation data (``gnss.moving_baseline_b_m``), not part of the message."""
+
+    t_gps: float
+    rel_pos_ned_m: np.ndarray
+    sigma_ned_m: np.ndarray
+    carrier_fixed: bool = True
+    length_sigma_m: float = float("nan")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class NavSolution:
     """The fused estimate at ``t_gps`` (IMU position unless stated)."""
 

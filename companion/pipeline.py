@@ -31,6 +31,9 @@ What it does with the inputs
 * GPS_RAW_INT -> :class:`~companion.messages.GnssFix`: the loosely coupled fallback when no raw
   observations arrived for ``raw_timeout_s`` of IMU time (or ``gnss.source = 'none'``).
 * ATTITUDE -> initial attitude; HEARTBEAT ``system_status`` STANDBY (disarmed) = on the ground.
+* Dual-antenna heading: UBX NAV-RELPOSNED -> moving-baseline vector (needs
+  ``gnss.moving_baseline_b_m``), and GPS_RAW_INT ``yaw`` (an autopilot with a moving-baseline
+  GPS) -> heading with ``gnss.gps_raw_yaw_sigma_deg``; both fused once the filter runs.
 
 Initialisation (status ``init`` until then, nothing injected): position and receiver clock from
 SPP (DGPS-corrected when a base is there) of the first rover epoch with enough satellites, or the
@@ -67,8 +70,8 @@ from .io.mavlink import BootToGpsTime, ImuDecoder, gps_fix_from_gps_raw_int, par
 from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
 from .io.rtcm import RtcmDecoder  # noqa: E402
 from .io.ubx import UbxDecoder  # noqa: E402
-from .messages import (BaseStationPosition, GnssEpoch, GnssFix, GpsEphemeris, ImuSample,  # noqa: E402
-                       NavSolution)
+from .messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix,  # noqa: E402
+                       GpsEphemeris, ImuSample, NavSolution)
 from .nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm  # noqa: E402
 from .nav.engine import NavEngine  # noqa: E402
 
@@ -319,6 +322,10 @@ class NavPipeline:
                 self.engine.process(msg)
             elif isinstance(msg, GnssFix):
                 self.counters["receiver fixes (NAV-PVT, not fused)"] += 1
+            elif isinstance(msg, GnssBaseline):
+                self.counters["moving baselines (NAV-RELPOSNED)"] += 1
+                if self.engine.initialized:
+                    self.engine.process(msg)
         return []
 
     # ------------------------------------------------------------------ IMU
@@ -544,6 +551,14 @@ class NavPipeline:
         self.last_fix = fix
         self.counters["GPS_RAW_INT fixes"] += 1
         eng = self.engine
+        # GPS yaw (dual-antenna GPS on the autopilot): cdeg, 0 = not provided, 65535 = unavailable
+        yaw_cdeg = int(getattr(msg, "yaw", 0) or 0)
+        sig_yaw = self.cfg.gnss.gps_raw_yaw_sigma_deg
+        if 0 < yaw_cdeg <= 36000 and sig_yaw > 0:
+            self.counters["GPS_RAW_INT yaw"] += 1
+            if eng.initialized:
+                eng.process(GnssAttitude(fix.t_gps, heading_rad=math.radians((yaw_cdeg % 36000) / 100.0),
+                                         sigma_heading_rad=math.radians(sig_yaw)))
         s = self.last_imu
         loose = not self.raw_expected or (s is not None and s.t_gps - self.last_raw_t > RAW_TIMEOUT_S)
         if not loose:

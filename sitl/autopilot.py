@@ -52,7 +52,7 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
-from companion.messages import SECONDS_PER_WEEK  # noqa: E402
+from companion.messages import SECONDS_PER_WEEK, gps_week_tow  # noqa: E402
 from companion.nav.earth import C_n_e, dcm_to_euler, ecef_to_geodetic  # noqa: E402
 
 m = mavlink2
@@ -85,6 +85,24 @@ class SimClock:
         d = self.mono_at(t_gps) - time.monotonic()
         if d > 0:
             await asyncio.sleep(d)
+
+
+def relposned_frame(t_gps: float, ned_m, sigma_ned_m) -> bytes:
+    """UBX NAV-RELPOSNED (version 1, carrier fixed) for a moving-baseline vector, built with pyubx2."""
+    from pyubx2 import GET, UBXMessage
+    week, tow = gps_week_tow(t_gps)
+    cm = [int(math.floor(x * 100.0)) for x in ned_m]                  # cm part, then 0.1 mm part
+    hp = [float(round((x * 100.0 - c) * 100.0)) * 0.01 for x, c in zip(ned_m, cm)]   # pyubx2 scale 0.01 cm
+    hp = [min(h, 0.99) for h in hp]
+    length = float(np.linalg.norm(ned_m))
+    heading = (math.degrees(math.atan2(ned_m[1], ned_m[0])) + 360.0) % 360.0
+    sig = [float(round(x * 1e4)) * 0.1 + 0.05 for x in sigma_ned_m]  # mm, pyubx2 scale 0.1 (+0.05: no truncation)
+    msg = UBXMessage("NAV", "NAV-RELPOSNED", GET, version=1, iTOW=int(round(tow * 1000.0)), relPosN=cm[0],
+                     relPosE=cm[1], relPosD=cm[2], relPosLength=int(length * 100.0), relPosHeading=round(heading, 5),
+                     _HPrelPosN=hp[0], _HPrelPosE=hp[1], _HPrelPosD=hp[2], accN=sig[0], accE=sig[1], accD=sig[2],
+                     accLength=sig[0], accHeading=0.5, gnssFixOK=1, diffSoln=1, relPosValid=1, carrSoln=2,
+                     isMoving=1, relPosHeadingValid=1)
+    return msg.serialize()
 
 
 def rawx_frame(epoch, leap_seconds: int) -> bytes:
@@ -137,7 +155,8 @@ class EmulatedAutopilot:
                  imu_message: str = "HIGHRES_IMU", attitude_noise_deg: float = 0.3, gps_noise_m: float = 0.7,
                  receiver_latency_s: float = 0.06, boot_lead_s: float = 30.0, seed: int = 0,
                  faults: Faults | None = None, clock: SimClock | None = None, imu_units: int = 1,
-                 max_imu_rate_hz: float | None = None):
+                 max_imu_rate_hz: float | None = None, moving_baseline_b_m=None,
+                 baseline_sigma_ned_m=(0.005, 0.005, 0.010), gps_yaw_sigma_deg: float | None = None):
         self.sim = sim
         self.addr = ("127.0.0.1", companion_port)
         self.clock = clock or SimClock(speedup)
@@ -146,6 +165,10 @@ class EmulatedAutopilot:
         self.attitude_noise_rad = math.radians(attitude_noise_deg)
         self.gps_noise_m = gps_noise_m
         self.receiver_latency_s = receiver_latency_s
+        # dual-antenna GPS: NAV-RELPOSNED in the UBX stream, and/or yaw in GPS_RAW_INT
+        self.moving_baseline_b = None if moving_baseline_b_m is None else np.asarray(moving_baseline_b_m, float)
+        self.baseline_sigma_ned_m = np.asarray(baseline_sigma_ned_m, float)
+        self.gps_yaw_sigma_deg = gps_yaw_sigma_deg
         self.faults = faults or Faults()
         self.rng = np.random.default_rng([seed, 777])
         self.prng = random.Random(seed)
@@ -184,16 +207,30 @@ class EmulatedAutopilot:
     # -- simulated receiver ------------------------------------------------------------------
     def _build_receiver_stream(self) -> None:
         lat = self.receiver_latency_s
+        rng = np.random.default_rng([int(self.rng.integers(1 << 31)), 779])
         for ep in self.sim.rover_epochs:
-            self._ubx_frames.append((ep.t_gps + lat, ep))
+            extra = b""
+            if self.moving_baseline_b is not None:
+                r, _, C_b_e = self.sim.truth_at(ep.t_gps)
+                la, lo, _ = ecef_to_geodetic(r)
+                ned = C_n_e(la, lo).T @ C_b_e @ self.moving_baseline_b
+                extra = relposned_frame(ep.t_gps, ned + rng.standard_normal(3) * self.baseline_sigma_ned_m,
+                                        self.baseline_sigma_ned_m)
+            self._ubx_frames.append((ep.t_gps + lat, ep, extra))
 
     def _build_fixes(self):
         out = []
         for ep in self.sim.rover_epochs:
             r = self.sim.antenna_at(ep.t_gps)
             r = r + self.rng.normal(0.0, self.gps_noise_m, 3)
-            _, v, _ = self.sim.truth_at(ep.t_gps)
-            out.append((ep.t_gps, r, v, len(ep.observations)))
+            r_imu, v, C_b_e = self.sim.truth_at(ep.t_gps)
+            yaw_cdeg = 0                                  # 0 = this GPS provides no yaw
+            if self.gps_yaw_sigma_deg is not None:
+                la, lo, _ = ecef_to_geodetic(r_imu)
+                C = C_n_e(la, lo).T @ C_b_e
+                yaw = math.degrees(math.atan2(C[1, 0], C[0, 0])) + self.rng.normal(0.0, self.gps_yaw_sigma_deg)
+                yaw_cdeg = int(round((yaw % 360.0) * 100.0)) % 36000 or 36000     # 36000 = north
+            out.append((ep.t_gps, r, v, len(ep.observations), yaw_cdeg))
         return out
 
     # -- time --------------------------------------------------------------------------------
@@ -373,11 +410,11 @@ class EmulatedAutopilot:
                 continue
             # receiver: UBX bytes into the GPS1 port buffer
             while i_ubx < len(self._ubx_frames) and self._ubx_frames[i_ubx][0] <= t:
-                t_out, ep = self._ubx_frames[i_ubx]
+                t_out, ep, extra = self._ubx_frames[i_ubx]
                 i_ubx += 1
                 if any(a <= ep.t_gps - self.t0 < b for a, b in faults.gnss_outage):
                     continue
-                self.gps1 += rawx_frame(ep, self.leap_seconds)
+                self.gps1 += rawx_frame(ep, self.leap_seconds) + extra
                 if len(self.gps1) > 16384:          # a UART buffer overflows: oldest bytes lost
                     del self.gps1[:len(self.gps1) - 16384]
             while i_fix < len(self._fix_list) and self._fix_list[i_fix][0] + self.receiver_latency_s <= t:
@@ -444,7 +481,7 @@ class EmulatedAutopilot:
         if outage:
             self.send(self.mav.gps_raw_int_encode(self.boot_us(t), 1, 0, 0, 0, 65535, 65535, 65535, 65535, 0))
             return
-        t_fix, r, v, nsat = fix
+        t_fix, r, v, nsat, yaw_cdeg = fix
         lat, lon, h = ecef_to_geodetic(r)
         v_n = C_n_e(lat, lon).T @ v
         speed = math.hypot(v_n[0], v_n[1])
@@ -453,7 +490,7 @@ class EmulatedAutopilot:
             self.boot_us(t_fix + self.receiver_latency_s), 3, int(round(math.degrees(lat) * 1e7)),
             int(round(math.degrees(lon) * 1e7)), int(round(h * 1000)), 120, 180, int(round(speed * 100)),
             int(round(cog * 100)) % 36000, nsat, int(round(h * 1000)), int(self.gps_noise_m * 1500),
-            int(self.gps_noise_m * 2500), 300, 0, 0))
+            int(self.gps_noise_m * 2500), 300, 0, yaw_cdeg))
 
     # -- results -----------------------------------------------------------------------------
     def estimates(self):

@@ -95,7 +95,7 @@ def _wrap(a):
 
 
 def run_engine(sim, cfg: EngineConfig, p0: dict, seed: int, *, epochs=True, fixes=False, attitudes=False,
-               latency_s: float = 0.0, keep_engine: bool = False) -> dict:
+               latency_s: float = 0.0, keep_engine: bool = False, extra_messages=()) -> dict:
     """Run the engine over a simulated trajectory; at 1 Hz record the IMU position error (local ENU
     of the start, m), velocity error (ENU, m/s) and Euler-angle errors (roll, pitch, heading; rad)."""
     from .paper import initial_errors
@@ -115,6 +115,7 @@ def run_engine(sim, cfg: EngineConfig, p0: dict, seed: int, *, epochs=True, fixe
         msgs += list(sim.gnss_fixes)
     if attitudes:
         msgs += list(sim.attitude_measurements)
+    msgs += list(extra_messages)
     msgs.sort(key=lambda m: m.t_gps)
     lat0, lon0, _ = ecef_to_geodetic(truth.r_e[0])
     C_e_enu = C_n_e(lat0, lon0).T[[1, 0, 2]] * np.array([[1.0], [1.0], [-1.0]])   # ECEF -> ENU

@@ -72,7 +72,8 @@ def free_udp_port() -> int:
 
 def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: float, output_mode: str,
                           max_sigma_h_m: float, max_sigma_v_m: float, leap_seconds: int, imu_message: str,
-                          gnss_source: str = "mavlink_serial_control", imu_units: int = 1) -> str:
+                          gnss_source: str = "mavlink_serial_control", imu_units: int = 1,
+                          moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None) -> str:
     from .tuning import tuning_for
     t = tuning_for(sim.scenario)
     n = t.noise
@@ -86,7 +87,11 @@ def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: 
         "",
         "[gnss]", f'source = "{gnss_source}"', 'serial_control_device = "GPS1"',
         "serial_control_poll_interval_s = 0.02", f"lever_arm_b_m = [{la[0]!r}, {la[1]!r}, {la[2]!r}]",
-        f"leap_seconds = {leap_seconds}", "",
+        f"leap_seconds = {leap_seconds}",
+        *([f"moving_baseline_b_m = {json.dumps([float(x) for x in moving_baseline_b_m])}"]
+          if moving_baseline_b_m is not None else []),
+        *([f"gps_raw_yaw_sigma_deg = {float(gps_yaw_sigma_deg)!r}"] if gps_yaw_sigma_deg is not None else []),
+        "",
         "[corrections]", f'source = "{corr}"', "forward_to_autopilot = false", "",
     ]
     if caster is not None:
@@ -214,7 +219,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               seed: int = 0, out_dir: str = "out/fly", output_mode: str = "vision", max_sigma_h_m: float = 2.0,
               max_sigma_v_m: float = 4.0, faults=None, use_caster: bool = True, imu_message: str = "HIGHRES_IMU",
               gnss_source: str = "mavlink_serial_control", leap_seconds: int = 13,
-              keep_companion_log: bool = True, imu_units: int = 1, max_imu_rate_hz: float | None = None) -> dict:
+              keep_companion_log: bool = True, imu_units: int = 1, max_imu_rate_hz: float | None = None,
+              moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None) -> dict:
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     out = Path(out_dir)
@@ -236,7 +242,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     cfg_text = companion_config_toml(sim, udp_port=udp_port, caster=caster, log_dir=str(log_dir), rate_hz=rate_hz,
                                      output_mode=output_mode, max_sigma_h_m=max_sigma_h_m,
                                      max_sigma_v_m=max_sigma_v_m, leap_seconds=leap_seconds,
-                                     imu_message=imu_message, gnss_source=gnss_source, imu_units=imu_units)
+                                     imu_message=imu_message, gnss_source=gnss_source, imu_units=imu_units,
+                                     moving_baseline_b_m=moving_baseline_b_m, gps_yaw_sigma_deg=gps_yaw_sigma_deg)
     cfg_path = out / "companion.toml"
     cfg_path.write_text(cfg_text)
     comp_log = open(out / "companion.log", "wb")
@@ -246,7 +253,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                             cwd=str(Path(__file__).resolve().parent.parent))
     ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
                            leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
-                           max_imu_rate_hz=max_imu_rate_hz)
+                           max_imu_rate_hz=max_imu_rate_hz, moving_baseline_b_m=moving_baseline_b_m,
+                           gps_yaw_sigma_deg=gps_yaw_sigma_deg)
     cpu0 = cpu1 = None
     wall0 = wall1 = None
     rss = hwm = float("nan")

@@ -237,6 +237,33 @@ def test_nav_pvt_from_pyubx2_frame():
     assert (fix.sigma_h_m, fix.sigma_v_m, fix.sigma_vel_mps) == pytest.approx((0.02, 0.03, 0.05))
 
 
+def test_nav_relposned_v1_and_v0_from_pyubx2_frames():
+    """Dual-antenna moving baseline: NED vector (cm + 0.1 mm parts), accuracies, carrier state."""
+    from companion.messages import GnssBaseline
+    v1 = UBXMessage("NAV", "NAV-RELPOSNED", GET, version=1, iTOW=215081000, relPosN=-45, relPosE=87,
+                    relPosD=-3, relPosLength=98, relPosHeading=117.34, _HPrelPosN=0.12, _HPrelPosE=-0.07,
+                    _HPrelPosD=0.03, accN=5.2, accE=7.5, accD=14.0, accLength=7.0, accHeading=0.5,
+                    gnssFixOK=1, diffSoln=1, relPosValid=1, carrSoln=2, isMoving=1, relPosHeadingValid=1)
+    v0 = UBXMessage("NAV", "NAV-RELPOSNED", GET, version=0, iTOW=215082000, relPosN=100, relPosE=0,
+                    relPosD=5, _HPrelPosN=-0.05, accN=25.0, accE=25.0, accD=50.0, gnssFixOK=1, relPosValid=1,
+                    carrSoln=1)
+    not_valid = UBXMessage("NAV", "NAV-RELPOSNED", GET, version=1, iTOW=215083000, relPosN=-45, gnssFixOK=1,
+                           relPosValid=0, carrSoln=0)
+    dec = UbxDecoder(week_hint=2280)
+    out = dec.feed(v1.serialize() + v0.serialize() + not_valid.serialize())
+    assert [type(x) for x in out] == [GnssBaseline, GnssBaseline]
+    b1, b0 = out
+    assert b1.t_gps == 2280 * SECONDS_PER_WEEK + 215081.0
+    assert b1.rel_pos_ned_m == pytest.approx([-0.4488, 0.8693, -0.0297], abs=1e-9)
+    assert b1.sigma_ned_m == pytest.approx([0.0052, 0.0075, 0.0140], abs=1e-9)
+    assert b1.length_sigma_m == pytest.approx(0.0070) and b1.carrier_fixed
+    # the heading the receiver reports is the azimuth of that vector
+    assert math.degrees(math.atan2(b1.rel_pos_ned_m[1], b1.rel_pos_ned_m[0])) == pytest.approx(117.3, abs=0.1)
+    assert b0.rel_pos_ned_m == pytest.approx([0.9995, 0.0, 0.05], abs=1e-9) and not b0.carrier_fixed
+    assert math.isnan(b0.length_sigma_m)
+    assert dec.counters["nav_relposned"] == 2 and dec.counters["relposned_invalid"] == 1
+
+
 def test_sfrbx_parity_layout_on_real_words():
     """Every GPS L1 C/A word of the real log passes the parity check; a flipped data bit fails."""
     n = 0

@@ -7,6 +7,9 @@ serial port, a SERIAL_CONTROL tunnel, a file) and it returns the messages comple
 * ``RXM-SFRBX`` -> :class:`~companion.messages.GpsEphemeris` (GPS L1 C/A LNAV subframes 1-3,
   once per new consistent set per satellite; see :mod:`companion.gnss.lnav`)
 * ``NAV-PVT``   -> :class:`~companion.messages.GnssFix` (the receiver's own solution)
+* ``NAV-RELPOSNED`` (version 0, M8P; version 1, F9P) -> :class:`~companion.messages.GnssBaseline`
+  (moving-baseline vector for dual-antenna heading) when ``gnssFixOK`` and ``relPosValid``;
+  otherwise counted (``relposned_invalid``).  ``carrier_fixed`` = carrSoln 2.
 * ``NAV-TIMEGPS`` only updates the decoder's notion of the GPS week.
 
 Robustness contract: ``feed`` never raises on bad input.  Garbage between frames, bad checksums,
@@ -46,13 +49,13 @@ from typing import Callable, Union
 import numpy as np
 
 from ..gnss.lnav import LnavEphemerisAssembler
-from ..messages import (SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS, GnssEpoch, GnssFix, GpsEphemeris,
+from ..messages import (SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
                         SatObservation)
 from ..nav.earth import C_n_e, geodetic_to_ecef
 
 log = logging.getLogger(__name__)
 
-UbxMessage = Union[GnssEpoch, GpsEphemeris, GnssFix]
+UbxMessage = Union[GnssEpoch, GpsEphemeris, GnssFix, GnssBaseline]
 # A week hint: a full GPS week number, or a callable returning the current GPS time estimate (s).
 WeekHint = Union[int, Callable[[], float], None]
 
@@ -211,6 +214,9 @@ RXM_RAWX = (0x02, 0x15)
 RXM_SFRBX = (0x02, 0x13)
 NAV_PVT = (0x01, 0x07)
 NAV_TIMEGPS = (0x01, 0x20)
+NAV_RELPOSNED = (0x01, 0x3C)
+_RELPOS_V1 = struct.Struct("<BBHIiiiii4xbbbbIIIII4xI")     # 64 bytes (F9P)
+_RELPOS_V0 = struct.Struct("<BBHIiiibbbxIIII")             # 40 bytes (M8P)
 
 
 class UbxDecoder:
@@ -320,6 +326,9 @@ class UbxDecoder:
         if key == NAV_TIMEGPS:
             self._nav_timegps(payload)
             return []
+        if key == NAV_RELPOSNED:
+            m = self._nav_relposned(payload)
+            return [m] if m is not None else []
         self._count("ignored_frames")
         return []
 
@@ -412,6 +421,23 @@ class UbxDecoder:
         if valid & 0x03 == 0x03:
             self.time_ref.update(week * SECONDS_PER_WEEK + itow * 1e-3 + ftow * 1e-9)
 
+    def _nav_relposned(self, p: bytes) -> GnssBaseline | None:
+        f = _relposned_fields(p)
+        if f is None:
+            self._reject("bad_payload", f"NAV-RELPOSNED: {len(p)} bytes, version {p[0] if p else '?'}")
+            return None
+        flags = f["flags"]
+        if not (flags & 0x01 and flags & 0x04):          # gnssFixOK, relPosValid
+            self._count("relposned_invalid")
+            return None
+        t_gps = self.time_ref.resolve_tow(f["tow_s"])
+        if t_gps is None:
+            self._reject("relposned_unknown_week")
+            return None
+        self._count("nav_relposned")
+        return GnssBaseline(t_gps=t_gps, rel_pos_ned_m=f["ned_m"], sigma_ned_m=f["acc_m"],
+                            carrier_fixed=((flags >> 3) & 0x03) == 2, length_sigma_m=f["acc_len_m"])
+
     def _nav_pvt(self, p: bytes) -> GnssFix | None:
         if len(p) < _PVT.size:
             self._reject("bad_payload", "NAV-PVT too short")
@@ -455,6 +481,24 @@ class UbxDecoder:
                 ft = 4
         return GnssFix(t_gps=t_gps, r_e=r_e, v_e=v_e, sigma_h_m=hacc * 1e-3, sigma_v_m=vacc * 1e-3,
                        sigma_vel_mps=sacc * 1e-3, num_sats=num_sv, fix_type=ft)
+
+
+def _relposned_fields(p: bytes) -> dict | None:
+    """NAV-RELPOSNED payload -> N/E/D (m), their accuracies (m), length accuracy (m, NaN in v0),
+    iTOW (s), flags; None if too short or of an unknown version."""
+    if len(p) >= _RELPOS_V1.size and p[0] == 1:
+        (_v, _r, _ref, itow, n, e, d, _length, _heading, hpn, hpe, hpd, _hpl, acc_n, acc_e, acc_d, acc_l,
+         _acc_h, flags) = _RELPOS_V1.unpack_from(p, 0)
+        acc_len = acc_l * 1e-4
+    elif len(p) >= _RELPOS_V0.size and p[0] == 0:
+        _v, _r, _ref, itow, n, e, d, hpn, hpe, hpd, acc_n, acc_e, acc_d, flags = _RELPOS_V0.unpack_from(p, 0)
+        acc_len = float("nan")
+    else:
+        return None
+    # cm + 0.1 mm high-precision parts; accuracies in 0.1 mm
+    ned = np.array([n * 1e-2 + hpn * 1e-4, e * 1e-2 + hpe * 1e-4, d * 1e-2 + hpd * 1e-4])
+    return {"tow_s": itow * 1e-3, "ned_m": ned, "acc_m": np.array([acc_n, acc_e, acc_d]) * 1e-4,
+            "acc_len_m": acc_len, "flags": flags}
 
 
 def decode_ubx_file(path: str, week_hint: WeekHint = None, chunk_size: int = 4096) -> tuple[list[UbxMessage], UbxDecoder]:

@@ -25,12 +25,12 @@ import numpy as np
 
 from ..gnss.ephemeris_store import EphemerisStore
 from ..gnss.prepare import prepare_epoch
-from ..messages import (BaseStationPosition, GnssAttitude, GnssEpoch, GnssFix, GpsEphemeris, ImuSample,
-                        NavSolution)
+from ..messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
+                        ImuSample, NavSolution)
 from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
-from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, doppler_batch, line_of_sight,
-                           nhc_batch, position_fix_batch, pseudorange_batch, single_difference, tdcp_batch,
+from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, baseline_batch, doppler_batch,
+                           line_of_sight, nhc_batch, position_fix_batch, pseudorange_batch, single_difference, tdcp_batch,
                            velocity_fix_batch, zero_rate_batch, zero_velocity_batch)
 from .strapdown import strapdown_step_with_force
 
@@ -93,6 +93,11 @@ class EngineConfig:
     leave_one_out_kinds: tuple = ("tdcp", "pseudorange")
     gravity_gradient_refresh_m: float = 200.0
     klobuchar: tuple | None = None
+    # dual-antenna moving baseline (NAV-RELPOSNED): body FRD vector from the moving-base antenna to
+    # the rover antenna (None = not installed); a measured length further than the tolerance (plus
+    # 3 sigma) from it is a wrong carrier fix and is rejected; float solutions are not used
+    moving_baseline_b_m: tuple[float, float, float] | None = None
+    baseline_length_tol_m: float = 0.03
 
 
 @dataclass
@@ -209,6 +214,8 @@ class NavEngine:
             return self.process_fix(msg)
         if isinstance(msg, GnssAttitude):
             return self.process_attitude(msg)
+        if isinstance(msg, GnssBaseline):
+            return self.process_baseline(msg)
         self.counters["unknown message"] += 1
         return None
 
@@ -318,6 +325,8 @@ class NavEngine:
                     self._process_fix(e)
                 elif isinstance(e, GnssAttitude):
                     self._process_attitude(e)
+                elif isinstance(e, GnssBaseline):
+                    self._process_baseline(e)
                 else:
                     self._process_epoch(e)
         return None
@@ -599,6 +608,47 @@ class NavEngine:
         self.counters["attitude used"] += rep.n_accepted
         for reason in rep.rejected_reason.values():
             self.counters[f"attitude rejected: {reason}"] += 1
+        dx = self.kf.update([b], [rep])
+        if rep.n_accepted:
+            self._feedback(dx)
+        return rep
+
+    def process_baseline(self, bl: GnssBaseline):
+        """Dual-antenna moving-baseline vector at its GPS time (heading aiding)."""
+        if not self.initialized:
+            self.counters["baseline before init"] += 1
+            return None
+        if self.cfg.moving_baseline_b_m is None:
+            self.counters["baseline ignored: no moving_baseline_b_m configured"] += 1
+            return None
+        if not bl.carrier_fixed:
+            self.counters["baseline ignored: carrier not fixed"] += 1
+            return None
+        if not (np.all(np.isfinite(bl.rel_pos_ned_m)) and np.all(np.isfinite(bl.sigma_ned_m))):
+            self.counters["baseline rejected: not finite"] += 1
+            return None
+        b = np.asarray(self.cfg.moving_baseline_b_m, float)
+        length, nominal = float(np.linalg.norm(bl.rel_pos_ned_m)), float(np.linalg.norm(b))
+        sig_len = bl.length_sigma_m if math.isfinite(bl.length_sigma_m) else float(np.max(bl.sigma_ned_m))
+        if abs(length - nominal) > self.cfg.baseline_length_tol_m + 3.0 * sig_len:
+            self.counters["baseline rejected: length (wrong carrier fix?)"] += 1
+            return None
+        if bl.t_gps > self.t_gps:
+            self._wait_for_imu(bl)
+            return None
+        return self._process_baseline(bl)
+
+    def _process_baseline(self, bl: GnssBaseline):
+        ins = self.ins_at(bl.t_gps)
+        if ins is None:
+            self.counters["baseline older than INS history"] += 1
+            return None
+        lat, lon, _ = ecef_to_geodetic(ins.r_e)
+        b = baseline_batch(ins.C_b_e, C_n_e(lat, lon), bl, np.asarray(self.cfg.moving_baseline_b_m, float))
+        rep = self.kf.gate(b)
+        self.counters["baseline rows used"] += rep.n_accepted
+        for reason in rep.rejected_reason.values():
+            self.counters[f"baseline rejected: {reason}"] += 1
         dx = self.kf.update([b], [rep])
         if rep.n_accepted:
             self._feedback(dx)

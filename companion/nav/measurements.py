@@ -248,6 +248,31 @@ def attitude_batch(C_b_e: np.ndarray, C_n_e_: np.ndarray, meas, layout=LAYOUT) -
     return MeasurementBatch("attitude", [name for _, name, _, _ in rows], z, H, r)
 
 
+def baseline_batch(C_b_e: np.ndarray, C_n_e_: np.ndarray, meas, baseline_b_m: np.ndarray,
+                   layout=LAYOUT) -> MeasurementBatch:
+    """Moving-baseline vector of a dual-antenna receiver (UBX NAV-RELPOSNED): the NED vector from
+    the moving-base antenna to the rover antenna, predicted as ``C_e_n C_b_e b`` with the body
+    vector ``b`` of the installation.  It observes the heading (and the tilt about the axis
+    perpendicular to it) at any attitude, whatever direction the antennas are mounted in -- a
+    heading-only measurement with an offset is exact only for a baseline along body x or a level
+    vehicle.  Jacobian w.r.t. the misalignment by central differences, as :func:`attitude_batch`."""
+    from .earth import rotation_from_rotvec
+
+    C_e_n = C_n_e_.T
+    b = np.asarray(baseline_b_m, float)
+    pred = C_e_n @ C_b_e @ b
+    H = np.zeros((3, layout.n))
+    h = 1e-6
+    for j in range(3):
+        d = np.zeros(3)
+        d[j] = h
+        H[:, layout.att.start + j] = (C_e_n @ rotation_from_rotvec(d) @ C_b_e @ b
+                                      - C_e_n @ rotation_from_rotvec(-d) @ C_b_e @ b) / (2 * h)
+    z = np.asarray(meas.rel_pos_ned_m, float) - pred
+    r = np.maximum(np.asarray(meas.sigma_ned_m, float), 1e-3) ** 2
+    return MeasurementBatch("baseline", ["baseline N", "baseline E", "baseline D"], z, H, r)
+
+
 def _wrap_pi(a: np.ndarray) -> np.ndarray:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
