@@ -66,6 +66,8 @@ class MavlinkConfig:
     system_time_rate_hz: float = _f(1.0, min=0.1, max=50.0)
     gps_raw_rate_hz: float = _f(5.0, min=0.0, max=50.0, doc="GPS_RAW_INT rate (0 = do not request)")
     attitude_rate_hz: float = _f(10.0, min=0.0, max=400.0, doc="ATTITUDE rate (0 = do not request)")
+    extended_sys_state_rate_hz: float = _f(1.0, min=0.0, max=50.0,
+                                           doc="EXTENDED_SYS_STATE rate (landed state, for ZUPT/NHC; 0 = do not request)")
     heartbeat_interval_s: float = _f(1.0, min=0.1, max=10.0)
     link_timeout_s: float = _f(3.0, min=0.5, max=60.0, doc="no autopilot HEARTBEAT for this long = link lost")
     timesync_interval_s: float = _f(1.0, min=0.0, max=60.0, doc="TIMESYNC requests (0 = only answer)")
@@ -191,6 +193,11 @@ class FilterConfig:
     zupt_max_speed_mps: float = _f(0.5, min=0.0, min_exclusive=True)
     zupt_sigma_mps: float = _f(0.02, min=0.0, min_exclusive=True)
     zaru_sigma_floor_radps: float = _f(2e-4, min=0.0)
+    nhc_enabled: bool = _f(False, doc="non-holonomic constraint (seed 002) while on the ground: a rover or "
+                           "boat always, an aircraft when landed (EXTENDED_SYS_STATE) or disarmed")
+    nhc_sigma_lateral_mps: float = _f(0.1, min=0.0, min_exclusive=True)
+    nhc_sigma_vertical_mps: float = _f(0.1, min=0.0, min_exclusive=True)
+    nhc_min_speed_mps: float = _f(1.0, min=0.0)
     gravity_gradient_refresh_m: float = _f(200.0, min=0.0, min_exclusive=True)
 
     def process_noise(self):

@@ -30,7 +30,9 @@ What it does with the inputs
 * ``rtcm`` -> RTCM decoder -> base epochs, base position, ephemerides.
 * GPS_RAW_INT -> :class:`~companion.messages.GnssFix`: the loosely coupled fallback when no raw
   observations arrived for ``raw_timeout_s`` of IMU time (or ``gnss.source = 'none'``).
-* ATTITUDE -> initial attitude; HEARTBEAT ``system_status`` STANDBY (disarmed) = on the ground.
+* ATTITUDE -> initial attitude.  Ground mode (ZUPT/NHC, ``filter.nhc_enabled``): a rover or boat
+  (HEARTBEAT ``type``) always, otherwise EXTENDED_SYS_STATE ``landed_state`` ON_GROUND when the
+  autopilot reports it, else disarmed (HEARTBEAT ``system_status`` STANDBY).
 * Dual-antenna heading: UBX NAV-RELPOSNED -> moving-baseline vector (needs
   ``gnss.moving_baseline_b_m``), and GPS_RAW_INT ``yaw`` (an autopilot with a moving-baseline
   GPS) -> heading with ``gnss.gps_raw_yaw_sigma_deg``; both fused once the filter runs.
@@ -77,6 +79,7 @@ from .nav.engine import NavEngine  # noqa: E402
 
 log = logging.getLogger(__name__)
 m = mavlink2
+GROUND_VEHICLE_TYPES = (m.MAV_TYPE_GROUND_ROVER, m.MAV_TYPE_SURFACE_BOAT)
 
 REINIT_GAP_S = 1.0            # IMU time step (either direction) that restarts the filter
 CLUSTER_OUTPUT_ID = 100       # imu_id of the fused samples of an IMU cluster
@@ -174,6 +177,10 @@ class NavPipeline:
         self.last_raw_t: float = -math.inf        # GPS time (IMU clock) of the last rover epoch
         self.attitude = None                      # (time_boot_ms, roll, pitch, yaw)
         self.on_ground = False
+        self.engine.ground_mode = False            # no NHC until the autopilot says we are on the ground
+        self.vehicle_type: int | None = None       # HEARTBEAT type (MAV_TYPE)
+        self.disarmed = False
+        self.landed_state: int | None = None      # EXTENDED_SYS_STATE (MAV_LANDED_STATE)
         self.last_fix: GnssFix | None = None
         self._last_fix_key = None
         self._boot_epoch = 0
@@ -295,8 +302,28 @@ class NavPipeline:
         elif mt == "GPS_RAW_INT":
             out = self._gps_raw(msg)
         elif mt == "HEARTBEAT":
-            self.on_ground = msg.system_status == m.MAV_STATE_STANDBY
+            self.vehicle_type = int(msg.type)
+            self.disarmed = msg.system_status == m.MAV_STATE_STANDBY
+            self._update_ground_mode()
+        elif mt == "EXTENDED_SYS_STATE":
+            self.landed_state = int(msg.landed_state)
+            self._update_ground_mode()
         return out
+
+    def _update_ground_mode(self) -> None:
+        """On the ground = a ground vehicle (rover, boat) always; otherwise the autopilot's landed
+        state when it reports one (ON_GROUND also covers a taxiing aircraft), else disarmed.
+        ZUPT/NHC follow it (the engine's NHC is off in flight)."""
+        if self.vehicle_type in GROUND_VEHICLE_TYPES:
+            on_ground = True
+        elif self.landed_state not in (None, m.MAV_LANDED_STATE_UNDEFINED):
+            on_ground = self.landed_state == m.MAV_LANDED_STATE_ON_GROUND
+        else:
+            on_ground = self.disarmed
+        if on_ground != self.on_ground:
+            self.counters["ground mode on" if on_ground else "ground mode off (airborne)"] += 1
+        self.on_ground = on_ground
+        self.engine.set_ground_mode(on_ground)
 
     def _check_reboot(self) -> None:
         if self.time_map.boot_epoch != self._boot_epoch:
@@ -525,7 +552,7 @@ class NavPipeline:
         dt = s.t_gps - epoch.t_gps
         if sol.v_e is not None and np.all(np.isfinite(sol.v_e)):
             v, sv = np.asarray(sol.v_e, float), sig.vel_doppler_mps
-        elif self.on_ground:
+        elif self.disarmed:                 # disarmed: not moving (a ground vehicle may drive)
             v, sv = np.zeros(3), sig.vel_ground_mps
         elif self.last_fix is not None and self.last_fix.v_e is not None:
             v, sv = np.asarray(self.last_fix.v_e, float), sig.vel_gps_raw_mps
@@ -581,7 +608,7 @@ class NavPipeline:
         if C is None:
             return
         sig = self.init_sigmas
-        if self.on_ground:
+        if self.disarmed:
             v, sv = np.zeros(3), sig.vel_ground_mps
         elif fix.v_e is not None:
             v, sv = np.asarray(fix.v_e, float), sig.vel_gps_raw_mps

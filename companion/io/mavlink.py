@@ -1130,6 +1130,8 @@ def message_rates_from_config(cfg) -> dict[str, float]:
         rates["GPS_RAW_INT"] = cfg.gps_raw_rate_hz
     if cfg.attitude_rate_hz > 0:
         rates["ATTITUDE"] = cfg.attitude_rate_hz
+    if cfg.extended_sys_state_rate_hz > 0:
+        rates["EXTENDED_SYS_STATE"] = cfg.extended_sys_state_rate_hz
     return rates
 
 

@@ -604,14 +604,7 @@ class NavEngine:
         if not len(b):
             self.counters["attitude without angles"] += 1
             return None
-        rep = self.kf.gate(b)
-        self.counters["attitude used"] += rep.n_accepted
-        for reason in rep.rejected_reason.values():
-            self.counters[f"attitude rejected: {reason}"] += 1
-        dx = self.kf.update([b], [rep])
-        if rep.n_accepted:
-            self._feedback(dx)
-        return rep
+        return self._update_with(b, "attitude", "attitude used")
 
     def process_baseline(self, bl: GnssBaseline):
         """Dual-antenna moving-baseline vector at its GPS time (heading aiding)."""
@@ -645,11 +638,15 @@ class NavEngine:
             return None
         lat, lon, _ = ecef_to_geodetic(ins.r_e)
         b = baseline_batch(ins.C_b_e, C_n_e(lat, lon), bl, np.asarray(self.cfg.moving_baseline_b_m, float))
-        rep = self.kf.gate(b)
-        self.counters["baseline rows used"] += rep.n_accepted
+        return self._update_with(b, "baseline", "baseline rows used")
+
+    def _update_with(self, batch: MeasurementBatch, what: str, used_counter: str) -> UpdateReport:
+        """Gate one measurement batch, update, count accepted rows and rejections by reason."""
+        rep = self.kf.gate(batch)
+        self.counters[used_counter] += rep.n_accepted
         for reason in rep.rejected_reason.values():
-            self.counters[f"baseline rejected: {reason}"] += 1
-        dx = self.kf.update([b], [rep])
+            self.counters[f"{what} rejected: {reason}"] += 1
+        dx = self.kf.update([batch], [rep])
         if rep.n_accepted:
             self._feedback(dx)
         return rep
