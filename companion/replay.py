@@ -44,6 +44,7 @@ class ReplayResult:
     records: int = 0
     elapsed_s: float = 0.0
     config_from: str = ""
+    config_error: str = ""          # the log's configuration could not be read (e.g. a newer version's)
     log_stats: dict = field(default_factory=dict)
     pipeline_health: dict = field(default_factory=dict)
 
@@ -114,6 +115,7 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
                     cfg = _config_from_event(rec.payload)
                 except Exception as exc:
                     log.warning("unreadable event record: %r", exc)
+                    res.config_error = res.config_error or str(exc)
                     cfg = None
                 if cfg is not None:
                     pipe = NavPipeline(cfg)
@@ -241,6 +243,10 @@ def run_replay_cli(args) -> int:
     if res.records == 0:
         print(f"error: {args.log}: no records found (a field log is a *.cflog file or a directory of them)",
               file=sys.stderr)
+        return 2
+    if not res.config_from and res.config_error:
+        print(f"error: the field log's configuration cannot be read by this version ({res.config_error}); "
+              f"replay with --config FILE", file=sys.stderr)
         return 2
     if res.logged and not c["bit_for_bit"] and res.config_from == "field log":
         return 1

@@ -45,3 +45,23 @@ def test_replay_bit_for_bit_and_tlog(tmp_path):
     # no RTCM in a tlog: no ephemerides, so the pipeline falls back to GPS_RAW_INT (loose)
     assert t.solutions and t.solutions[-1].extras["mode"] == "loose"
     assert t.pipeline_health["pipeline"].get("loose fixes fused", 0) > 5
+
+
+def test_replay_of_a_log_whose_config_this_version_cannot_read_says_so(tmp_path):
+    """A field log written by a newer version (a config key this one does not know) is not
+    silently replayed with defaults: the CLI names the problem and the way out (--config)."""
+    from companion.config import config_from_dict
+    from companion.io.fieldlog import FieldLogWriter
+    from companion.pipeline import config_event
+    logdir = tmp_path / "log"
+    w = FieldLogWriter(logdir)
+    ev = json.loads(config_event(config_from_dict({})))
+    ev["toml"] = ev["toml"].replace("[mavlink]", "[mavlink]\nsome_future_key = 1", 1)
+    w.write("event", json.dumps(ev).encode())
+    w.write("solution", b"\x00" * 8)
+    w.close()
+    p = subprocess.run([sys.executable, "-m", "companion.run_cli", "replay", str(logdir), "--no-progress"],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert "cannot be read by this version" in p.stderr and "some_future_key" in p.stderr
+    assert "--config" in p.stderr
