@@ -156,7 +156,8 @@ class EmulatedAutopilot:
                  receiver_latency_s: float = 0.06, boot_lead_s: float = 30.0, seed: int = 0,
                  faults: Faults | None = None, clock: SimClock | None = None, imu_units: int = 1,
                  max_imu_rate_hz: float | None = None, moving_baseline_b_m=None,
-                 baseline_sigma_ned_m=(0.005, 0.005, 0.010), gps_yaw_sigma_deg: float | None = None):
+                 baseline_sigma_ned_m=(0.005, 0.005, 0.010), gps_yaw_sigma_deg: float | None = None,
+                 system_time_late_s: float = 0.0):
         self.sim = sim
         self.addr = ("127.0.0.1", companion_port)
         self.clock = clock or SimClock(speedup)
@@ -169,6 +170,9 @@ class EmulatedAutopilot:
         self.moving_baseline_b = None if moving_baseline_b_m is None else np.asarray(moving_baseline_b_m, float)
         self.baseline_sigma_ned_m = np.asarray(baseline_sigma_ned_m, float)
         self.gps_yaw_sigma_deg = gps_yaw_sigma_deg
+        # ArduPilot's UTC clock is set from GPS fixes as they arrive, so SYSTEM_TIME lags true time
+        # by the receiver's output latency (tens of ms): this emulates that lag
+        self.system_time_late_s = system_time_late_s
         self.faults = faults or Faults()
         self.rng = np.random.default_rng([seed, 777])
         self.prng = random.Random(seed)
@@ -462,7 +466,8 @@ class EmulatedAutopilot:
             if self._interval_due(m.MAVLINK_MSG_ID_SYSTEM_TIME, t):
                 boot_ms = boot_us // 1000
                 t_gps_ms = self.boot0_gps + boot_ms * 1e-3
-                unix_us = int(round((t_gps_ms + GPS_EPOCH_UNIX_S - self.leap_seconds) * 1e6))
+                unix_us = int(round((t_gps_ms + GPS_EPOCH_UNIX_S - self.leap_seconds
+                                     - self.system_time_late_s) * 1e6))
                 self.send(self.mav.system_time_encode(unix_us, boot_ms))
             if self._interval_due(m.MAVLINK_MSG_ID_ATTITUDE, t):
                 r, v, C = sim.truth_at(t)

@@ -220,7 +220,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               max_sigma_v_m: float = 4.0, faults=None, use_caster: bool = True, imu_message: str = "HIGHRES_IMU",
               gnss_source: str = "mavlink_serial_control", leap_seconds: int = 13,
               keep_companion_log: bool = True, imu_units: int = 1, max_imu_rate_hz: float | None = None,
-              moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None) -> dict:
+              moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None,
+              system_time_late_s: float = 0.0) -> dict:
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     out = Path(out_dir)
@@ -254,7 +255,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
                            leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
                            max_imu_rate_hz=max_imu_rate_hz, moving_baseline_b_m=moving_baseline_b_m,
-                           gps_yaw_sigma_deg=gps_yaw_sigma_deg)
+                           gps_yaw_sigma_deg=gps_yaw_sigma_deg, system_time_late_s=system_time_late_s)
     cpu0 = cpu1 = None
     wall0 = wall1 = None
     rss = hwm = float("nan")
@@ -341,7 +342,8 @@ def cmd_fly(args) -> int:
     from .autopilot import Faults
     faults = Faults(imu_unit_bias=[(t, int(u), b) for t, u, b in args.imu_fault]) if args.imu_fault else None
     res = asyncio.run(fly(args.scenario, args.duration, args.speedup, rate_hz=args.rate, seed=args.seed,
-                          out_dir=args.out, output_mode=args.output, imu_units=args.imu_units, faults=faults))
+                          out_dir=args.out, output_mode=args.output, imu_units=args.imu_units, faults=faults,
+                          system_time_late_s=args.system_time_late))
     series = res.pop("_series")
     print(format_result(res))
     if args.json:
@@ -370,6 +372,9 @@ def register(subparsers) -> None:
     p.add_argument("--series", action="store_true", help="include per-estimate error/latency series in the JSON")
     p.add_argument("--imu-units", type=int, default=1, choices=(1, 2, 3),
                    help="IMUs the autopilot reports (2, 3: + SCALED_IMU2/3, fused by the companion's IMU cluster)")
+    p.add_argument("--system-time-late", type=float, default=0.0, metavar="S",
+                   help="the autopilot's SYSTEM_TIME lags true time by S seconds (its UTC clock is set from "
+                        "GPS fixes as they arrive; default 0 = exact)")
     p.add_argument("--imu-fault", type=float, nargs=3, action="append", metavar=("T_S", "UNIT", "BIAS_RADPS"),
                    help="from T_S on, unit UNIT's x gyro reads BIAS_RADPS too much (repeatable)")
     p.set_defaults(func=cmd_fly)
