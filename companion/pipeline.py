@@ -69,13 +69,13 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from .gnss.spp import spp_epoch  # noqa: E402
 from .io.mavlink import BootToGpsTime, ImuDecoder, gps_fix_from_gps_raw_int, parse_imu_stream  # noqa: E402
-from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
 from .io.rtcm import RtcmDecoder  # noqa: E402
 from .io.ubx import UbxDecoder  # noqa: E402
 from .messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix,  # noqa: E402
                        GpsEphemeris, ImuSample, NavSolution)
 from .nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm  # noqa: E402
 from .nav.engine import NavEngine  # noqa: E402
+from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
 
 log = logging.getLogger(__name__)
 m = mavlink2
@@ -364,8 +364,8 @@ class NavPipeline:
                                                                 f.accel_vrw_mps_per_sqrt_s)))
 
     def _restart_cluster(self) -> None:
-        """After a reboot or a time jump the units' time histories are void: start over (the health
-        report keeps the old cluster's counters under 'imu_cluster (before restart)')."""
+        """After a reboot or a time jump the units' time histories are void: start over (the old
+        cluster's counters are kept in the pipeline counters as 'imu cluster before restart: ...')."""
         old = self.cluster
         for k, v in old.counters.items():
             self.counters[f"imu cluster before restart: {k}"] += v
@@ -425,7 +425,8 @@ class NavPipeline:
         return out
 
     def _imu_sample(self, s: ImuSample, boot_us: int) -> list[NavSolution]:
-        """One IMU sample (of the single stream or fused) into the engine; a solution every k-th."""
+        """One IMU sample (of the single stream or fused) into the engine; a solution at the first
+        sample of each output slot."""
         self.imu_count += 1
         eng = self.engine
         if eng.initialized:
