@@ -562,6 +562,7 @@ class NavPipeline:
             return
         r_imu = sol.r_e - C @ self.lever_b + v * dt
         self._initialize(s.t_gps, r_imu, v, C, sig.pos_dgps_m if use_dgps else sig.pos_standalone_m, sv,
+                         pos_cov_e_m2=sol.cov_r_e,
                          clock_bias_m=sol.clock_bias_m + sol.clock_drift_mps * dt,
                          clock_drift_mps=sol.clock_drift_mps if math.isfinite(sol.clock_drift_mps) else 0.0,
                          how=f"SPP {'DGPS' if use_dgps else 'standalone'} {sol.n_sats} sats")
@@ -620,10 +621,12 @@ class NavPipeline:
                          clock_drift_mps=0.0, how="GPS_RAW_INT fix (loose)")
         self.mode = "loose"
 
-    def _initialize(self, t_gps, r, v, C, sig_pos, sig_vel, *, clock_bias_m, clock_drift_mps, how) -> None:
+    def _initialize(self, t_gps, r, v, C, sig_pos, sig_vel, *, clock_bias_m, clock_drift_mps, how,
+                    pos_cov_e_m2=None) -> None:
         sig = self.init_sigmas
         p0 = {"att_rad": sig.att_rad, "pos_m": sig_pos, "vel_mps": sig_vel, "ba_mps2": sig.ba_mps2,
-              "bg_radps": sig.bg_radps, "clk_m": sig.clk_m, "drift_mps": sig.drift_mps}
+              "bg_radps": sig.bg_radps, "clk_m": sig.clk_m, "drift_mps": sig.drift_mps,
+              "pos_cov_e_m2": pos_cov_e_m2}
         self.engine.initialize(t_gps, r, v, C, p0, clock_bias_m=clock_bias_m, clock_drift_mps=clock_drift_mps)
         self.counters["initialisations"] += 1
         self.last_init_reason = how

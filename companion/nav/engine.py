@@ -160,7 +160,8 @@ class NavEngine:
         """Start (or restart) navigating from a known state; bumps ``reset_counter``.
 
         ``P0_sigmas`` (1-sigma): tilt_rad and heading_rad (or att_rad for both), pos_m, vel_mps,
-        ba_mps2, bg_radps, and optionally clk_m, drift_mps.  Without ``clock_bias_m`` the clock is
+        ba_mps2, bg_radps, and optionally clk_m, drift_mps, and pos_cov_e_m2 (a 3x3 ECEF position
+        covariance, floored at pos_m on every axis).  Without ``clock_bias_m`` the clock is
         taken from the first epoch's pseudoranges."""
         L = LAYOUT
         d = np.zeros(L.n)
@@ -171,6 +172,12 @@ class NavEngine:
         d[L.clk] = P0_sigmas.get("clk_m", 1e3) ** 2
         d[L.drift] = P0_sigmas.get("drift_mps", 10.0) ** 2
         P0 = np.diag(d)
+        cov = P0_sigmas.get("pos_cov_e_m2")
+        if cov is not None and np.all(np.isfinite(cov)):
+            # the fix's own covariance (e.g. SPP geometry: a poor VDOP means a poor height), never
+            # tighter than pos_m along any axis
+            w, V = np.linalg.eigh(0.5 * (np.asarray(cov, float) + np.asarray(cov, float).T))
+            P0[L.pos, L.pos] = (V * np.maximum(w, P0_sigmas["pos_m"] ** 2)) @ V.T
         # attitude: tilt and heading uncertainties usually differ by an order of magnitude
         # (levelling vs compass); given in local NED, rotated to the ECEF error axes
         tilt = P0_sigmas.get("tilt_rad", P0_sigmas.get("att_rad"))
