@@ -145,7 +145,7 @@ def test_dual_antenna_heading_end_to_end(tmp_path):
     (antennas 0.6 m apart, mounted across the frame and 0.2 m forward: body vector (0.2, 0.6, 0)),
     and the autopilot's GPS_RAW_INT carries a dual-antenna yaw (1 deg).  Both reach the filter and
     the heading of the injected estimates is a few hundredths of a degree good over the second
-    half of the flight (measured 0.039 deg), where the same flight without them is 0.32 deg off
+    half of the flight (measured 0.040 deg), where the same flight without them is 0.33 deg off
     (`python -m sitl fly --duration 30 --speedup 2`, same seed)."""
     import numpy as np
     from tests._flyhelp import final_health, run_fly
