@@ -198,6 +198,16 @@ class FilterConfig:
     nhc_sigma_lateral_mps: float = _f(0.1, min=0.0, min_exclusive=True)
     nhc_sigma_vertical_mps: float = _f(0.1, min=0.0, min_exclusive=True)
     nhc_min_speed_mps: float = _f(1.0, min=0.0)
+    course_alignment_enabled: bool = _f(False, doc="on the ground, take the heading from the GNSS course over "
+                                        "ground once driving straight at speed (a rover or car without a usable "
+                                        "compass; never for a boat or anything that crabs)")
+    course_alignment_min_speed_mps: float = _f(3.0, min=0.5)
+    course_alignment_max_yaw_rate_radps: float = _f(0.05, min=0.0, min_exclusive=True)
+    course_alignment_slip_sigma_rad: float = _f(0.0175, min=0.0, doc="side-slip while driving straight (1-sigma)")
+    course_alignment_reset_above_rad: float = _f(0.26, min=0.0, min_exclusive=True,
+                                                 doc="heading uncertainty or disagreement beyond which the "
+                                                 "heading is reset to the course instead of fused")
+    course_alignment_epochs: int = _f(5, min=1, max=100)
     gravity_gradient_refresh_m: float = _f(200.0, min=0.0, min_exclusive=True)
 
     def process_noise(self):

@@ -20,15 +20,19 @@ def test_truth_satisfies_the_constraint_and_skid_breaks_it():
 
 
 def test_nhc_improves_position_and_attitude():
-    res = run_nhc(runs=1, seed=1, jobs=1)
-    print(res["improvement_pct"])
+    res = run_nhc(runs=2, seed=1, jobs=2)
+    print(res["improvement_pct"], res["whole_run"]["improvement_pct"])
+    for mode in ("without", "with"):
+        assert res["counters"][mode]["course alignment: heading fused"] == 5
+    assert all(15.0 < t < 25.0 for t in res["course_alignment_t_s"])    # soon after the first motion (15 s)
     assert res["counters"]["with"]["nhc used"] > 5000
     assert res["counters"]["with"]["zupt used"] > 100 and res["counters"]["without"]["zupt used"] > 100
-    assert res["improvement_position_pct"] >= 38.0          # issue 4 acceptance: met (~75-80 %)
-    # issue 4 asks 62 % on 3-D attitude; measured ~36 % over the whole run (heading during the
-    # initial stationary alignment is unobservable to both modes): assert what is achieved
-    assert res["improvement_attitude_pct"] >= 25.0
-    assert res["improvement_pct"]["roll_deg"] > 40.0 and res["improvement_pct"]["heading_deg"] > 20.0
+    # issue 4 acceptance, over the navigation phase (from the heading alignment): 38 % and 62 %
+    assert res["improvement_position_pct"] >= 38.0
+    assert res["improvement_attitude_pct"] >= 62.0
+    assert res["improvement_pct"]["roll_deg"] > 40.0 and res["improvement_pct"]["heading_deg"] > 50.0
+    # over the whole run the unaligned stationary start (the same in both modes) dilutes the attitude figure
+    assert res["whole_run"]["improvement_pct"]["att_3d_deg"] < res["improvement_attitude_pct"]
 
 
 def test_skid_suspends_nhc_and_position_stays_bounded():

@@ -29,6 +29,7 @@ from ..messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpo
                         ImuSample, NavSolution)
 from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
+from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
 from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, baseline_batch, doppler_batch,
                            line_of_sight, nhc_batch, position_fix_batch, pseudorange_batch, single_difference, tdcp_batch,
                            velocity_fix_batch, zero_rate_batch, zero_velocity_batch)
@@ -87,6 +88,14 @@ class EngineConfig:
     nhc_min_speed_mps: float = 1.0
     nhc_suspend_after_rejections: int = 3
     nhc_suspend_s: float = 5.0
+    # in-motion heading alignment from the GNSS course over ground, on the ground only (see
+    # companion.nav.course_alignment): the first epochs at speed, driving straight, give the heading
+    course_alignment_enabled: bool = False
+    course_alignment_min_speed_mps: float = 3.0
+    course_alignment_max_yaw_rate_radps: float = 0.05
+    course_alignment_slip_sigma_rad: float = 0.0175          # 1 deg
+    course_alignment_reset_above_rad: float = 0.26           # 15 deg
+    course_alignment_epochs: int = 5
     # 'undifferenced' or 'single_difference' (between satellites, seed 004: no clock states needed)
     measurement_form: str = "undifferenced"
     # measurement kinds gated leave-one-out (their rows share the clock; see filter.gate)
@@ -144,6 +153,8 @@ class NavEngine:
         self._nhc_countdown_s = 0.0
         self._nhc_rejections = 0
         self._nhc_suspended_until = -math.inf
+        self.course_epochs_fused = 0
+        self.course_alignment_t_gps = math.nan     # GPS time of the first course alignment
         self._last_epoch_t = math.nan
         self._grad = None
         self._grad_r = None
@@ -202,6 +213,8 @@ class NavEngine:
         self._phase.clear()
         self._pending.clear()
         self._last_epoch_t = math.nan
+        self.course_epochs_fused = 0
+        self.course_alignment_t_gps = math.nan
         self.initialized = True
         self.reset_counter += 1
 
@@ -457,8 +470,13 @@ class NavEngine:
         if cfg.use_dgps and self.dgps is None:
             self.counters["epoch without DGPS base"] += 1
         batches: list[MeasurementBatch] = []
+        sol = None
+        if cfg.use_loose or self._course_alignment_pending():
+            sol = self._spp(ins, prep)
+            if sol is not None and sol.v_e is not None:
+                ins = self._course_alignment(ins, sol.v_e, self._spp_velocity_cov_e(sol))
         if cfg.use_loose:
-            batches += self._loose_batches(ins, prep)
+            batches += self._loose_batches(ins, prep, sol)
         else:
             if cfg.use_pseudorange and len(prep.sats):
                 pr = pseudorange_batch(ins, prep, self.lever_arm_b, sigma_floor_m=cfg.sigma_pseudorange_floor_m)
@@ -541,9 +559,19 @@ class NavEngine:
         P[L.clk, L.clk] = max(median(pr.r_var.tolist()), 1.0)
         self.clock_initialized = True
 
-    def _loose_batches(self, ins, prep):
+    def _spp(self, ins, prep):
         from ..gnss.spp import solve_spp
-        sol = solve_spp(prep, r_init_e=antenna_state(ins, self.lever_arm_b)[0])
+        return solve_spp(prep, r_init_e=antenna_state(ins, self.lever_arm_b)[0])
+
+    def _spp_velocity_cov_e(self, sol) -> np.ndarray:
+        """ECEF covariance of an SPP Doppler velocity: Doppler sigma x DOP, local NED axes."""
+        lat, lon, _ = ecef_to_geodetic(sol.r_e)
+        Cne = C_n_e(lat, lon)
+        sv = self.cfg.sigma_doppler_mps
+        cov_v = np.diag([(sv * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sv * sol.vdop) ** 2])
+        return Cne @ cov_v @ Cne.T
+
+    def _loose_batches(self, ins, prep, sol):
         if sol is None:
             self.counters["loose: no SPP solution"] += 1
             return []
@@ -554,9 +582,7 @@ class NavEngine:
         cov_n = np.diag([(sig * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sig * sol.vdop) ** 2])
         out = [position_fix_batch(ins, sol.r_e, Cne @ cov_n @ Cne.T, self.lever_arm_b)]
         if sol.v_e is not None:
-            sv = self.cfg.sigma_doppler_mps
-            cov_v = np.diag([(sv * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sv * sol.vdop) ** 2])
-            out.append(velocity_fix_batch(ins, sol.v_e, Cne @ cov_v @ Cne.T, self.lever_arm_b))
+            out.append(velocity_fix_batch(ins, sol.v_e, self._spp_velocity_cov_e(sol), self.lever_arm_b))
         return out
 
     def process_fix(self, fix: GnssFix):
@@ -577,6 +603,8 @@ class NavEngine:
         lat, lon, _ = ecef_to_geodetic(fix.r_e)
         Cne = C_n_e(lat, lon)
         cov = Cne @ np.diag([fix.sigma_h_m ** 2 / 2, fix.sigma_h_m ** 2 / 2, fix.sigma_v_m ** 2]) @ Cne.T
+        if fix.v_e is not None:
+            ins = self._course_alignment(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2)
         batches = [position_fix_batch(ins, fix.r_e, cov, self.lever_arm_b)]
         if fix.v_e is not None:
             batches.append(velocity_fix_batch(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2, self.lever_arm_b))
@@ -646,6 +674,59 @@ class NavEngine:
         lat, lon, _ = ecef_to_geodetic(ins.r_e)
         b = baseline_batch(ins.C_b_e, C_n_e(lat, lon), bl, np.asarray(self.cfg.moving_baseline_b_m, float))
         return self._update_with(b, "baseline", "baseline rows used")
+
+    def _course_alignment_pending(self) -> bool:
+        return (self.cfg.course_alignment_enabled and self.ground_mode
+                and self.course_epochs_fused < self.cfg.course_alignment_epochs)
+
+    def _course_alignment(self, ins: InsPoint, v_ant_e, cov_v_e) -> InsPoint:
+        """In-motion heading alignment (companion.nav.course_alignment) from one GNSS antenna
+        velocity (ECEF, m/s) and its covariance, at the epoch's INS point.  Returns the INS point
+        to build this epoch's other measurements on (re-interpolated after a heading reset)."""
+        cfg = self.cfg
+        if not self._course_alignment_pending() or v_ant_e is None or not np.all(np.isfinite(v_ant_e)):
+            return ins
+        u = down_axis_e(ins.r_e)
+        yaw_rate = float(u @ (ins.C_b_e @ ins.omega_ib_b))
+        if abs(yaw_rate) > cfg.course_alignment_max_yaw_rate_radps:
+            self.counters["course alignment waiting: turning"] += 1
+            return ins
+        _, v_ant_pred, _ = antenna_state(ins, self.lever_arm_b)
+        v_imu = np.asarray(v_ant_e, float) - (v_ant_pred - ins.v_e)      # lever-arm velocity removed
+        m = course_from_velocity(ins.t_gps, v_imu, cov_v_e, ins.r_e, cfg.course_alignment_slip_sigma_rad,
+                                 self.course_epochs_fused)
+        if m.speed_h_mps < cfg.course_alignment_min_speed_mps:
+            return ins
+        L = LAYOUT
+        delta = (m.heading_rad - heading_of(ins.C_b_e, ins.r_e) + math.pi) % (2.0 * math.pi) - math.pi
+        sigma_filter = math.sqrt(max(heading_variance(self.kf.P[L.att, L.att], u), 0.0))
+        if max(sigma_filter, abs(delta)) > cfg.course_alignment_reset_above_rad:
+            # too far for a linear update: turn the attitude (now and its short history) onto the course
+            R, P = heading_reset(self.kf.P, L.att, u, delta, m.sigma_rad)
+            # the velocity was integrated along the wrong heading: take the GNSS one (its error is
+            # now uncorrelated with everything else)
+            dv = v_imu - ins.v_e
+            P[L.vel, :] = 0.0
+            P[:, L.vel] = 0.0
+            P[L.vel, L.vel] = cov_v_e
+            self.kf.P = P
+            self.C_b_e = R @ self.C_b_e
+            self.v_e = self.v_e + dv
+            self._history = deque((t, r, v + dv, R @ C) for t, r, v, C in self._history)
+            self._phase.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
+            self.counters["course alignment: heading reset"] += 1
+            log.info("heading reset to the course over ground %.1f deg (%+.1f deg, filter sigma was %.1f deg) "
+                     "at %.1f m/s", math.degrees(m.heading_rad), math.degrees(delta), math.degrees(sigma_filter),
+                     m.speed_h_mps)
+        else:
+            b = attitude_batch(ins.C_b_e, C_n_e(*ecef_to_geodetic(ins.r_e)[:2]),
+                               GnssAttitude(ins.t_gps, heading_rad=m.heading_rad, sigma_heading_rad=m.sigma_rad))
+            if not self._update_with(b, "course alignment", "course alignment: heading fused").n_accepted:
+                return ins
+        self.course_epochs_fused += 1
+        if math.isnan(self.course_alignment_t_gps):
+            self.course_alignment_t_gps = ins.t_gps
+        return self.ins_at(ins.t_gps) or ins
 
     def _update_with(self, batch: MeasurementBatch, what: str, used_counter: str) -> UpdateReport:
         """Gate one measurement batch, update, count accepted rows and rejections by reason."""
