@@ -98,3 +98,46 @@ def test_without_alignment_or_in_flight_a_large_heading_error_persists(car, alig
     assert not any(k.startswith("course alignment:") for k in eng.counters)
     assert math.isnan(eng.course_alignment_t_gps)
     assert abs(errors[-1][1]) > 20.0
+
+
+def _still_engine(heading_sigma_deg: float):
+    """An engine on a vehicle standing still, heading north, at a mid-latitude site."""
+    from companion.config import FilterConfig
+    from companion.messages import ImuSample
+    from companion.nav.earth import gravity_ecef
+    lat, lon = math.radians(35.7), math.radians(139.5)
+    r_e = geodetic_to_ecef(lat, lon, 50.0)
+    C_b_e = C_n_e(lat, lon)                               # body axes = NED: heading 0
+    cfg = dataclasses.replace(FilterConfig(course_alignment_enabled=True).engine_config(),
+                              use_pseudorange=False, use_tdcp=False)
+    eng = NavEngine(cfg)
+    p0 = {"tilt_rad": 1e-3, "heading_rad": math.radians(heading_sigma_deg), "pos_m": 1.0, "vel_mps": 0.1,
+          "ba_mps2": 0.01, "bg_radps": 1e-3}
+    eng.initialize(1000.0, r_e, np.zeros(3), C_b_e, p0)
+    f_b = -(C_b_e.T @ gravity_ecef(r_e))                  # specific force at rest (earth rate ignored)
+    for k in range(1, 51):
+        eng.process(ImuSample(1000.0 + 0.02 * k, 0.02, np.zeros(3), f_b * 0.02))
+    return eng, r_e, C_n_e(lat, lon)
+
+
+@pytest.mark.parametrize("course_deg, sigma_deg, expect", [(180.0, 3.0, "reversing"), (10.0, 3.0, "fused"),
+                                                         (180.0, 180.0, "reset")])
+def test_reversing_is_recognised_only_when_the_heading_is_known(course_deg, sigma_deg, expect):
+    from companion.messages import GnssFix
+    eng, r_e, Cne = _still_engine(sigma_deg)
+    c = math.radians(course_deg)
+    v_e = Cne @ np.array([5.0 * math.cos(c), 5.0 * math.sin(c), 0.0])
+    eng.process(GnssFix(1000.9, r_e, v_e, sigma_h_m=1.0, sigma_v_m=2.0, sigma_vel_mps=0.05))
+    counters = {k: v for k, v in eng.counters.items() if k.startswith("course")}
+    print(counters)
+    if expect == "reversing":
+        assert counters == {"course alignment waiting: reversing": 1}
+        assert math.isnan(eng.course_alignment_t_gps)
+    elif expect == "fused":
+        assert counters == {"course alignment: heading fused": 1}
+        assert 5.0 < math.degrees(heading_of(eng.C_b_e, eng.r_e)) < 10.0     # pulled towards the course
+    else:
+        assert counters == {"course alignment: heading reset": 1}
+        # (the fix's own position/velocity update follows the reset and moves them slightly)
+        assert abs(abs(math.degrees(heading_of(eng.C_b_e, eng.r_e))) - 180.0) < 0.01
+        assert np.allclose(eng.v_e, v_e, atol=0.01)          # the velocity taken from the GNSS

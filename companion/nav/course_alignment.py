@@ -19,10 +19,11 @@ attitude is rotated about the local vertical onto the course and the heading var
 since a linear Kalman update cannot absorb an error of tens of degrees.  Otherwise the course is
 fused as an ordinary heading measurement and gated like any other.
 
-Assumptions, stated because they can be false: the vehicle moves forward (not reversing) along its
-body x axis, and it does not crab -- a boat in a current or a sideways-drifting aircraft must not
-use this (``course_alignment_enabled`` is off by default, and the shell turns it on only on the
-ground).
+Assumptions, stated because they can be false: the vehicle moves forward along its body x axis
+(reversing is recognised only when the filter's heading is already known to 45 deg; with no idea
+of the heading, forward motion is assumed), and it does not crab -- a boat in a current or a
+sideways-drifting aircraft must not use this (``course_alignment_enabled`` is off by default, and
+the engine uses it only while on the ground).
 """
 from __future__ import annotations
 

@@ -700,6 +700,11 @@ class NavEngine:
         L = LAYOUT
         delta = (m.heading_rad - heading_of(ins.C_b_e, ins.r_e) + math.pi) % (2.0 * math.pi) - math.pi
         sigma_filter = math.sqrt(max(heading_variance(self.kf.P[L.att, L.att], u), 0.0))
+        if sigma_filter < math.pi / 4.0 and float(ins.C_b_e[:, 0] @ v_imu) < 0.0:
+            # the heading is known well enough to see that the vehicle is reversing: the course
+            # points backwards (with no idea of the heading, forward motion is assumed)
+            self.counters["course alignment waiting: reversing"] += 1
+            return ins
         if max(sigma_filter, abs(delta)) > cfg.course_alignment_reset_above_rad:
             # too far for a linear update: turn the attitude (now and its short history) onto the course
             R, P = heading_reset(self.kf.P, L.att, u, delta, m.sigma_rad)
