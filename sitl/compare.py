@@ -225,10 +225,12 @@ def run_nhc(runs: int = 4, seed: int = 1, jobs: int = 0, scenario_name: str = "n
     whole = {m: _nhc_stats([r[m] for r in results], outages) for m in NHC_MODES}
     improvement = {k: _pct(nav["without"][k], nav["with"][k]) for k in keys}
     improvement_whole = {k: _pct(whole["without"][k], whole["with"][k]) for k in keys}
+    from .scenario import build_scenario
+    t_move = next(b for name, a, b in build_scenario(scenario_name).trajectory.events if name == "rest")
     return {"scenario": scenario_name, "runs": runs, "seed": seed,
             "interval": "navigation phase: from the in-motion heading alignment (the later of the two modes) "
                         "to the end, outages included (1 Hz samples, pooled over runs)",
-            "course_alignment_t_s": t_aligned,
+            "course_alignment_t_s": t_aligned, "first_motion_t_s": float(t_move),
             "outages_s": outages, "modes": nav, "improvement_pct": improvement,
             "improvement_position_pct": improvement["pos_3d_m"],
             "improvement_attitude_pct": improvement["att_3d_deg"],
@@ -249,7 +251,7 @@ def format_nhc(res: dict) -> str:
     lines = [f"Seed 002 Table 1: RMSE from the in-motion heading alignment to the end (outages included), "
              f"loosely coupled INS/GNSS without -> with NHC, {res['runs']} run(s), scenario '{res['scenario']}'",
              f"heading aligned from the course over ground at t = " + ", ".join(f"{t:.0f}" for t in ta)
-             + " s (first motion at 15 s)",
+             + f" s (first motion at {res['first_motion_t_s']:.0f} s)",
              f"{'':20s} | {'without':>8} {'with':>8} {'impr.':>7} | {'paper without':>13} {'with':>6} {'impr.':>7}",
              "-" * 84]
     for label, k in rows:
@@ -269,7 +271,8 @@ def format_nhc(res: dict) -> str:
                  f"{c.get('zupt used', 0)} ZUPT rows; course alignment {c.get('course alignment: heading fused', 0)} "
                  f"fused, {c.get('course alignment: heading reset', 0)} reset")
     wr = res["whole_run"]
-    lines.append(f"whole run (incl. the 15-s stationary start with the compass-class heading, same in both modes): "
+    lines.append(f"whole run (incl. the {res['first_motion_t_s']:.0f}-s stationary start with the compass-class "
+                 f"heading, the same in both modes): "
                  f"3-D position {wr['modes']['without']['pos_3d_m']:.2f} -> {wr['modes']['with']['pos_3d_m']:.2f} m "
                  f"({wr['improvement_pct']['pos_3d_m']:.1f} %), 3-D attitude {wr['modes']['without']['att_3d_deg']:.3f} -> "
                  f"{wr['modes']['with']['att_3d_deg']:.3f} deg ({wr['improvement_pct']['att_3d_deg']:.1f} %)")
