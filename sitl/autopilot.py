@@ -148,6 +148,8 @@ class Faults:
     clock_jump: list = field(default_factory=list)       # (t, jump_s): boot clock steps forward
     gnss_outage: list = field(default_factory=list)      # (t_start, t_end): no UBX bytes, GPS_RAW_INT no fix
     imu_unit_bias: list = field(default_factory=list)    # (t, unit, gyro_x_bias_radps): a unit's gyro fails
+    imu_loss: list = field(default_factory=list)         # (t_start, t_end, probability): IMU frames lost on the
+    #                                                      link (a full socket buffer on a loaded companion)
 
 
 class EmulatedAutopilot:
@@ -176,6 +178,7 @@ class EmulatedAutopilot:
         self.faults = faults or Faults()
         self.rng = np.random.default_rng([seed, 777])
         self.prng = random.Random(seed)
+        self.loss_rng = random.Random(seed + 4242)       # its own stream: other faults' draws unchanged
         t0 = float(sim.truth.t_gps[0])
         self.t0 = t0
         # GPS time of boot time 0: a whole number of seconds before the first sample
@@ -256,6 +259,13 @@ class EmulatedAutopilot:
                     self._sendto(bytes(self.prng.randrange(256) for _ in range(self.prng.randrange(1, 40))))
                 break
         self._sendto(data)
+
+    def _imu_frame_lost(self, t_rel: float) -> bool:
+        """Faults.imu_loss: this IMU frame never reaches the companion (decided per frame)."""
+        for a, b, p in self.faults.imu_loss:
+            if a <= t_rel < b and self.loss_rng.random() < p:
+                return True
+        return False
 
     def _sendto(self, data: bytes) -> None:
         try:
@@ -440,9 +450,12 @@ class EmulatedAutopilot:
                         ka = 1000.0 / STANDARD_GRAVITY_MPS2
                         q = [int(max(-32768, min(32767, round(x)))) for x in (*(a * ka), *(w * 1000.0))]
                         msg = self.mav.raw_imu_encode(boot_us, q[0], q[1], q[2], q[3], q[4], q[5], 0, 0, 0, 0, 25)
-                    self.send(msg)
-                    self.imu_sent[boot_us].append((time.monotonic_ns(), t))
-                    self.counters["imu_sent"] += 1
+                    if self._imu_frame_lost(t_rel):
+                        self.counters["imu_lost"] += 1
+                    else:
+                        self.send(msg)
+                        self.imu_sent[boot_us].append((time.monotonic_ns(), t))
+                        self.counters["imu_sent"] += 1
             for unit, (dth_u, dv_u) in enumerate(self.extra_imu, start=1):
                 mid = (m.MAVLINK_MSG_ID_SCALED_IMU2, m.MAVLINK_MSG_ID_SCALED_IMU3)[unit - 1]
                 iv = self.intervals.get(mid, 0.0)
@@ -456,6 +469,9 @@ class EmulatedAutopilot:
                 ka = 1000.0 / STANDARD_GRAVITY_MPS2     # mG and mrad/s, int16, time_boot_ms
                 q = [int(max(-32768, min(32767, round(x)))) for x in (*(a * ka), *(w * 1000.0))]
                 enc = self.mav.scaled_imu2_encode if unit == 1 else self.mav.scaled_imu3_encode
+                if self._imu_frame_lost(t_rel):
+                    self.counters[f"imu_unit{unit}_lost"] += 1
+                    continue
                 self.send(enc(boot_us // 1000, q[0], q[1], q[2], q[3], q[4], q[5], 0, 0, 0, 0))
                 self.counters[f"imu_unit{unit}_sent"] += 1
             # other streams

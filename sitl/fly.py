@@ -158,6 +158,40 @@ def ned_to_ecef_ardupilot(ned, origin_lat_e7: int, origin_lon_e7: int, origin_al
     return geodetic_to_ecef(math.radians(lat), math.radians(lon), alt)
 
 
+def _origin_of(r, origin):
+    """The EKF origin after this received message (SET_GPS_GLOBAL_ORIGIN carries it)."""
+    if r.msg_type == "SET_GPS_GLOBAL_ORIGIN":
+        return (r.msg.latitude, r.msg.longitude, r.msg.altitude)
+    return origin
+
+
+def _estimate_error(ap, sim, r, origin):
+    """(latency_ms, t_gps, error 3-D, error horizontal, reset_counter) of one received estimate, or
+    None when it cannot be scored (no matching IMU sample, or a local estimate before the origin)."""
+    mt, msg = r.msg_type, r.msg
+    boot_us = msg.usec if mt == "VISION_POSITION_ESTIMATE" else msg.time_usec
+    rec = ap.imu_send_record(boot_us, r.t_mono_ns)
+    if rec is None:
+        return None
+    send_ns, t_gps = rec
+    reset = None
+    if mt == "GPS_INPUT":
+        r_est = geodetic_to_ecef(math.radians(msg.lat * 1e-7), math.radians(msg.lon * 1e-7), msg.alt)
+    else:
+        if origin is None:
+            return None
+        r_est = ned_to_ecef_ardupilot((msg.x, msg.y, msg.z), *origin)
+        reset = msg.reset_counter
+    r_true, _, _ = sim.truth_at(t_gps)
+    d = r_est - r_true
+    lat, lon, _ = ecef_to_geodetic(r_true)
+    d_n = C_n_e(lat, lon).T @ d
+    return (r.t_mono_ns - send_ns) * 1e-6, t_gps, float(np.linalg.norm(d)), float(math.hypot(d_n[0], d_n[1])), reset
+
+
+ESTIMATE_TYPES = ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT")
+
+
 def score(ap, sim, rate_hz: float, duration_s: float) -> dict:
     """Errors, rates and latencies of the estimates the emulated autopilot received."""
     origin = None
@@ -165,34 +199,19 @@ def score(ap, sim, rate_hz: float, duration_s: float) -> dict:
     unmatched = 0
     resets = set()
     for r in ap.received:
-        mt, msg = r.msg_type, r.msg
-        if mt == "SET_GPS_GLOBAL_ORIGIN":
-            origin = (msg.latitude, msg.longitude, msg.altitude)
+        origin = _origin_of(r, origin)
+        if r.msg_type not in ESTIMATE_TYPES:
             continue
-        if mt not in ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT"):
-            continue
-        boot_us = msg.usec if mt == "VISION_POSITION_ESTIMATE" else msg.time_usec
-        rec = ap.imu_send_record(boot_us, r.t_mono_ns)
-        if rec is None:
+        e = _estimate_error(ap, sim, r, origin)
+        if e is None:
             unmatched += 1
             continue
-        send_ns, t_gps = rec
-        lat_ms.append((r.t_mono_ns - send_ns) * 1e-6)
-        if mt == "GPS_INPUT":
-            r_est = geodetic_to_ecef(math.radians(msg.lat * 1e-7), math.radians(msg.lon * 1e-7), msg.alt)
-        else:
-            if origin is None:
-                unmatched += 1
-                continue
-            r_est = ned_to_ecef_ardupilot((msg.x, msg.y, msg.z), *origin)
-            resets.add(msg.reset_counter)
-        r_true, _, _ = sim.truth_at(t_gps)
-        d = r_est - r_true
-        lat, lon, _ = ecef_to_geodetic(r_true)
-        d_n = C_n_e(lat, lon).T @ d
-        errs3.append(float(np.linalg.norm(d)))
-        errsh.append(float(math.hypot(d_n[0], d_n[1])))
-        t_list.append(t_gps - ap.t0)
+        lat_ms.append(e[0])
+        t_list.append(e[1] - ap.t0)
+        errs3.append(e[2])
+        errsh.append(e[3])
+        if e[4] is not None:
+            resets.add(e[4])
     n = len(errs3)
     e3, eh = np.array(errs3), np.array(errsh)
     out = {"estimates_received": len(ap.estimates()),
@@ -215,83 +234,193 @@ def score(ap, sim, rate_hz: float, duration_s: float) -> dict:
     return out
 
 
+class _Progress:
+    """Set-up steps and a status line every ``every_s`` of wall clock while the flight runs (stderr)."""
+
+    def __init__(self, enabled: bool, every_s: float = 5.0):
+        self.enabled, self.every_s = enabled, every_s
+        self.t0 = time.monotonic()
+
+    def step(self, text: str) -> None:
+        if self.enabled:
+            print(f"[{time.monotonic() - self.t0:6.1f} s] {text}", file=sys.stderr, flush=True)
+
+    async def follow(self, ap, sim, duration_s: float, proc) -> None:
+        """Status lines until cancelled: simulated time, estimates received, latest horizontal error."""
+        if not self.enabled:
+            return
+        origin, seen = None, 0
+        last_err_h = None
+        while True:
+            await asyncio.sleep(self.every_s)
+            received = ap.received
+            for r in received[seen:]:
+                origin = _origin_of(r, origin)
+                if r.msg_type in ESTIMATE_TYPES:
+                    e = _estimate_error(ap, sim, r, origin)
+                    if e is not None:
+                        last_err_h = e[3]
+            seen = len(received)
+            t_sim = max(0.0, ap.clock.now_gps() - ap.t0) if ap.clock.started.is_set() else 0.0
+            n_est = sum(1 for r in received if r.msg_type in ESTIMATE_TYPES)
+            err = "n/a" if last_err_h is None else f"{last_err_h:.2f} m"
+            state = "" if proc.poll() is None else f"  COMPANION EXITED ({proc.returncode})"
+            self.step(f"flying {min(t_sim, duration_s):5.1f}/{duration_s:.0f} s  estimates {n_est}  "
+                      f"horizontal error {err}{state}")
+
+
+def _stop_on_signals(loop, stop: asyncio.Event, progress: _Progress) -> list:
+    """First SIGINT/SIGTERM: set ``stop`` (everything this run started is then shut down and the
+    result says interrupted); the handler is removed at once, so a second Ctrl-C is the default."""
+    installed = []
+
+    def on_signal(sig):
+        progress.enabled = True
+        progress.step(f"{signal.Signals(sig).name}: stopping the autopilot, the caster and the companion")
+        for s in installed:
+            loop.remove_signal_handler(s)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, on_signal, sig)
+            installed.append(sig)
+        except (NotImplementedError, RuntimeError, ValueError):   # not the main thread / no signals
+            pass
+    return installed
+
+
+async def _until(stop: asyncio.Event, aw) -> bool:
+    """Await ``aw`` unless ``stop`` is set first (then cancel it); True when it completed."""
+    task = asyncio.ensure_future(aw)
+    stopper = asyncio.ensure_future(stop.wait())
+    try:
+        await asyncio.wait({task, stopper}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        stopper.cancel()
+    if task.done():
+        task.result()
+        return True
+    task.cancel()
+    try:
+        await task
+    except (asyncio.CancelledError, Exception):
+        pass
+    return False
+
+
 async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float = 1.0, *, rate_hz: float = 25.0,
               seed: int = 0, out_dir: str = "out/fly", output_mode: str = "vision", max_sigma_h_m: float = 2.0,
               max_sigma_v_m: float = 4.0, faults=None, use_caster: bool = True, imu_message: str = "HIGHRES_IMU",
               gnss_source: str = "mavlink_serial_control", leap_seconds: int = 13,
               keep_companion_log: bool = True, imu_units: int = 1, max_imu_rate_hz: float | None = None,
               moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None,
-              system_time_late_s: float = 0.0) -> dict:
+              system_time_late_s: float = 0.0, progress: bool = False, handle_signals: bool = False) -> dict:
+    """Fly once; ``progress`` prints set-up steps and status lines to stderr, ``handle_signals`` makes
+    the first SIGINT/SIGTERM a clean stop (the result then has ``interrupted`` True and the figures
+    of the part that was flown)."""
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
+    prog = _Progress(progress)
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_setup = time.monotonic()
+    prog.step(f"simulating scenario '{scenario}' ({duration_s + 3.0:g} s, seed {seed}; cached in {CACHE_DIR})")
     sim = load_sim(scenario, seed, duration_s + 3.0)
     duration_s = min(duration_s, sim.scenario.duration_s - 1.0)
+    # from here on a signal is a clean stop (before, Ctrl-C interrupts the simulation at once)
+    handlers = _stop_on_signals(loop, stop, prog) if handle_signals else []
     clock = SimClock(speedup)
-    src = caster = None
-    if use_caster:
-        src = RtcmSource(sim.base_epochs, sim.ephemerides, sim.base, clock)
-        src_port = await src.start()
-        caster = await start_caster(src_port, log_path=str(out / "str2str.log"))
-    udp_port = free_udp_port()
-    log_dir = out / "fieldlog"
-    if log_dir.exists():
-        for f in log_dir.glob("*.cflog"):
-            f.unlink()
-    cfg_text = companion_config_toml(sim, udp_port=udp_port, caster=caster, log_dir=str(log_dir), rate_hz=rate_hz,
-                                     output_mode=output_mode, max_sigma_h_m=max_sigma_h_m,
-                                     max_sigma_v_m=max_sigma_v_m, leap_seconds=leap_seconds,
-                                     imu_message=imu_message, gnss_source=gnss_source, imu_units=imu_units,
-                                     moving_baseline_b_m=moving_baseline_b_m, gps_yaw_sigma_deg=gps_yaw_sigma_deg)
-    cfg_path = out / "companion.toml"
-    cfg_path.write_text(cfg_text)
-    comp_log = open(out / "companion.log", "wb")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "companion.run_cli", "-v", "run", "--config", str(cfg_path)],
-                            stdout=comp_log, stderr=subprocess.STDOUT, env=env,
-                            cwd=str(Path(__file__).resolve().parent.parent))
-    ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
-                           leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
-                           max_imu_rate_hz=max_imu_rate_hz, moving_baseline_b_m=moving_baseline_b_m,
-                           gps_yaw_sigma_deg=gps_yaw_sigma_deg, system_time_late_s=system_time_late_s)
+    src = caster = proc = comp_log = ap = None
+    tasks: list[asyncio.Task] = []
+    interrupted = stop.is_set()
     cpu0 = cpu1 = None
     wall0 = wall1 = None
     rss = hwm = float("nan")
+    setup_s = None
+    udp_port = free_udp_port()
+    log_dir = out / "fieldlog"
     try:
-        tasks = [asyncio.create_task(ap.run(duration_s))]
-        if src is not None:
-            tasks.append(asyncio.create_task(src.run()))
-        await clock.started.wait()
-        if proc.poll() is None:
-            cpu0, wall0 = _proc_cpu_s(proc.pid), time.monotonic()
-        await tasks[0]
-        if proc.poll() is None:
-            cpu1, wall1 = _proc_cpu_s(proc.pid), time.monotonic()
-            rss, hwm = _proc_rss_mb(proc.pid)
-        for t in tasks[1:]:
+        if use_caster and not stop.is_set():
+            prog.step("starting the simulated base station and the NTRIP caster")
+            src = RtcmSource(sim.base_epochs, sim.ephemerides, sim.base, clock)
+            src_port = await src.start()
+            caster = await start_caster(src_port, log_path=str(out / "str2str.log"))
+            prog.step(f"caster: {caster.kind} on 127.0.0.1:{caster.port}")
+        if log_dir.exists():
+            for f in log_dir.glob("*.cflog"):
+                f.unlink()
+        cfg_text = companion_config_toml(sim, udp_port=udp_port, caster=caster, log_dir=str(log_dir),
+                                         rate_hz=rate_hz, output_mode=output_mode, max_sigma_h_m=max_sigma_h_m,
+                                         max_sigma_v_m=max_sigma_v_m, leap_seconds=leap_seconds,
+                                         imu_message=imu_message, gnss_source=gnss_source, imu_units=imu_units,
+                                         moving_baseline_b_m=moving_baseline_b_m,
+                                         gps_yaw_sigma_deg=gps_yaw_sigma_deg)
+        cfg_path = out / "companion.toml"
+        cfg_path.write_text(cfg_text)
+        ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
+                               leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
+                               max_imu_rate_hz=max_imu_rate_hz, moving_baseline_b_m=moving_baseline_b_m,
+                               gps_yaw_sigma_deg=gps_yaw_sigma_deg, system_time_late_s=system_time_late_s)
+        if not stop.is_set():
+            prog.step(f"starting companion run (log {out / 'companion.log'})")
+            comp_log = open(out / "companion.log", "wb")
+            env = dict(os.environ, PYTHONUNBUFFERED="1")
+            proc = subprocess.Popen([sys.executable, "-m", "companion.run_cli", "-v", "run", "--config",
+                                     str(cfg_path)], stdout=comp_log, stderr=subprocess.STDOUT, env=env,
+                                    cwd=str(Path(__file__).resolve().parent.parent))
+            tasks = [asyncio.create_task(ap.run(duration_s))]
+            if src is not None:
+                tasks.append(asyncio.create_task(src.run()))
+            prog.step("waiting for the companion's HEARTBEAT")
+        if proc is not None and await _until(stop, clock.started.wait()):
+            setup_s = time.monotonic() - t_setup
+            prog.step(f"set up in {setup_s:.1f} s; flying {duration_s:g} s at x{speedup:g}")
+            tasks.append(asyncio.create_task(prog.follow(ap, sim, duration_s, proc)))
+            if proc.poll() is None:
+                cpu0, wall0 = _proc_cpu_s(proc.pid), time.monotonic()
+            await _until(stop, tasks[0])
+            if proc.poll() is None:
+                cpu1, wall1 = _proc_cpu_s(proc.pid), time.monotonic()
+                rss, hwm = _proc_rss_mb(proc.pid)
+        interrupted = stop.is_set()
+        for t in tasks:
             t.cancel()
-        await asyncio.sleep(0.3)
+        await asyncio.gather(*tasks, return_exceptions=True)
+        if not interrupted:
+            await asyncio.sleep(0.3)
+    except asyncio.CancelledError:
+        interrupted = True
+        raise
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-        comp_log.close()
-        ap.close()
+        prog.step("stopping the companion, the caster and the base station")
+        for t in tasks:
+            t.cancel()
+        _terminate(proc)
+        if comp_log is not None:
+            comp_log.close()
+        if ap is not None:
+            ap.close()
         if src is not None:
             await src.close()
         if caster is not None:
             await caster.close()
-    res = score(ap, sim, rate_hz, duration_s)
+        for sig in handlers:
+            if stop.is_set():
+                break
+            loop.remove_signal_handler(sig)
+    flown_s = duration_s
+    if interrupted:   # rates over the part that was flown
+        flown_s = max(0.0, min(duration_s, clock.now_gps() - ap.t0)) if clock.started.is_set() else 0.0
+    res = score(ap, sim, rate_hz, max(flown_s, 1e-3))
     series = res.pop("_series")
     res.update({
+        "interrupted": interrupted, "flown_s": round(flown_s, 2),
         "companion_cpu_pct": round(100.0 * (cpu1 - cpu0) / (wall1 - wall0), 2) if cpu1 is not None else None,
         "companion_rss_mb": round(rss, 1), "companion_peak_rss_mb": round(hwm, 1),
-        "companion_exit_code": proc.returncode,
+        "companion_exit_code": None if proc is None else proc.returncode,
         "scenario": scenario, "seed": seed, "duration_s": duration_s, "speedup": speedup,
         "configured_rate_hz": rate_hz, "imu_rate_hz": sim.scenario.imu.rate_hz, "output_mode": output_mode,
         "caster": None if caster is None else caster.kind,
@@ -299,14 +428,29 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
             "rx_VISION_POSITION_ESTIMATE", "rx_SERIAL_CONTROL", "rx_TIMESYNC", "rx_COMMAND_LONG", "rx_STATUSTEXT")},
         "rtcm_source": None if src is None else dict(src.counters),
         "statustext": [r.msg.text for r in ap.received if r.msg_type == "STATUSTEXT"],
-        "last_output": {r.msg_type: r.msg.to_dict() for r in ap.received
-                        if r.msg_type in ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT")},
+        "last_output": {r.msg_type: r.msg.to_dict() for r in ap.received if r.msg_type in ESTIMATE_TYPES},
         "field_log_dir": str(log_dir), "companion_log": str(out / "companion.log"),
-        "setup_s": round(time.monotonic() - t_setup, 1)})
+        # set-up: simulation (or its cache), caster, companion start, until the autopilot streams
+        "setup_s": None if setup_s is None else round(setup_s, 1),
+        "run_s": round(time.monotonic() - t_setup, 1)})
     if imu_units > 1:
         res["imu_cluster"] = _final_cluster_health(log_dir)
     res["_series"] = series
     return res
+
+
+def _terminate(proc) -> None:
+    """SIGTERM, then SIGKILL after 10 s: the companion closes its field log on SIGTERM."""
+    if proc is None or proc.poll() is not None:
+        if proc is not None:
+            proc.wait()
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
 
 
 def _final_cluster_health(field_log_dir) -> dict | None:
@@ -326,7 +470,8 @@ def format_result(r: dict) -> str:
         return "n/a" if x is None else format(x, fmt)
     return "\n".join([
         f"sitl fly: scenario {r['scenario']} {r['duration_s']:.0f} s x{r['speedup']:g}, {r['output_mode']} at "
-        f"{r['configured_rate_hz']:g} Hz, IMU {r['imu_rate_hz']:g} Hz, caster {r['caster']}",
+        f"{r['configured_rate_hz']:g} Hz, IMU {r['imu_rate_hz']:g} Hz, caster {r['caster']}"
+        + ("  ** INTERRUPTED **" if r.get("interrupted") else ""),
         f"  estimates received {r['estimates_received']} ({f(r['estimate_rate_hz'], '.2f')} Hz, "
         f"{100 * r['estimate_rate_fraction']:.1f} % of configured; first at {f(r['first_estimate_s'], '.2f')} s)",
         f"  error: RMS 3-D {f(r['rms_3d_m'], '.3f')} m, RMS horizontal {f(r['rms_h_m'], '.3f')} m, "
@@ -341,22 +486,38 @@ def format_result(r: dict) -> str:
 def cmd_fly(args) -> int:
     from .autopilot import Faults
     faults = Faults(imu_unit_bias=[(t, int(u), b) for t, u, b in args.imu_fault]) if args.imu_fault else None
-    res = asyncio.run(fly(args.scenario, args.duration, args.speedup, rate_hz=args.rate, seed=args.seed,
-                          out_dir=args.out, output_mode=args.output, imu_units=args.imu_units, faults=faults,
-                          system_time_late_s=args.system_time_late))
+    try:
+        res = asyncio.run(fly(args.scenario, args.duration, args.speedup, rate_hz=args.rate, seed=args.seed,
+                              out_dir=args.out, output_mode=args.output, imu_units=args.imu_units, faults=faults,
+                              system_time_late_s=args.system_time_late, progress=not args.quiet,
+                              handle_signals=True))
+    except KeyboardInterrupt:
+        # interrupted before the flight started (during the simulation): nothing to score
+        print("sitl fly: interrupted before the flight started", file=sys.stderr)
+        if args.json:
+            _write_json(args.json, {"interrupted": True, "estimates_received": 0})
+        return 130
     series = res.pop("_series")
     print(format_result(res))
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        keys = ("estimates_received", "estimate_rate_hz", "estimate_rate_fraction", "rms_3d_m", "rms_h_m", "p95_3d_m",
-                "latency_ms_p50", "latency_ms_p99", "companion_cpu_pct", "companion_rss_mb")
+        keys = ("interrupted", "estimates_received", "estimate_rate_hz", "estimate_rate_fraction", "rms_3d_m",
+                "rms_h_m", "p95_3d_m", "latency_ms_p50", "latency_ms_p99", "companion_cpu_pct",
+                "companion_rss_mb", "setup_s")
         obj = {k: res[k] for k in keys}
         obj["details"] = {k: v for k, v in res.items() if k not in keys}
         if args.series:
             obj["series"] = series
-        Path(args.json).write_text(json.dumps(obj, indent=2, default=str))
+        _write_json(args.json, obj)
         print(f"wrote {args.json}")
+    if res["interrupted"]:
+        print("sitl fly: INTERRUPTED: the figures above cover only the part that was flown", file=sys.stderr)
+        return 130
     return 0 if res["estimates_received"] else 1
+
+
+def _write_json(path: str, obj: dict) -> None:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(obj, indent=2, default=str))
 
 
 def register(subparsers) -> None:
@@ -370,6 +531,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", default="out/fly", help="directory for config, logs and the field log")
     p.add_argument("--json", help="write the figures as JSON here")
     p.add_argument("--series", action="store_true", help="include per-estimate error/latency series in the JSON")
+    p.add_argument("--quiet", action="store_true", help="no set-up steps or status lines on stderr")
     p.add_argument("--imu-units", type=int, default=1, choices=(1, 2, 3),
                    help="IMUs the autopilot reports (2, 3: + SCALED_IMU2/3, fused by the companion's IMU cluster)")
     p.add_argument("--system-time-late", type=float, default=0.0, metavar="S",

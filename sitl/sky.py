@@ -9,6 +9,7 @@ the broadcast orbit, orbit errors are added separately along the line of sight).
 from __future__ import annotations
 
 import math
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -19,8 +20,9 @@ from companion.gnss.rinex import read_rinex_nav
 from companion.messages import SPEED_OF_LIGHT_MPS, GpsEphemeris
 from companion.nav.earth import C_n_e, ecef_to_geodetic
 
-GEONET_DIR = Path("/work/shared/data/rtklib-testdata-geonet-2005/rinex")
-GEONET_NAV = GEONET_DIR / "07590920.05n"
+#: GEONET 0759's broadcast navigation file, shipped with the package (``sitl/data``, provenance and
+#: licence there): found through importlib.resources so an installed wheel has it too
+GEONET_NAV = Path(str(resources.files("sitl") / "data" / "07590920.05n"))
 #: RINEX header APPROX POSITION XYZ of the two GEONET stations (m)
 GEONET_3040_R_E = np.array([-3978242.4348, 3382841.1715, 3649902.7667])
 GEONET_0759_R_E = np.array([-3976219.5082, 3382372.5671, 3652512.9849])

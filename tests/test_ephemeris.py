@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,10 +16,11 @@ from companion.gnss.rinex import read_rinex_nav, read_rinex_nav_header_iono
 from companion.messages import SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS
 from companion.nav.earth import (GM_M3PS2, OMEGA_IE_RADPS, WGS84_A_M, WGS84_B_M, WGS84_E2, C_n_e, ecef_to_geodetic, ecef_to_ned,
                                  geodetic_to_ecef)
+from tests._data import data_path
 
-DATA = Path("/work/shared/data/rtklib-testdata-geonet-2005/rinex")
+DATA = data_path("rtklib-testdata-geonet-2005/rinex")
 NAV = DATA / "07590920.05n"
-needs_data = pytest.mark.skipif(not NAV.is_file(), reason="GEONET test data not available")
+needs_data = pytest.mark.real_data
 
 
 @pytest.fixture(scope="module")

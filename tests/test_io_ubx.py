@@ -5,7 +5,6 @@ import datetime as dt
 import math
 import random
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,13 +16,14 @@ from companion.io.ubx import UbxDecoder, decode_ubx_file
 from companion.messages import (GPS_L1_WAVELENGTH_M, SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS,
                                 GnssEpoch, GnssFix, GpsEphemeris)
 from companion.nav.earth import ecef_to_geodetic
+from tests._data import data_path
 
-F9P = Path("/work/shared/data/qzsl6tool-hiroshima-rtcm3-ubx/20230919-114418.ubx")
+F9P = data_path("qzsl6tool-hiroshima-rtcm3-ubx/20230919-114418.ubx")
 # antenna reference point of the Hiroshima base in the same folder's RTCM 1005 (different day,
 # same site; checked against our own 1005 decoding in test_io_rtcm.py)
 HIROSHIMA_ARP = np.array([-3551876.8287, 3887786.8598, 3586946.3873])
 
-pytestmark = pytest.mark.skipif(not F9P.exists(), reason="recorded data not available")
+pytestmark = pytest.mark.real_data
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,6 @@ import asyncio
 import math
 import socket
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,9 +15,10 @@ from companion.io.rtcm import GpsRtcmDataFragmenter, RtcmFramer
 from companion.io.ubx import UbxDecoder
 from companion.messages import GnssEpoch, NavSolution
 from companion.nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm, geodetic_to_ecef
+from tests._data import data_path
 
 mav = M.mavlink2
-DATA = Path("/work/shared/data/qzsl6tool-hiroshima-rtcm3-ubx")
+DATA = data_path("qzsl6tool-hiroshima-rtcm3-ubx")
 UBX_FILE = DATA / "20230919-114418.ubx"
 RTCM_FILE = DATA / "20221213-010900.rtcm"
 
@@ -208,6 +208,7 @@ def test_gps_input_fields():
     assert back.satellites_visible == 12
 
 
+@pytest.mark.real_data
 def test_origin_statustext_and_rtcm_forwarding():
     o = roundtrip(M.set_gps_global_origin(34.4, 132.4, 123.456, target_system=1))
     assert (o.latitude, o.longitude, o.altitude) == (344000000, 1324000000, 123456)
@@ -427,6 +428,7 @@ def test_interval_request_retried_until_acked():
     asyncio.run(asyncio.wait_for(main(), 10))
 
 
+@pytest.mark.real_data
 def test_serial_control_tunnel_round_trip_real_ubx():
     ubx = UBX_FILE.read_bytes()[:60000]
 

@@ -19,8 +19,9 @@ from companion.io.corrections import CorrectionPipeline
 from companion.io.mqtt import MqttRtcmSubscriber, MqttTelemetryPublisher, solution_to_json
 from companion.messages import BaseStationPosition, GnssEpoch, NavSolution
 from companion.nav.earth import C_n_e, euler_to_dcm, geodetic_to_ecef
+from tests._data import data_path
 
-RTCM_FILE = Path("/work/shared/data/qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm")
+RTCM_FILE = data_path("qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm")
 MOSQUITTO = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None)
 needs_mosquitto = pytest.mark.skipif(MOSQUITTO is None, reason="mosquitto not installed: no real MQTT broker")
 

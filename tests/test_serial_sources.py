@@ -10,6 +10,7 @@ import tty
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import companion.io.mavlink as M
 from companion.config import loads_config
@@ -17,11 +18,13 @@ from companion.io.corrections import (CorrectionPipeline, FileCorrectionSource, 
                                       correction_source_from_config)
 from companion.io.rtcm import GpsRtcmDataFragmenter, decode_rtcm_file
 from companion.messages import BaseStationPosition, GnssEpoch, GpsEphemeris
+from tests._data import data_path
 
-RTCM_FILE = Path("/work/shared/data/qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm")
+RTCM_FILE = data_path("qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm")
 ARP = np.array([-3551876.8287, 3887786.8598, 3586946.3873])
 
 
+@pytest.mark.real_data
 def test_serial_radio_on_pty_to_core_messages_and_forwarding():
     data = RTCM_FILE.read_bytes()[:50000]
     master, slave = os.openpty()
@@ -124,6 +127,7 @@ def test_serial_source_reopens_after_port_loss(tmp_path):
     assert src.counters["errors"] >= 1 and src.counters["opens"] == 2
 
 
+@pytest.mark.real_data
 def test_file_source_paced_and_fast_and_base_override():
     async def run(source, override=None):
         pipe = CorrectionPipeline(source, week_hint=2240, base_position_ecef_m=override)

@@ -24,11 +24,12 @@ from companion.gnss.prepare import prepare_epoch
 from companion.gnss.rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
 from companion.gnss.spp import solve_spp, spp_epoch
 from companion.messages import BaseStationPosition, GnssEpoch, SatObservation
+from tests._data import data_path
 
-DATA = Path("/work/shared/data/rtklib-testdata-geonet-2005/rinex")
+DATA = data_path("rtklib-testdata-geonet-2005/rinex")
 ROVER, BASE = DATA / "07590920.05o", DATA / "30400920.05o"
 NAV_R, NAV_B = DATA / "07590920.05n", DATA / "30400920.05n"
-pytestmark = pytest.mark.skipif(not ROVER.is_file(), reason="GEONET test data not available")
+pytestmark = pytest.mark.real_data
 REPO = Path(__file__).resolve().parents[1]
 
 

@@ -6,7 +6,13 @@ id, SCALED_IMU2 -> 1, SCALED_IMU3 -> 2), in arrival order.  Output: one ImuSampl
 
 * **Time alignment.**  The units are not sampled simultaneously.  Each sample is turned into mean
   rates over its interval (dtheta/dt, dv/dt), tagged with the interval's midpoint; the other units'
-  rates are linearly interpolated to the midpoint of each primary interval.  A primary sample waits
+  rates are linearly interpolated to the midpoint of each primary interval.  The interval is the
+  unit's *own sampling period*, not the time since the previous sample that arrived: autopilots
+  report rates (RAW_IMU, SCALED_IMU, HIGHRES_IMU), so after a frame lost on the link the next
+  rate still describes only the last period before its time stamp.  Tagging it at the middle of
+  the gap would misalign it by half the gap, and a vibrating airframe's rates change enough in
+  2.5 ms to flag a healthy unit (seen on a loaded companion, whose socket buffer overflows).  The
+  period is learnt per unit from the intervals that are not gaps.  A primary sample waits
   until every healthy unit has a sample at or after its midpoint; a unit that has fallen more than
   ``max_wait_s`` behind is left out of that sample (counted).
 * **Weighted average** of the healthy units by their configured noise densities (weights 1/N^2,
@@ -96,6 +102,7 @@ class _Unit:
     _faulty: bool = False
     rel_bias: np.ndarray = field(default_factory=lambda: np.zeros(6))   # rates minus the primary's
     n_learnt: int = 0
+    period_s: float = 0.0                  # the unit's sampling period, learnt from non-gap intervals
 
 
 class ImuCluster:
@@ -104,7 +111,7 @@ class ImuCluster:
     def __init__(self, config: ClusterConfig):
         self.cfg = config
         self.units: dict[int, _Unit] = {}
-        self.pending: deque = deque()          # primary samples waiting for the others
+        self.pending: deque = deque()          # (primary sample, its rate's time tag) waiting for the others
         self.counters: Counter = Counter()
         self.ambiguous = False
         self._thr = float(chi2.ppf(1.0 - config.false_alarm_prob, 6 * config.window))
@@ -118,9 +125,11 @@ class ImuCluster:
             u = self.units[uid] = _Unit(uid, deque(maxlen=n), deque(maxlen=n))
         return u
 
-    def _sigma(self, uid: int, dt: float) -> np.ndarray:
+    def _sigma(self, uid: int) -> np.ndarray:
+        """Per-sample standard deviation of one rate of unit ``uid``: white noise averaged over one
+        sampling period (after a lost frame the rate still covers one period, not the gap)."""
         nz = self.cfg.noise.get(uid, self.cfg.default_noise)
-        s = 1.0 / math.sqrt(dt)
+        s = 1.0 / math.sqrt(self.units[uid].period_s)
         return np.array([nz.gyro_arw_rad_per_sqrt_s * s] * 3 + [nz.accel_vrw_mps_per_sqrt_s * s] * 3)
 
     def push(self, s: ImuSample) -> list[ImuSample]:
@@ -128,7 +137,7 @@ class ImuCluster:
             self.counters["invalid dt (dropped)"] += 1
             return []
         u = self._unit(s.imu_id)
-        tm = s.t_gps - 0.5 * s.dt_s
+        tm = s.t_gps - 0.5 * self._period(u, s.dt_s)
         if u.t_mid and tm <= u.t_mid[-1]:
             self.counters[f"imu {s.imu_id}: sample not after previous (dropped)"] += 1
             return []
@@ -139,10 +148,20 @@ class ImuCluster:
         u.t_mid.append(tm)
         u.rates.append(raw)
         if s.imu_id == self.cfg.primary_id:
-            self.pending.append(s)
+            self.pending.append((s, tm))
         return self._drain()
 
     # ------------------------------------------------------------------ alignment
+    @staticmethod
+    def _period(u: _Unit, dt: float) -> float:
+        """The unit's sampling period (see module doc): an interval longer than 1.5 periods is a gap
+        (frames lost) and does not teach it; the rate of a sample after a gap covers one period."""
+        if u.period_s <= 0.0 or dt < 0.67 * u.period_s:
+            u.period_s = dt                     # first sample, or the unit now samples faster
+        elif dt <= 1.5 * u.period_s:
+            u.period_s += 0.05 * (dt - u.period_s)
+        return min(dt, u.period_s)
+
     def _rate_at(self, u: _Unit, tm: float):
         ts = u.t_mid
         if not ts or tm > ts[-1] or tm < ts[0]:
@@ -156,8 +175,7 @@ class ImuCluster:
     def _drain(self) -> list[ImuSample]:
         out = []
         while self.pending:
-            p = self.pending[0]
-            tm = p.t_gps - 0.5 * p.dt_s
+            p, tm = self.pending[0]
             newest = self.units[self.cfg.primary_id].t_mid[-1]
             rates = {}
             wait = False
@@ -202,7 +220,6 @@ class ImuCluster:
         ids = sorted(rates)
         if len(ids) < 2:
             return
-        dt = p.dt_s
         ready = [o for o in ids if self.units[o].healthy and (o == cfg.primary_id
                                                               or self.units[o].n_learnt >= cfg.learn_samples)]
         for uid in ids:
@@ -215,9 +232,9 @@ class ImuCluster:
                 u.quiet = 0 if u._stuck else u.quiet + 1
                 continue
             med = np.median(np.array([rates[o] for o in others]), axis=0)
-            so = np.mean([self._sigma(o, dt) ** 2 for o in others], axis=0)
+            so = np.mean([self._sigma(o) ** 2 for o in others], axis=0)
             var_med = so * (math.pi / 2.0 / len(others) if len(others) >= 3 else 1.0 / len(others))
-            var = self._sigma(uid, dt) ** 2 + var_med + (cfg.relative_scale_sigma * med) ** 2
+            var = self._sigma(uid) ** 2 + var_med + (cfg.relative_scale_sigma * med) ** 2
             q = float(np.sum((rates[uid] - med) ** 2 / var))
             u.win.append(q)
             u.win_sum += q
@@ -274,7 +291,7 @@ class ImuCluster:
         if not use:
             use = [self.cfg.primary_id] if self.cfg.primary_id in rates else sorted(rates)[:1]
             self.counters["no healthy unit: primary passed through"] += 1
-        w = np.array([1.0 / self._sigma(uid, p.dt_s) ** 2 for uid in use])
+        w = np.array([1.0 / self._sigma(uid) ** 2 for uid in use])
         r = np.sum(w * np.array([rates[uid] for uid in use]), axis=0) / np.sum(w, axis=0)
         self.counters[f"fused from {len(use)} units"] += 1
         return ImuSample(p.t_gps, p.dt_s, r[:3] * p.dt_s, r[3:] * p.dt_s, self.cfg.output_id)
