@@ -39,6 +39,7 @@ catch-up drift).  Faults for the tests: ``corrupt`` (garbage datagrams and bit-f
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 import os
 import random
@@ -52,8 +53,9 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
-from companion.messages import SECONDS_PER_WEEK, gps_week_tow  # noqa: E402
+from companion.messages import SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS, gps_week_tow  # noqa: E402
 from companion.nav.earth import C_n_e, dcm_to_euler, ecef_to_geodetic  # noqa: E402
+from .sky import light_time_range  # noqa: E402
 
 m = mavlink2
 GPS_EPOCH_UNIX_S = 315964800           # 1980-01-06 00:00:00 UTC
@@ -150,6 +152,16 @@ class Faults:
     imu_unit_bias: list = field(default_factory=list)    # (t, unit, gyro_x_bias_radps): a unit's gyro fails
     imu_loss: list = field(default_factory=list)         # (t_start, t_end, probability): IMU frames lost on the
     #                                                      link (a full socket buffer on a loaded companion)
+    # the integrity fault matrix (python -m sitl faults):
+    imu_override: list = field(default_factory=list)     # (t_start, n_samples, accel_b m/s^2 | None, gyro_b rad/s
+    #                                                      | None): the reported sample replaced (clip, spike)
+    imu_noise: list = field(default_factory=list)        # (t_start, t_end, accel_sigma m/s^2, gyro_sigma rad/s)
+    gnss_offset_ned: list = field(default_factory=list)  # (t_start, t_end, (dn, de, dd) m): spoofed position, in
+    #                                                      the raw observations and in GPS_RAW_INT
+    rover_clock_jump: list = field(default_factory=list)  # (t, jump_s): the receiver clock steps (all codes and
+    #                                                       carriers move by c * jump_s from then on)
+    attitude_yaw_error_deg: float = 0.0                  # the autopilot's ATTITUDE yaw is this far off
+    no_attitude: bool = False                            # the autopilot never sends ATTITUDE
 
 
 class EmulatedAutopilot:
@@ -179,6 +191,8 @@ class EmulatedAutopilot:
         self.rng = np.random.default_rng([seed, 777])
         self.prng = random.Random(seed)
         self.loss_rng = random.Random(seed + 4242)       # its own stream: other faults' draws unchanged
+        self.fault_rng = np.random.default_rng([seed, 4243])
+        self._ephs = {e.sat: e for e in sim.ephemerides}   # for the spoofer's lines of sight
         t0 = float(sim.truth.t_gps[0])
         self.t0 = t0
         # GPS time of boot time 0: a whole number of seconds before the first sample
@@ -259,6 +273,54 @@ class EmulatedAutopilot:
                     self._sendto(bytes(self.prng.randrange(256) for _ in range(self.prng.randrange(1, 40))))
                 break
         self._sendto(data)
+
+    # -- faults of the integrity matrix ------------------------------------------------------
+    def _faulty_rates(self, k: int, t_rel: float, w, a):
+        """Faults.imu_override and imu_noise on the primary IMU's rates of sample ``k``."""
+        f = self.faults
+        if not (f.imu_override or f.imu_noise):
+            return w, a
+        for t0, n, acc, gyr in f.imu_override:
+            if t0 <= t_rel < t0 + (n - 0.5) / self.imu_rate_hz:
+                a = np.asarray(acc, float) if acc is not None else a
+                w = np.asarray(gyr, float) if gyr is not None else w
+                self.counters["imu_samples_overridden"] += 1
+        for t0, t1, sa, sg in f.imu_noise:
+            if t0 <= t_rel < t1:
+                a = a + self.fault_rng.normal(0.0, sa, 3)
+                w = w + self.fault_rng.normal(0.0, sg, 3)
+        return w, a
+
+    def _spoof_offset_e(self, t_gps: float, r_e) -> np.ndarray:
+        """ECEF offset of the spoofed position at ``t_gps`` (Faults.gnss_offset_ned), else zero."""
+        for t0, t1, ned in self.faults.gnss_offset_ned:
+            if t0 <= t_gps - self.t0 < t1:
+                lat, lon, _ = ecef_to_geodetic(r_e)
+                return C_n_e(lat, lon) @ np.asarray(ned, float)
+        return np.zeros(3)
+
+    def _faulty_epoch(self, ep):
+        """The rover epoch as a spoofer or a stepping receiver clock makes it: every code and carrier
+        moved by the range change of the offset position (line of sight from the broadcast orbit)
+        and by c * (clock jumps so far)."""
+        f = self.faults
+        jump_s = sum(j for t, j in f.rover_clock_jump if ep.t_gps - self.t0 >= t)
+        r_ant = self.sim.antenna_at(ep.t_gps)
+        d_e = self._spoof_offset_e(ep.t_gps, r_ant)
+        if jump_s == 0.0 and not d_e.any():
+            return ep
+        obs = []
+        for o in ep.observations:
+            d_m = jump_s * SPEED_OF_LIGHT_MPS
+            eph = self._ephs.get(o.sat)
+            if d_e.any() and eph is not None:
+                _, _, r_sat, _, _, _ = light_time_range(eph, ep.t_gps, r_ant)
+                u = (r_sat - r_ant) / np.linalg.norm(r_sat - r_ant)
+                d_m -= float(u @ d_e)
+            obs.append(dataclasses.replace(o, pseudorange_m=o.pseudorange_m + d_m,
+                                           carrier_cycles=o.carrier_cycles + d_m / o.wavelength_m))
+        self.counters["rover_epochs_faulty"] += 1
+        return dataclasses.replace(ep, observations=tuple(obs))
 
     def _imu_frame_lost(self, t_rel: float) -> bool:
         """Faults.imu_loss: this IMU frame never reaches the companion (decided per frame)."""
@@ -428,7 +490,7 @@ class EmulatedAutopilot:
                 i_ubx += 1
                 if any(a <= ep.t_gps - self.t0 < b for a, b in faults.gnss_outage):
                     continue
-                self.gps1 += rawx_frame(ep, self.leap_seconds) + extra
+                self.gps1 += rawx_frame(self._faulty_epoch(ep), self.leap_seconds) + extra
                 if len(self.gps1) > 16384:          # a UART buffer overflows: oldest bytes lost
                     del self.gps1[:len(self.gps1) - 16384]
             while i_fix < len(self._fix_list) and self._fix_list[i_fix][0] + self.receiver_latency_s <= t:
@@ -441,8 +503,7 @@ class EmulatedAutopilot:
             if iv and iv > 0:
                 dec = max(1, int(round(iv * 1e-6 * self.imu_rate_hz)))
                 if k % dec == 0:
-                    w = s.dtheta_b / s.dt_s
-                    a = s.dv_b / s.dt_s
+                    w, a = self._faulty_rates(k, t_rel, s.dtheta_b / s.dt_s, s.dv_b / s.dt_s)
                     if self.imu_message == "HIGHRES_IMU":
                         msg = self.mav.highres_imu_encode(boot_us, a[0], a[1], a[2], w[0], w[1], w[2],
                                                           0, 0, 0, 0, 0, 0, 25.0, 0x3F, 0)
@@ -485,13 +546,14 @@ class EmulatedAutopilot:
                 unix_us = int(round((t_gps_ms + GPS_EPOCH_UNIX_S - self.leap_seconds
                                      - self.system_time_late_s) * 1e6))
                 self.send(self.mav.system_time_encode(unix_us, boot_ms))
-            if self._interval_due(m.MAVLINK_MSG_ID_ATTITUDE, t):
+            if self._interval_due(m.MAVLINK_MSG_ID_ATTITUDE, t) and not faults.no_attitude:
                 r, v, C = sim.truth_at(t)
                 lat, lon, _ = ecef_to_geodetic(r)
                 roll, pitch, yaw = dcm_to_euler(C_n_e(lat, lon).T @ C)
                 nz = self.rng.normal(0.0, self.attitude_noise_rad, 3)
+                yaw += nz[2] + math.radians(faults.attitude_yaw_error_deg)
                 self.send(self.mav.attitude_encode(boot_us // 1000, roll + nz[0], pitch + nz[1],
-                                                   (yaw + nz[2] + math.pi) % (2 * math.pi) - math.pi, 0, 0, 0))
+                                                   (yaw + math.pi) % (2 * math.pi) - math.pi, 0, 0, 0))
             if self._interval_due(m.MAVLINK_MSG_ID_GPS_RAW_INT, t):
                 self._send_gps_raw(last_fix, t)
         self.counters["sim_seconds"] = int(t - self.t0)
@@ -503,6 +565,7 @@ class EmulatedAutopilot:
             self.send(self.mav.gps_raw_int_encode(self.boot_us(t), 1, 0, 0, 0, 65535, 65535, 65535, 65535, 0))
             return
         t_fix, r, v, nsat, yaw_cdeg = fix
+        r = r + self._spoof_offset_e(t_fix, r)
         lat, lon, h = ecef_to_geodetic(r)
         v_n = C_n_e(lat, lon).T @ v
         speed = math.hypot(v_n[0], v_n[1])

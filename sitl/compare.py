@@ -250,7 +250,7 @@ def format_nhc(res: dict) -> str:
     ta = res["course_alignment_t_s"]
     lines = [f"Seed 002 Table 1: RMSE from the in-motion heading alignment to the end (outages included), "
              f"loosely coupled INS/GNSS without -> with NHC, {res['runs']} run(s), scenario '{res['scenario']}'",
-             f"heading aligned from the course over ground at t = " + ", ".join(f"{t:.0f}" for t in ta)
+             "heading aligned from the course over ground at t = " + ", ".join(f"{t:.0f}" for t in ta)
              + f" s (first motion at {res['first_motion_t_s']:.0f} s)",
              f"{'':20s} | {'without':>8} {'with':>8} {'impr.':>7} | {'paper without':>13} {'with':>6} {'impr.':>7}",
              "-" * 84]

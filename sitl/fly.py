@@ -315,10 +315,13 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               gnss_source: str = "mavlink_serial_control", leap_seconds: int = 13,
               keep_companion_log: bool = True, imu_units: int = 1, max_imu_rate_hz: float | None = None,
               moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None,
-              system_time_late_s: float = 0.0, progress: bool = False, handle_signals: bool = False) -> dict:
+              system_time_late_s: float = 0.0, progress: bool = False, handle_signals: bool = False,
+              base_outage_s: tuple[float, float] | None = None, keep_autopilot: dict | None = None) -> dict:
     """Fly once; ``progress`` prints set-up steps and status lines to stderr, ``handle_signals`` makes
     the first SIGINT/SIGTERM a clean stop (the result then has ``interrupted`` True and the figures
-    of the part that was flown)."""
+    of the part that was flown).  ``base_outage_s`` (start, end from the start of the flight): the
+    base station sends nothing then.  ``keep_autopilot`` (a dict) receives the emulated autopilot
+    and the simulation ('ap', 'sim') for scoring of one's own."""
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     prog = _Progress(progress)
@@ -345,7 +348,12 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     try:
         if use_caster and not stop.is_set():
             prog.step("starting the simulated base station and the NTRIP caster")
-            src = RtcmSource(sim.base_epochs, sim.ephemerides, sim.base, clock)
+            base_epochs = sim.base_epochs
+            if base_outage_s is not None:
+                t_b0 = float(sim.truth.t_gps[0])
+                base_epochs = [e for e in base_epochs
+                               if not base_outage_s[0] <= e.t_gps - t_b0 < base_outage_s[1]]
+            src = RtcmSource(base_epochs, sim.ephemerides, sim.base, clock)
             src_port = await src.start()
             caster = await start_caster(src_port, log_path=str(out / "str2str.log"))
             prog.step(f"caster: {caster.kind} on 127.0.0.1:{caster.port}")
@@ -436,6 +444,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     if imu_units > 1:
         res["imu_cluster"] = _final_cluster_health(log_dir)
     res["_series"] = series
+    if keep_autopilot is not None:
+        keep_autopilot.update(ap=ap, sim=sim)
     return res
 
 

@@ -1,0 +1,222 @@
+"""``python -m sitl faults``: the integrity fault matrix (issue 10).
+
+The simulated flight (``sitl.fly``: the emulated autopilot, the base station behind an NTRIP caster,
+``companion run`` as its own process) is flown once per fault, plus a clean control flight, and only
+what the emulated autopilot *received* is scored:
+
+* ``estimates_received``;
+* ``hmi_fraction``: share of received estimates whose true horizontal error exceeds 3 x the
+  horizontal sigma they carried (``sqrt(var_x + var_y)`` of VISION_POSITION_ESTIMATE's covariance,
+  the service's own sigma_h) -- hazardously misleading information;
+* ``max_injected_error_h_m``;
+* ``injection_gap_s``: the longest time without an estimate after the first one (to the end of the
+  flight);
+* ``recovered``: an estimate with a horizontal error under 1 m arrived within 20 s of the fault's
+  end (``recovery_s`` says when).  A fault that lasts the whole flight (wrong or missing initial
+  heading, a late SYSTEM_TIME) "ends" at ``WHOLE_FLIGHT_END_S``: the companion has that long to
+  find out.
+
+Faults start at ``FAULT_AT_S`` into the flight (the 'uav' survey flight is then on its first leg).
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+G_MPS2 = 9.80665
+FAULT_AT_S = 40.0
+WHOLE_FLIGHT_END_S = 30.0
+RECOVERY_WINDOW_S = 20.0
+RECOVERED_ERROR_H_M = 1.0
+HMI_SIGMA_FACTOR = 3.0
+#: RAW_IMU's int16 full scale in mG, as m/s^2 (what a clipped ArduPilot accelerometer reports)
+RAW_IMU_FULL_SCALE_MPS2 = 32.767 * G_MPS2
+
+
+@dataclass
+class FaultCase:
+    name: str
+    what: str
+    window_s: tuple[float, float]              # (start, end) from the start of the flight
+    faults: dict = field(default_factory=dict)  # sitl.autopilot.Faults keyword arguments
+    fly: dict = field(default_factory=dict)     # extra sitl.fly.fly keyword arguments
+
+
+def fault_cases() -> list[FaultCase]:
+    T = FAULT_AT_S
+    g = G_MPS2
+    fs = RAW_IMU_FULL_SCALE_MPS2
+    return [
+        FaultCase("control", "no fault", (0.0, 0.0)),
+        FaultCase("accel_16g", "one 16-g accelerometer sample (x)", (T, T),
+                  {"imu_override": [(T, 1, (16.0 * g, 0.0, -g), None)]}),
+        FaultCase("accel_full_scale_x4", "four consecutive full-scale accelerometer samples", (T, T + 0.02),
+                  {"imu_override": [(T, 4, (fs, fs, fs), None)]}),
+        FaultCase("gyro_2000dps", "one 2000 deg/s gyro sample (z)", (T, T),
+                  {"imu_override": [(T, 1, None, (0.0, 0.0, math.radians(2000.0)))]}),
+        FaultCase("imu_noise_10s", "10 s of IMU noise (5 m/s^2, 0.5 rad/s per sample)", (T, T + 10.0),
+                  {"imu_noise": [(T, T + 10.0, 5.0, 0.5)]}),
+        FaultCase("spoof_100m_20s", "GNSS position 100 m north for 20 s (raw observations and GPS_RAW_INT)",
+                  (T, T + 20.0), {"gnss_offset_ned": [(T, T + 20.0, (100.0, 0.0, 0.0))]}),
+        FaultCase("receiver_clock_jump_1ms", "the receiver clock steps by 1 ms", (T, T),
+                  {"rover_clock_jump": [(T, 1e-3)]}),
+        FaultCase("gnss_outage_30s", "no GNSS for 30 s", (T, T + 30.0), {"gnss_outage": [(T, T + 30.0)]}),
+        FaultCase("gnss_outage_60s", "no GNSS for 60 s", (T, T + 60.0), {"gnss_outage": [(T, T + 60.0)]}),
+        FaultCase("heading_180", "the autopilot's ATTITUDE yaw is 180 deg off", (0.0, WHOLE_FLIGHT_END_S),
+                  {"attitude_yaw_error_deg": 180.0}),
+        FaultCase("no_attitude", "the autopilot sends no ATTITUDE", (0.0, WHOLE_FLIGHT_END_S),
+                  {"no_attitude": True}),
+        FaultCase("system_time_late_80ms", "SYSTEM_TIME 80 ms late", (0.0, WHOLE_FLIGHT_END_S),
+                  fly={"system_time_late_s": 0.08}),
+        FaultCase("corrections_outage_60s", "no base-station corrections for 60 s", (T, T + 60.0),
+                  fly={"base_outage_s": (T, T + 60.0)}),
+    ]
+
+
+def _sigma_h_m(r) -> float:
+    """Horizontal 1-sigma a received estimate states (the service's sigma_h)."""
+    msg = r.msg
+    cov = getattr(msg, "covariance", None) if r.msg_type == "VISION_POSITION_ESTIMATE" else \
+        getattr(msg, "pose_covariance", None)
+    if cov is None or not all(math.isfinite(c) for c in (cov[0], cov[6])):
+        return float("nan")
+    return math.sqrt(max(cov[0], 0.0) + max(cov[6], 0.0))
+
+
+def score_fault(ap, sim, case: FaultCase, duration_s: float) -> dict:
+    """The matrix's figures for one flight, from the estimates the emulated autopilot received."""
+    from .fly import ESTIMATE_TYPES, _estimate_error, _origin_of
+    origin = None
+    t_rel, err_h, sig_h = [], [], []
+    for r in ap.received:
+        origin = _origin_of(r, origin)
+        if r.msg_type not in ESTIMATE_TYPES:
+            continue
+        e = _estimate_error(ap, sim, r, origin)
+        if e is None:
+            continue
+        t_rel.append(e[1] - ap.t0)
+        err_h.append(e[3])
+        sig_h.append(_sigma_h_m(r))
+    t, eh, sh = np.array(t_rel), np.array(err_h), np.array(sig_h)
+    n = len(t)
+    hmi = int(np.sum(~(eh <= HMI_SIGMA_FACTOR * sh))) if n else 0      # NaN sigma counts as misleading
+    order = np.sort(t)
+    gaps = np.diff(np.concatenate([order, [duration_s]])) if n else np.array([duration_s])
+    end = case.window_s[1]
+    good = (t >= end) & (t <= end + RECOVERY_WINDOW_S) & (eh < RECOVERED_ERROR_H_M)
+    recovery = float(t[good].min() - end) if good.any() else None
+    after = t >= end
+    return {
+        "fault": case.name, "what": case.what, "window_s": list(case.window_s),
+        "estimates_received": n,
+        "hmi_fraction": round(hmi / n, 5) if n else 0.0,
+        "hmi_estimates": hmi,
+        "max_injected_error_h_m": round(float(eh.max()), 3) if n else None,
+        "rms_h_m": round(float(np.sqrt(np.mean(eh ** 2))), 4) if n else None,
+        "rms_h_after_recovery_m": (round(float(np.sqrt(np.mean(eh[after & (t >= end + (recovery or 0))] ** 2))), 4)
+                                   if recovery is not None else None),
+        "injection_gap_s": round(float(gaps.max()), 2),
+        "recovered": recovery is not None,
+        "recovery_s": None if recovery is None else round(recovery, 2),
+    }
+
+
+async def _fly_case(case: FaultCase, *, duration_s: float, speedup: float, out_dir: Path, seed: int) -> dict:
+    from .autopilot import Faults
+    from .fly import fly
+    captured = {}
+    res = await fly("uav", duration_s, speedup, seed=seed, out_dir=str(out_dir / case.name),
+                    faults=Faults(**case.faults), keep_autopilot=captured, **case.fly)
+    row = score_fault(captured["ap"], captured["sim"], case, res["duration_s"])
+    applied = {k: v for k, v in captured["ap"].counters.items()
+               if k in ("imu_samples_overridden", "rover_epochs_faulty", "clock_jumps")}
+    row.update({"applied": applied, "statustext": res["statustext"][-20:],
+                "companion_exit_code": res["companion_exit_code"],
+                "reset_counters_seen": res["reset_counters_seen"]})
+    return row
+
+
+def summarise(rows: list[dict]) -> dict:
+    faulty = [r for r in rows if r["fault"] != "control"]
+    control = next((r for r in rows if r["fault"] == "control"), None)
+    n = sum(r["estimates_received"] for r in faulty)
+    return {
+        "all_recovered": all(r["recovered"] for r in faulty),
+        "hmi_fraction": round(sum(r["hmi_estimates"] for r in faulty) / n, 5) if n else 0.0,
+        "max_injected_error_h_m": max((r["max_injected_error_h_m"] or 0.0) for r in faulty) if faulty else None,
+        "control_rms_h_m": None if control is None else control["rms_h_m"],
+        "control_hmi_fraction": None if control is None else control["hmi_fraction"],
+    }
+
+
+def format_rows(rows: list[dict], summary: dict) -> str:
+    head = f"{'fault':26s} {'est':>5s} {'HMI':>8s} {'max err h':>10s} {'gap':>7s} {'recovered':>10s}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        rec = "n/a" if r["fault"] == "control" else ("yes" if r["recovered"] else "NO")
+        if r["recovered"] and r["fault"] != "control":
+            rec += f" {r['recovery_s']:.1f}s"
+        mx = "n/a" if r["max_injected_error_h_m"] is None else f"{r['max_injected_error_h_m']:.2f} m"
+        lines.append(f"{r['fault']:26s} {r['estimates_received']:5d} {r['hmi_fraction']:8.4f} {mx:>10s} "
+                     f"{r['injection_gap_s']:6.1f}s {rec:>10s}")
+    lines.append(f"overall: all recovered {summary['all_recovered']}, HMI fraction {summary['hmi_fraction']:.4f}, "
+                 f"max injected error {summary['max_injected_error_h_m']} m; control RMS h "
+                 f"{summary['control_rms_h_m']} m, control HMI {summary['control_hmi_fraction']}")
+    return "\n".join(lines)
+
+
+def cmd_faults(args) -> int:
+    cases = fault_cases()
+    if args.only:
+        want = set(args.only.split(","))
+        unknown = want - {c.name for c in cases}
+        if unknown:
+            print(f"unknown fault(s): {', '.join(sorted(unknown))}; known: {', '.join(c.name for c in cases)}",
+                  file=sys.stderr)
+            return 2
+        cases = [c for c in cases if c.name in want]
+    rows = []
+    t0 = time.monotonic()
+    try:
+        for i, case in enumerate(cases, 1):
+            print(f"[{time.monotonic() - t0:6.0f} s] fault {i}/{len(cases)}: {case.name} ({case.what})",
+                  file=sys.stderr, flush=True)
+            row = asyncio.run(_fly_case(case, duration_s=args.duration, speedup=args.speedup,
+                                        out_dir=Path(args.out), seed=args.seed))
+            rows.append(row)
+            print(f"         {row['estimates_received']} estimates, HMI {row['hmi_fraction']:.4f}, max error "
+                  f"{row['max_injected_error_h_m']} m, recovered {row['recovered']}", file=sys.stderr, flush=True)
+    except KeyboardInterrupt:
+        print("sitl faults: interrupted", file=sys.stderr)
+        interrupted = True
+    else:
+        interrupted = False
+    summary = summarise(rows)
+    print(format_rows(rows, summary))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps({"faults": rows, "overall": summary, "interrupted": interrupted,
+                                               "duration_s": args.duration, "speedup": args.speedup},
+                                              indent=2, default=str))
+        print(f"wrote {args.json}")
+    return 130 if interrupted else 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("faults", help="integrity fault matrix: one simulated flight per fault, scored on "
+                                             "what the autopilot received")
+    p.add_argument("--duration", type=float, default=125.0, help="simulated seconds per flight (default 125)")
+    p.add_argument("--speedup", type=float, default=2.0, help="simulated time per wall-clock second (default 2)")
+    p.add_argument("--only", help="comma-separated fault names (default: all)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="out/faults", help="directory for each flight's config and logs")
+    p.add_argument("--json", help="write the matrix as JSON here")
+    p.set_defaults(func=cmd_faults)
