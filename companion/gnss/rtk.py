@@ -1,0 +1,445 @@
+"""Carrier-phase RTK against a base station: double-differenced code and phase on every frequency,
+float ambiguities in a Kalman filter, integers by LAMBDA with partial fixing and fix-and-hold.
+
+The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its documented model:
+
+* **State**: rover antenna position ``r_e`` (3, m) and one *between-receiver single-difference*
+  ambiguity per (satellite, signal) in cycles, ``N = N_rover - N_base``, added when the satellite
+  is acquired or after a slip, dropped when it is lost.  Single differences as states make the
+  reference satellite a choice of the measurement, not of the state (RTKLIB's ``IB(s,f)``).
+* **Measurements** per frequency, against the highest-elevation satellite ``j``:
+  ``DD phase  = lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j) + e``,
+  ``DD code   = dP_i - dP_j = DD rho + e`` with ``d = rover - base`` and ``rho`` the geometric
+  range (satellite at its own transmit time from each receiver's pseudorange, Sagnac rotation,
+  satellite clock) plus the Saastamoinen troposphere at each receiver's height; receiver clocks
+  cancel in the between-satellite difference, satellite clocks, orbits and (on short baselines)
+  the atmosphere in the between-receiver one.  Per-receiver variance ``a^2 + b^2 / sin^2(el)``
+  (RTKLIB's default 3 mm + 3 mm), code ``code_phase_ratio`` x phase; the DD covariance carries
+  the reference satellite's share in every row.
+* **Kinematic**: every epoch the position prior is the previous solution with ``position_sigma_m``
+  (30 m: no dynamics are assumed); **static**: the position is a constant.  Iterated update
+  (``iterations``), so the 30-m prior does not bias the linearisation.
+* **Slips**: the receiver's loss-of-lock flag, or a jump of the geometry-free phase
+  ``lambda_1 phi_1 - lambda_2 phi_2`` of either receiver by more than ``slip_gf_m`` between
+  epochs, resets that satellite's ambiguities; a gap longer than ``max_gap_s`` too.
+* **Integer resolution**: the float DD ambiguities ``a = T x`` with covariance ``T P T^T`` go to
+  LAMBDA; accepted when the ratio test passes (``ratio_threshold``) and the fixed phase residuals
+  stay within ``fixed_residual_sigma`` of their noise (a wrong fix shows there).  Otherwise partial
+  fixing: the lowest satellite's ambiguities are left float and the rest tried again, down to
+  ``min_fix_ambiguities``.  The fixed position is ``r - Q_ra Q_a^-1 (a - a_fix)``.
+* **Fix-and-hold**: after a validated fix the fixed DD ambiguities are fed back to the float
+  filter as measurements (``hold_sigma_cycles``), so the next epochs start from them.
+
+Solution quality as RTKLIB's Q: 1 fixed, 2 float.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
+from ..nav.earth import C_n_e, ecef_to_geodetic
+from .atmosphere import tropo_delay_m
+from .ephemeris import rotate_to_reception_frame, satellite_state
+from .ephemeris_store import EphemerisStore
+from .lambda_ils import lambda_ils
+
+Q_FIX, Q_FLOAT = 1, 2
+
+
+@dataclass
+class RtkConfig:
+    signals: tuple[str, ...] = ("L1C", "L2W")      # one per frequency, RINEX 3 codes (L2W = RINEX 2 L2/P2)
+    elevation_mask_deg: float = 10.0               # the product's mask (filter.elevation_mask_deg)
+    phase_sigma_a_m: float = 0.003
+    phase_sigma_b_m: float = 0.003
+    code_phase_ratio: float = 100.0
+    dynamics: str = "kinematic"                    # or 'static'
+    position_sigma_m: float = 30.0                 # kinematic position prior each epoch
+    iterations: int = 3
+    ambiguity_init_sigma_cycles: float = 60.0
+    ambiguity_psd_cycles2ps: float = 1e-8
+    slip_gf_m: float = 0.05
+    max_gap_s: float = 150.0
+    max_phase_innovation_m: float = 5.0            # a DD phase row further than this off is rejected
+    ratio_threshold: float = 3.0
+    min_fix_ambiguities: int = 4
+    fixed_residual_sigma: float = 4.0
+    fix_and_hold: bool = True
+    hold_sigma_cycles: float = 0.03
+
+
+@dataclass
+class RtkSolution:
+    t_gps: float
+    r_e: np.ndarray                 # rover antenna position (m)
+    cov_e: np.ndarray               # 3x3 (m^2)
+    quality: int                    # 1 fixed, 2 float
+    n_sats: int
+    ratio: float
+    n_fixed: int = 0                # DD ambiguities fixed
+    n_ambiguities: int = 0          # DD ambiguities formed
+    success_rate: float = float("nan")
+    counters: dict = field(default_factory=dict)
+
+
+@dataclass
+class _Sat:
+    r_sat_e: np.ndarray             # reception-frame satellite position (m)
+    clock_m: float                  # c x satellite clock bias
+    code_m: dict                    # signal -> pseudorange
+    phase_cyc: dict                 # signal -> carrier (cycles)
+    wavelength_m: dict
+    slip: dict                      # signal -> receiver loss-of-lock flag
+    elevation_rad: float = 0.0
+
+
+def _receiver_sats(epoch: GnssEpoch, store: EphemerisStore, r_rx_e: np.ndarray, signals) -> dict[str, _Sat]:
+    """Satellite geometry and observables of one receiver's epoch (satellites with ephemerides)."""
+    by_sat: dict[str, dict] = {}
+    for o in epoch.observations:
+        if o.signal in signals:
+            by_sat.setdefault(o.sat, {})[o.signal] = o
+    out = {}
+    for sat, obs in by_sat.items():
+        first = obs.get(signals[0])
+        if first is None or not math.isfinite(first.pseudorange_m):
+            continue
+        eph = store.select(sat, epoch.t_gps)
+        if eph is None:
+            continue
+        t_tx = epoch.t_gps - first.pseudorange_m / SPEED_OF_LIGHT_MPS
+        _, _, clk, _ = satellite_state(eph, t_tx)
+        r_s, v_s, clk, _ = satellite_state(eph, t_tx - clk)
+        tau = float(np.linalg.norm(r_s - r_rx_e)) / SPEED_OF_LIGHT_MPS
+        r_rot, _ = rotate_to_reception_frame(r_s, v_s, tau)
+        out[sat] = _Sat(r_rot, clk * SPEED_OF_LIGHT_MPS,
+                        {s: o.pseudorange_m for s, o in obs.items() if math.isfinite(o.pseudorange_m)},
+                        {s: o.carrier_cycles for s, o in obs.items() if math.isfinite(o.carrier_cycles)},
+                        {s: o.wavelength_m for s, o in obs.items()},
+                        {s: bool(o.loss_of_lock) for s, o in obs.items()})
+    return out
+
+
+def _elevation(r_rx_e: np.ndarray, r_sat_e: np.ndarray) -> float:
+    lat, lon, _ = ecef_to_geodetic(r_rx_e)
+    up = C_n_e(lat, lon)[:, 2] * -1.0
+    d = r_sat_e - r_rx_e
+    return math.asin(float(up @ d) / float(np.linalg.norm(d)))
+
+
+def _model_m(r_rx_e: np.ndarray, sat: _Sat) -> tuple[float, np.ndarray]:
+    """Modelled range (geometric + troposphere - satellite clock) and its unit line of sight."""
+    d = sat.r_sat_e - r_rx_e
+    rho = float(np.linalg.norm(d))
+    lat, _, h = ecef_to_geodetic(r_rx_e)
+    el = max(_elevation(r_rx_e, sat.r_sat_e), math.radians(1.0))
+    return rho + tropo_delay_m(lat, h, el) - sat.clock_m, d / rho
+
+
+class RtkFilter:
+    """Feed epoch pairs with :meth:`process` (rover epoch, base epoch at the same time)."""
+
+    def __init__(self, base_r_e, store: EphemerisStore, config: RtkConfig = RtkConfig()):
+        self.cfg = config
+        self.base_r_e = np.asarray(base_r_e, dtype=float)
+        self.store = store
+        self.x = np.zeros(3)
+        self.P = np.eye(3) * config.position_sigma_m ** 2
+        self.amb: dict[tuple[str, str], int] = {}          # (sat, signal) -> state index
+        self.last_seen: dict[tuple[str, str], float] = {}
+        self.last_gf: dict[tuple[str, str], float] = {}     # (sat, 'rover'|'base') -> GF phase (m)
+        self.t_last: float | None = None
+        self.initialized = False
+        self.counters: dict[str, int] = {}
+
+    def _count(self, key: str, n: int = 1) -> None:
+        self.counters[key] = self.counters.get(key, 0) + n
+
+    # ------------------------------------------------------------------ state bookkeeping
+    def _add_amb(self, key, value: float, sigma: float | None = None) -> None:
+        """A new ambiguity state (sat, signal)."""
+        n = len(self.x)
+        self.x = np.append(self.x, value)
+        P = np.zeros((n + 1, n + 1))
+        P[:n, :n] = self.P
+        P[n, n] = (self.cfg.ambiguity_init_sigma_cycles if sigma is None else sigma) ** 2
+        self.P = P
+        self.amb[key] = n
+
+    def _drop_amb(self, keys) -> None:
+        idx = sorted(self.amb.pop(k) for k in keys if k in self.amb)
+        if not idx:
+            return
+        keep = np.setdiff1d(np.arange(len(self.x)), idx)
+        self.x = self.x[keep]
+        self.P = self.P[np.ix_(keep, keep)]
+        remap = {int(old): new for new, old in enumerate(keep)}
+        self.amb = {k: remap[i] for k, i in self.amb.items()}
+
+    # ------------------------------------------------------------------ one epoch
+    def process(self, rover: GnssEpoch, base: GnssEpoch, r_prior_e=None) -> RtkSolution | None:
+        cfg = self.cfg
+        sig = cfg.signals
+        r_guess = self.x[:3].copy() if self.initialized else np.asarray(r_prior_e, dtype=float)
+        sb = _receiver_sats(base, self.store, self.base_r_e, sig)
+        sr = _receiver_sats(rover, self.store, r_guess, sig)
+        mask = math.radians(cfg.elevation_mask_deg)
+        common = []
+        for sat in sorted(set(sb) & set(sr)):
+            el = _elevation(self.base_r_e, sb[sat].r_sat_e)
+            if el >= mask:
+                sr[sat].elevation_rad = sb[sat].elevation_rad = el
+                common.append(sat)
+            else:
+                self._count("below mask")
+        if len(common) < 2:
+            self._count("epochs with fewer than 2 common satellites")
+            return None
+        t = rover.t_gps
+        dt = 0.0 if self.t_last is None else t - self.t_last
+        self._predict(r_guess, dt)
+        self._manage_ambiguities(t, common, sr, sb)
+        used = self._update(common, sr, sb)
+        self.t_last = t
+        self.initialized = True
+        if used < 2:
+            self._count("epochs without a usable DD set")
+            return None
+        return self._resolve(t, common, sr, sb)
+
+    def _predict(self, r_guess: np.ndarray, dt: float) -> None:
+        cfg = self.cfg
+        if cfg.dynamics == "kinematic" or not self.initialized:
+            self.x[:3] = r_guess
+            self.P[:3, :] = 0.0
+            self.P[:, :3] = 0.0
+            self.P[:3, :3] = np.eye(3) * cfg.position_sigma_m ** 2
+        if dt > 0:
+            for i in self.amb.values():
+                self.P[i, i] += cfg.ambiguity_psd_cycles2ps * dt
+
+    def _manage_ambiguities(self, t: float, common, sr, sb) -> None:
+        cfg = self.cfg
+        s1, s2 = cfg.signals[0], cfg.signals[-1]
+        slipped = set()
+        for sat in common:
+            for who, sats in (("rover", sr), ("base", sb)):
+                ph, lam = sats[sat].phase_cyc, sats[sat].wavelength_m
+                if len(cfg.signals) > 1 and s1 in ph and s2 in ph:
+                    gf = lam[s1] * ph[s1] - lam[s2] * ph[s2]
+                    prev = self.last_gf.get((sat, who))
+                    if prev is not None and abs(gf - prev) > cfg.slip_gf_m:
+                        slipped.add(sat)
+                        self._count("slips: geometry-free")
+                    self.last_gf[(sat, who)] = gf
+                if any(sats[sat].slip.get(s, False) for s in cfg.signals):
+                    slipped.add(sat)
+                    self._count("slips: loss of lock flag")
+        for sat in common:
+            for s in cfg.signals:
+                key = (sat, s)
+                ok = s in sr[sat].phase_cyc and s in sb[sat].phase_cyc and s in sr[sat].code_m \
+                    and s in sb[sat].code_m
+                stale = key in self.last_seen and t - self.last_seen[key] > cfg.max_gap_s
+                if key in self.amb and (sat in slipped or stale or not ok):
+                    self._drop_amb([key])
+                    self._count("ambiguities reset")
+                if ok and key not in self.amb:
+                    lam = sr[sat].wavelength_m[s]
+                    n0 = (sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s]) - (sr[sat].code_m[s] - sb[sat].code_m[s]) / lam
+                    self._add_amb(key, n0)
+                    self._count("ambiguities added")
+                if ok:
+                    self.last_seen[key] = t
+        lost = [k for k, ts in self.last_seen.items() if t - ts > self.cfg.max_gap_s and k in self.amb]
+        self._drop_amb(lost)
+
+    # ------------------------------------------------------------------ double differences
+    def _dd_rows(self, x: np.ndarray, common, sr, sb, *, fixed: dict | None = None):
+        """(innovation z - h(x), H, R, keys) of every DD phase and code row at state ``x``."""
+        cfg = self.cfg
+        r = x[:3]
+        model_r = {sat: _model_m(r, sr[sat]) for sat in common}
+        model_b = {sat: _model_m(self.base_r_e, sb[sat]) for sat in common}
+        rows_v, rows_H, var_sd, groups, keys = [], [], [], [], []
+        n = len(x)
+        for s in cfg.signals:
+            sats = [sat for sat in common if (sat, s) in self.amb]
+            if len(sats) < 2:
+                continue
+            ref = max(sats, key=lambda q: sr[q].elevation_rad)
+            for kind in ("phase", "code"):
+                grp = []
+                for sat in sats:
+                    if sat == ref:
+                        continue
+                    lam = sr[sat].wavelength_m[s]
+                    dd_rho = (model_r[sat][0] - model_b[sat][0]) - (model_r[ref][0] - model_b[ref][0])
+                    H = np.zeros(n)
+                    H[:3] = -(model_r[sat][1] - model_r[ref][1])
+                    if kind == "phase":
+                        obs = lam * ((sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
+                                     - (sr[ref].phase_cyc[s] - sb[ref].phase_cyc[s]))
+                        ia, ir = self.amb[(sat, s)], self.amb[(ref, s)]
+                        if fixed is not None and (sat, s) in fixed:
+                            amb = fixed[(sat, s)]
+                        else:
+                            amb = x[ia] - x[ir]
+                            H[ia] += lam
+                            H[ir] -= lam
+                        h = dd_rho + lam * amb
+                    else:
+                        if fixed is not None:
+                            continue
+                        obs = (sr[sat].code_m[s] - sb[sat].code_m[s]) - (sr[ref].code_m[s] - sb[ref].code_m[s])
+                        h = dd_rho
+                    rows_v.append(obs - h)
+                    rows_H.append(H)
+                    var_sd.append((self._sd_var(sr[sat].elevation_rad, kind), self._sd_var(sr[ref].elevation_rad, kind)))
+                    grp.append(len(rows_v) - 1)
+                    keys.append((kind, s, sat, ref))
+                groups.append(grp)
+        m = len(rows_v)
+        R = np.zeros((m, m))
+        for grp in groups:
+            for i in grp:
+                R[i, i] = var_sd[i][0] + var_sd[i][1]
+                for j in grp:
+                    if j != i:
+                        R[i, j] = var_sd[i][1]          # the reference satellite's share
+        return np.array(rows_v), np.array(rows_H).reshape(m, n), R, keys
+
+    def _sd_var(self, el: float, kind: str) -> float:
+        cfg = self.cfg
+        s_el = max(math.sin(el), 0.1)
+        v = 2.0 * (cfg.phase_sigma_a_m ** 2 + (cfg.phase_sigma_b_m / s_el) ** 2)    # two receivers
+        return v * (cfg.code_phase_ratio ** 2 if kind == "code" else 1.0)
+
+    def _update(self, common, sr, sb) -> int:
+        """Iterated EKF update with all DD rows; DD phase rows far off are dropped (counted)."""
+        x0, P0 = self.x.copy(), self.P.copy()
+        x = x0.copy()
+        for it in range(self.cfg.iterations):
+            v, H, R, keys = self._dd_rows(x, common, sr, sb)
+            if len(v) == 0:
+                return 0
+            v = v + H @ (x - x0)                  # innovation about the prior (iterated EKF)
+            if it == 0:
+                bad = [i for i, k in enumerate(keys) if k[0] == "phase"
+                       and abs(v[i]) > self.cfg.max_phase_innovation_m and self.P[self.amb[(k[2], k[1])], self.amb[(k[2], k[1])]] < 1.0]
+                if bad:
+                    self._count("phase rows rejected (innovation)", len(bad))
+                    for i in bad:                      # its ambiguity is wrong: start it again
+                        self._drop_amb([(keys[i][2], keys[i][1])])
+                    return self._update(common, sr, sb)
+            S = H @ P0 @ H.T + R
+            K = np.linalg.solve(S, H @ P0).T
+            x = x0 + K @ v
+        I_KH = np.eye(len(x)) - K @ H
+        self.P = I_KH @ P0 @ I_KH.T + K @ R @ K.T
+        self.x = x
+        return len(v)
+
+    # ------------------------------------------------------------------ integer ambiguities
+    def _dd_ambiguities(self, common, sr, exclude=()):
+        """Transformation T (DD ambiguities = T x) and the (sat, signal, ref) of each row."""
+        rows, labels = [], []
+        for s in self.cfg.signals:
+            sats = [q for q in common if (q, s) in self.amb and q not in exclude]
+            if len(sats) < 2:
+                continue
+            ref = max(sats, key=lambda q: sr[q].elevation_rad)
+            for q in sats:
+                if q == ref:
+                    continue
+                t = np.zeros(len(self.x))
+                t[self.amb[(q, s)]] = 1.0
+                t[self.amb[(ref, s)]] = -1.0
+                rows.append(t)
+                labels.append((q, s, ref))
+        return np.array(rows).reshape(len(rows), len(self.x)), labels
+
+    def _try_fix(self, common, sr, sb, exclude):
+        T, labels = self._dd_ambiguities(common, sr, exclude)
+        if len(labels) < self.cfg.min_fix_ambiguities:
+            return None
+        a = T @ self.x
+        Qa = T @ self.P @ T.T
+        Qra = self.P[:3, :] @ T.T
+        try:
+            res = lambda_ils(a, Qa, m=2)
+        except (np.linalg.LinAlgError, RuntimeError):
+            self._count("lambda failures")
+            return None
+        if not res.ratio >= self.cfg.ratio_threshold:
+            return None
+        afix = res.fixed[:, 0]
+        gain = np.linalg.solve(Qa, a - afix)
+        r_fix = self.x[:3] - Qra @ gain
+        cov_fix = self.P[:3, :3] - Qra @ np.linalg.solve(Qa, Qra.T)
+        # wrong-fix check: the fixed DD phase residuals against their own noise
+        x_fix = self.x.copy()
+        x_fix[:3] = r_fix
+        fixed = {}
+        for (q, s, ref), n_dd in zip(labels, afix):
+            fixed[(q, s)] = n_dd
+        v, _, R, keys = self._dd_rows(x_fix, [q for q in common if q not in exclude], sr, sb, fixed=fixed)
+        sel = [i for i, k in enumerate(keys) if k[0] == "phase" and (k[2], k[1]) in fixed]
+        if sel:
+            z = np.abs(v[sel]) / np.sqrt(np.diag(R)[sel])
+            if float(z.max()) > self.cfg.fixed_residual_sigma:
+                self._count("fixes rejected: residuals")
+                return None
+        return r_fix, cov_fix, res, T, afix, labels
+
+    def _resolve(self, t: float, common, sr, sb) -> RtkSolution:
+        n_dd = len(self._dd_ambiguities(common, sr)[1])
+        by_el = sorted(common, key=lambda q: sr[q].elevation_rad)
+        exclude: list[str] = []
+        out = None
+        while True:
+            out = self._try_fix(common, sr, sb, exclude)
+            if out is not None or len(common) - len(exclude) <= 3:
+                break
+            exclude.append(by_el[len(exclude)])      # partial fixing: leave the lowest satellite float
+        if out is None:
+            self._count("epochs float")
+            return RtkSolution(t, self.x[:3].copy(), self.P[:3, :3].copy(), Q_FLOAT, len(common),
+                               0.0, 0, n_dd, counters=dict(self.counters))
+        r_fix, cov_fix, res, T, afix, labels = out
+        if exclude:
+            self._count("epochs fixed partially")
+        self._count("epochs fixed")
+        if self.cfg.fix_and_hold:
+            self._hold(T, afix)
+        return RtkSolution(t, r_fix, cov_fix, Q_FIX, len(common), res.ratio, len(labels), n_dd,
+                           res.success_rate, counters=dict(self.counters))
+
+    def _hold(self, T: np.ndarray, afix: np.ndarray) -> None:
+        """Fix-and-hold: the fixed DD ambiguities as measurements of the float filter."""
+        R = np.eye(len(afix)) * self.cfg.hold_sigma_cycles ** 2
+        S = T @ self.P @ T.T + R
+        K = np.linalg.solve(S, T @ self.P).T
+        self.x = self.x + K @ (afix - T @ self.x)
+        I_KT = np.eye(len(self.x)) - K @ T
+        self.P = I_KT @ self.P @ I_KT.T + K @ R @ K.T
+
+
+def pair_epochs(rover_epochs, base_epochs, tol_s: float = 0.5):
+    """(rover, base) pairs whose time tags agree within ``tol_s``."""
+    base = sorted(base_epochs, key=lambda e: e.t_gps)
+    ts = np.array([e.t_gps for e in base])
+    out = []
+    for r in rover_epochs:
+        if not len(ts):
+            break
+        k = int(np.argmin(np.abs(ts - r.t_gps)))
+        if abs(ts[k] - r.t_gps) <= tol_s:
+            out.append((r, base[k]))
+    return out
+
+
+__all__ = ["RtkConfig", "RtkFilter", "RtkSolution", "pair_epochs", "Q_FIX", "Q_FLOAT"]

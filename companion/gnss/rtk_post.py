@@ -1,0 +1,70 @@
+"""Post-processed RTK from RINEX files: ``companion gnss --mode rtk`` (companion.gnss.rtk on a rover
+and a base observation file and their navigation files).
+
+The base antenna is the base header position (or ``base_xyz``) plus its ``ANTENNA: DELTA H/E/N``;
+solutions are reported at the rover's marker (antenna minus the rover's delta), as RTKLIB does.
+The first rover epoch is positioned by SPP (the kinematic prior of the first RTK epoch).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..nav.earth import C_n_e, ecef_to_geodetic
+from .ephemeris_store import EphemerisStore
+from .pos_format import PosRecord
+from .rinex import read_rinex_nav, read_rinex_obs
+from .rtk import RtkConfig, RtkFilter, RtkSolution, pair_epochs
+from .spp import spp_epoch
+
+
+def antenna_delta_e(marker_r_e, delta_hen_m) -> np.ndarray:
+    """ECEF offset of the antenna reference point from the marker (RINEX H up, E east, N north)."""
+    if delta_hen_m is None:
+        return np.zeros(3)
+    h, e, n = (float(v) for v in delta_hen_m)
+    lat, lon, _ = ecef_to_geodetic(np.asarray(marker_r_e, dtype=float))
+    return C_n_e(lat, lon) @ np.array([n, e, -h])
+
+
+def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
+                    progress=None) -> tuple[list[RtkSolution], dict]:
+    """(solutions at the rover marker, info) for every paired epoch that could be solved."""
+    hr, rover = read_rinex_obs(rover_obs)
+    hb, base = read_rinex_obs(base_obs)
+    ephs = []
+    for n in navs:
+        ephs += read_rinex_nav(n)
+    store = EphemerisStore(ephs)
+    base_marker = np.asarray(base_xyz if base_xyz is not None else hb["approx_position_e"], dtype=float)
+    if base_marker is None or not np.any(base_marker):
+        raise ValueError("the base position is neither given (--base-xyz) nor in the base file's header")
+    base_ant = base_marker + antenna_delta_e(base_marker, hb.get("antenna_delta_hen_m"))
+    filt = RtkFilter(base_ant, store, config)
+    rover_delta = hr.get("antenna_delta_hen_m")
+    pairs = pair_epochs(rover, base)
+    sols: list[RtkSolution] = []
+    r_prior = hr.get("approx_position_e")
+    for k, (r_ep, b_ep) in enumerate(pairs):
+        prior = None
+        if not filt.initialized:
+            spp = spp_epoch(r_ep, store, r_init_e=r_prior)
+            if spp is None:
+                continue
+            prior = spp.r_e
+        sol = filt.process(r_ep, b_ep, prior)
+        if sol is not None:
+            sol.r_e = sol.r_e - antenna_delta_e(sol.r_e, rover_delta)
+            sols.append(sol)
+        if progress is not None:
+            progress(k + 1, len(pairs))
+    info = {"rover_epochs": len(rover), "base_epochs": len(base), "paired_epochs": len(pairs),
+            "solutions": len(sols), "fixed": sum(1 for s in sols if s.quality == 1),
+            "base_antenna_e": base_ant.tolist(), "counters": dict(filt.counters)}
+    return sols, info
+
+
+def pos_records(sols: list[RtkSolution]) -> list[PosRecord]:
+    return [PosRecord(s.t_gps, s.r_e, s.cov_e, s.quality, s.n_sats, 0.0, s.ratio) for s in sols]
+
+
+__all__ = ["solve_rtk_rinex", "pos_records", "antenna_delta_e"]
