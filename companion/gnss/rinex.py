@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -51,14 +52,26 @@ def _f(s: str) -> float:
     return float(s.replace("D", "E").replace("d", "e"))
 
 
+#: file names of compressed RINEX: gzip/Unix compress, Hatanaka (.crx, RINEX 2 .YYd), zip, bzip2
+_COMPRESSED = re.compile(r"(\.(gz|Z|zip|bz2|crx)|\.\d\dd)$", re.IGNORECASE)
+
+
 def _open_text(path) -> list[str]:
+    """Lines of a RINEX file, plain or compressed: gzip, .Z, Hatanaka (.crx, .YYd) and their
+    gzipped forms are decompressed by the ``hatanaka`` package (RNXCMP's own C code), not here."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"RINEX file not found: {p}")
-    if p.suffix in (".gz", ".Z"):
-        import gzip
-        with gzip.open(p, "rt", errors="replace") as fh:
-            return fh.read().splitlines()
+    if _COMPRESSED.search(p.name):
+        try:
+            import hatanaka
+        except ImportError:
+            raise ImportError(f"{p.name}: reading compressed RINEX needs the 'hatanaka' package "
+                              "(pip install 'companion[rinex]')") from None
+        try:
+            return hatanaka.decompress(p).decode("ascii", errors="replace").splitlines()
+        except hatanaka.HatanakaException as exc:
+            raise ValueError(f"{p}: cannot decompress: {exc}") from None
     return p.read_text(errors="replace").splitlines()
 
 
