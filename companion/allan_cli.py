@@ -17,7 +17,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
+# numpy is imported inside the functions: `companion` builds its parser from every subcommand's
+# register(), and `companion config check` must not pay for numpy.
 
 G0 = 9.80665
 MG_TO_MPS2 = G0 * 1e-3
@@ -57,6 +58,7 @@ def _rows_from_messages(msgs, imu_id):
 
 
 def _select(rows: dict, imu_id):
+    import numpy as np
     if not rows:
         raise ValueError("no IMU messages (HIGHRES_IMU, RAW_IMU, SCALED_IMU2/3) in the log")
     if imu_id is None:
@@ -75,6 +77,7 @@ def _select(rows: dict, imu_id):
 
 def load_imu_log(path: str, imu_id: int | None = None):
     """(imu_id, t_s, gyro (n,3) rad/s, accel (n,3) m/s^2) from any supported LOG."""
+    import numpy as np
     p = Path(path)
     suf = p.suffix.lower()
     if suf == ".npz":
@@ -140,9 +143,10 @@ def _field_log_messages(path):
 
 
 def plot_allan(res: dict, path: str, title: str = "") -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from .extras import pyplot
+    plt = pyplot("companion allan --plot")
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     for ax, name, unit in ((axes[0], "gyro", "rad/s"), (axes[1], "accel", "m/s^2")):
@@ -169,6 +173,9 @@ def plot_allan(res: dict, path: str, title: str = "") -> None:
 
 def run(args) -> int:
     from .nav.allan import analyse_imu, format_noise_block
+    if args.plot:
+        from .extras import pyplot
+        pyplot("companion allan --plot")          # a missing [plot] extra fails now, not after the analysis
     imu_id, t, g, a = load_imu_log(args.log, args.imu_id)
     if len(t) < 100:
         raise SystemExit(f"only {len(t)} IMU samples: too few for an Allan analysis")

@@ -9,30 +9,37 @@ import argparse
 import logging
 import sys
 
+from . import __version__
+from .extras import MissingExtra
+
 
 def _add_gnss(sub) -> None:
-    p = sub.add_parser("gnss", help="post-process RINEX observations (SPP or DGPS), RTKLIB-style")
+    p = sub.add_parser("gnss", help="post-process RINEX observations (SPP, DGPS or RTK), RTKLIB-style")
     p.add_argument("--rover", required=True, help="rover RINEX observation file (2.x or 3.x)")
     p.add_argument("--nav", required=True, action="append",
                    help="RINEX navigation file (GPS broadcast ephemeris); may be repeated")
-    p.add_argument("--base", help="base station RINEX observation file (for --mode dgps)")
+    p.add_argument("--base", help="base station RINEX observation file (for --mode dgps and rtk)")
     p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header)")
-    p.add_argument("--mode", choices=["spp", "dgps"], default="spp")
+    p.add_argument("--mode", choices=["spp", "dgps", "rtk"], default="spp",
+                   help="rtk: L1+L2 carrier phase, integer ambiguities (LAMBDA), fix-and-hold")
     p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
     p.add_argument("--elevation-mask-deg", type=float, default=10.0)
     p.add_argument("--json", help="write statistics and per-epoch solutions as JSON here")
-    p.add_argument("--pos", help="write per-epoch solutions as a text table here")
+    p.add_argument("--pos", help="write per-epoch solutions in RTKLIB's .pos format here (rtkplot, pos2kml)")
     p.set_defaults(func=lambda a: __import__("companion.gnss.postprocess", fromlist=["run"]).run(a))
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="companion", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="count", default=0)
+    parser.add_argument("--version", action="version", version=f"companion {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_gnss(sub)
-    from . import allan_cli, run_cli
+    from . import allan_cli, config_cli, export, run_cli
     run_cli.register(sub)
+    export.register(sub)
     allan_cli.register(sub)
+    config_cli.register(sub)
     return parser
 
 
@@ -41,7 +48,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return int(args.func(args) or 0)
+    from .config import ConfigError        # light: the standard library only
+    try:
+        return int(args.func(args) or 0)
+    except (ConfigError, MissingExtra) as exc:     # a bad file or key, or a missing optional package
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -20,6 +20,17 @@ Layout (see :func:`example_config_toml` for a complete commented file)::
     [log]          field log directory, rotation size, fsync interval
     [telemetry]    MQTT telemetry (solution and health JSON)
 
+Every number has a range (``companion.toml: log.fsync_interval_s: must be <= 60.0, got 1e+300``);
+NaN and infinity are refused; an unknown key gets a suggestion (``did you mean ...?``); a directory,
+an unreadable or a binary file is a :class:`ConfigError` like any other, never a traceback.
+
+Secrets (``secret=True`` fields: ``corrections.ntrip.password``) never leave in clear:
+:func:`redacted` and ``Config.to_toml(redact=True)`` write them as ``***`` (the field log's copy);
+:func:`secrets_readable_by_others` warns when the file that holds one is not private.
+
+This module imports nothing heavy (standard library only), so ``companion config check`` and a
+start-up with a bad file answer before numpy, scipy or pymavlink are loaded.
+
 TOML has no null: an optional value (``corrections.base_position_ecef_m``) is simply left out.
 """
 from __future__ import annotations
@@ -31,16 +42,23 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from .io.mavlink import IMU_CLUSTER_STREAMS
+
+from .io.imu_streams import IMU_CLUSTER_STREAMS, IMU_MESSAGES      # plain names, no pymavlink
+
+REDACTED = "***"
 
 
 class ConfigError(ValueError):
     """A configuration file is invalid; the message names the file and the key."""
 
 
-def _f(default, *, choices=None, min=None, max=None, min_exclusive=False, doc=""):
-    """A dataclass field with validation metadata (choices, range) and a one-line doc for the example."""
-    md = {"choices": choices, "min": min, "max": max, "min_exclusive": min_exclusive, "doc": doc}
+def _f(default, *, choices=None, min=None, max=None, min_exclusive=False, norm=None, secret=False, doc=""):
+    """A dataclass field with validation metadata and a one-line doc for the example.
+
+    ``min``/``max`` bound a number, or every element of a vector; ``norm = (lo, hi)`` bounds a
+    vector's length; ``secret`` fields are replaced by ``***`` in :func:`redacted` and in logs."""
+    md = {"choices": choices, "min": min, "max": max, "min_exclusive": min_exclusive, "norm": norm,
+          "secret": secret, "doc": doc}
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for sequence defaults")
     return field(default=default, metadata=md)
@@ -55,9 +73,18 @@ class MavlinkConfig:
     source_component: int = _f(191, min=1, max=255, doc="our component id: 191 = MAV_COMP_ID_ONBOARD_COMPUTER")
     target_system: int = _f(1, min=1, max=255, doc="the autopilot's system id")
     target_component: int = _f(1, min=1, max=255, doc="the autopilot's component id (1 = MAV_COMP_ID_AUTOPILOT1)")
-    imu_message: str = _f("auto", choices=("auto", "HIGHRES_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"),
+    imu_message: str = _f("auto", choices=("auto",) + IMU_MESSAGES,
                           doc="IMU stream to fuse; 'auto' locks onto the first one that arrives")
     imu_rate_hz: float = _f(200.0, min=1.0, max=2000.0, doc="requested IMU message rate")
+    imu_accel_full_scale_mps2: float = _f(0.0, min=0.0, max=2000.0,
+                                          doc="accelerometer full scale for clip detection; 0 = per "
+                                          "message type (16 g: PX4 HIGHRES_IMU, ArduPilot RAW_IMU/SCALED_IMU*)")
+    imu_gyro_full_scale_radps: float = _f(0.0, min=0.0, max=200.0,
+                                          doc="gyro full scale for clip detection; 0 = per message type "
+                                          "(2000 deg/s HIGHRES_IMU, 32.767 rad/s int16 mrad/s fields)")
+    autopilot_heading_on_ground: bool = _f(True, doc="on the ground, keep the heading on the autopilot's "
+                                           "ATTITUDE yaw (5 deg, 1 Hz): only where that yaw is its compass "
+                                           "(EK3_SRC1_YAW 1), never when it is ours (ExternalNav)")
     imu_cluster: tuple[str, ...] = _f((), choices=IMU_CLUSTER_STREAMS,
                                       doc="fuse several IMUs (first = primary, its time grid), dropping a "
                                           "faulty one, e.g. [\"RAW_IMU\", \"SCALED_IMU2\", \"SCALED_IMU3\"] "
@@ -90,16 +117,26 @@ class GnssConfig:
                                                doc="SERIAL_CONTROL poll period (ArduPilot only answers requests)")
     serial_control_baud: int = _f(0, min=0, max=12_000_000, doc="0 = leave the port's baud rate alone")
     serial: SerialPortConfig = field(default_factory=SerialPortConfig)
-    lever_arm_b_m: tuple[float, float, float] = _f((0.0, 0.0, 0.0),
+    lever_arm_b_m: tuple[float, float, float] = _f((0.0, 0.0, 0.0), min=-20.0, max=20.0,
                                                    doc="IMU to antenna phase centre, body FRD, m")
     moving_baseline_b_m: tuple[float, float, float] | None = _f(
-        None, doc="dual-antenna heading: body FRD vector (m) from the moving-base antenna to the antenna "
-                  "of the receiver that outputs UBX NAV-RELPOSNED; unset = NAV-RELPOSNED not used")
-    baseline_length_tol_m: float = _f(0.03, min=0.0, doc="a NAV-RELPOSNED length further than this (+3 sigma) "
+        None, min=-100.0, max=100.0, norm=(0.05, 100.0),
+        doc="dual-antenna heading: body FRD vector (m) from the moving-base antenna to the antenna "
+            "of the receiver that outputs UBX NAV-RELPOSNED; unset = NAV-RELPOSNED not used")
+    baseline_length_tol_m: float = _f(0.03, min=0.0, max=10.0,
+                                      doc="a NAV-RELPOSNED length further than this (+3 sigma) "
                                       "from the installed one is a wrong carrier fix and is rejected")
-    gps_raw_yaw_sigma_deg: float = _f(1.0, min=0.0, doc="1-sigma of the GPS yaw in GPS_RAW_INT (an autopilot "
+    gps_raw_latency_s: float = _f(0.0, min=0.0, max=1.0,
+                                  doc="receiver output latency taken off GPS_RAW_INT time_usec (ArduPilot "
+                                  "stamps the fix when its driver got it; u-blox: 0.05-0.1 s)")
+    broadcast_klobuchar: bool = _f(True, doc="use the Klobuchar coefficients of the navigation message "
+                                   "(subframe 4 page 18) in the standalone pseudorange models")
+    gps_raw_yaw_sigma_deg: float = _f(1.0, min=0.0, max=90.0,
+                                      doc="1-sigma of the GPS yaw in GPS_RAW_INT (an autopilot "
                                       "with a dual-antenna GPS fills it); 0 = do not fuse it")
     leap_seconds: int = _f(18, min=0, max=100, doc="GPS - UTC (18 s since 2017-01-01)")
+    max_rate_bps: float = _f(256000.0, min=1000.0, max=1e8,
+                             doc="UBX from a local serial port beyond this byte rate is dropped (counted)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,10 +145,14 @@ class NtripConfig:
     port: int = _f(2101, min=1, max=65535)
     mountpoint: str = _f("")
     user: str = _f("")
-    password: str = _f("")
+    password: str = _f("", secret=True, doc="NTRIP caster password (never written to logs)")
     version: int = _f(2, choices=(1, 2), doc="NTRIP revision: 1 (ICY 200 OK) or 2 (HTTP/1.1, chunked)")
     gga_interval_s: float = _f(0.0, min=0.0, max=600.0, doc="upload GGA this often (network RTK); 0 = never")
     timeout_s: float = _f(10.0, min=0.5, max=300.0, doc="no data for this long = reconnect")
+    header_timeout_s: float = _f(10.0, min=0.5, max=300.0,
+                                 doc="the caster's whole response header must arrive within this")
+    max_rate_bps: float = _f(64000.0, min=1000.0, max=1e7,
+                             doc="read the caster at most this fast (a flooding caster is throttled)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,7 +166,7 @@ class CorrectionsMqttConfig:
 class CorrectionsFileConfig:
     path: str = _f("")
     realtime: bool = _f(True, doc="replay at the recording's pace (rate_bps) or as fast as possible")
-    rate_bps: float = _f(2000.0, min=1.0, doc="replay rate in bytes per second when realtime")
+    rate_bps: float = _f(2000.0, min=1.0, max=10e6, doc="replay rate in bytes per second when realtime")
     loop: bool = _f(False)
 
 
@@ -134,11 +175,16 @@ class CorrectionsConfig:
     source: str = _f("none", choices=("ntrip", "serial", "mqtt", "file", "none"))
     forward_to_autopilot: bool = _f(False, doc="also send the RTCM frames to the autopilot as GPS_RTCM_DATA")
     base_position_ecef_m: tuple[float, float, float] | None = _f(
-        None, doc="override the base station position (ECEF, m); default: from RTCM 1005/1006")
+        None, min=-6.5e6, max=6.5e6, norm=(6.3e6, 6.45e6),
+        doc="override the base station position (ECEF, m); default: from RTCM 1005/1006")
     ntrip: NtripConfig = field(default_factory=NtripConfig)
     serial: SerialPortConfig = field(default_factory=lambda: SerialPortConfig("/dev/ttyUSB1", 57600))
     mqtt: CorrectionsMqttConfig = field(default_factory=CorrectionsMqttConfig)
     file: CorrectionsFileConfig = field(default_factory=CorrectionsFileConfig)
+    max_rate_bps: float = _f(64000.0, min=1000.0, max=1e7,
+                             doc="correction chunks beyond this byte rate are dropped (counted) before logging")
+    max_bytes_per_turn: int = _f(512, min=64, max=65536,
+                                 doc="correction bytes decoded per event-loop turn (the IMU path goes between)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,11 +193,17 @@ class OutputConfig:
                    doc="VISION_POSITION_ESTIMATE, ODOMETRY (EK3_SRC ExternalNav) or GPS_INPUT (GPS_TYPE=14)")
     rate_hz: float = _f(10.0, min=0.1, max=50.0)
     set_ekf_origin: bool = _f(True, doc="send SET_GPS_GLOBAL_ORIGIN before the first vision/odometry output")
-    max_sigma_h_m: float = _f(5.0, min=0.0, min_exclusive=True, doc="do not inject worse than this (1-sigma)")
-    max_sigma_v_m: float = _f(10.0, min=0.0, min_exclusive=True)
+    max_sigma_h_m: float = _f(5.0, min=0.0, max=100.0, min_exclusive=True,
+                              doc="do not inject worse than this (1-sigma)")
+    max_sigma_v_m: float = _f(10.0, min=0.0, max=100.0, min_exclusive=True)
+    resume_sigma_fraction: float = _f(0.8, min=0.1, max=1.0,
+                                      doc="after a stop on sigma, inject again only below this fraction "
+                                      "of max_sigma_h_m / max_sigma_v_m (no flapping at the threshold)")
     geoid_undulation_m: float = _f(0.0, min=-150.0, max=150.0,
                                    doc="N = ellipsoid - MSL height at the site, for GPS_INPUT's MSL altitude")
     gps_input_id: int = _f(0, min=0, max=1)
+    named_value_rate_hz: float = _f(1.0, min=0.0, max=10.0,
+                                    doc="NAMED_VALUE_FLOAT CC_* to the ground station (status, sigmas); 0 = off")
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,56 +211,75 @@ class FilterConfig:
     """Maps onto :class:`companion.nav.filter.ProcessNoise` and :class:`companion.nav.engine.EngineConfig`.
 
     Defaults are MEMS flight-controller class (ICM-4xxxx): starting points, not tuning."""
-    gyro_arw_rad_per_sqrt_s: float = _f(3.0e-4, min=0.0, min_exclusive=True)
-    accel_vrw_mps_per_sqrt_s: float = _f(3.0e-3, min=0.0, min_exclusive=True)
-    gyro_bias_rw_radps_per_sqrt_s: float = _f(1.0e-5, min=0.0)
-    accel_bias_rw_mps2_per_sqrt_s: float = _f(1.0e-4, min=0.0)
-    clock_bias_psd_m2ps: float = _f(0.1, min=0.0)
-    clock_drift_psd_m2ps3: float = _f(0.01, min=0.0)
+    gyro_arw_rad_per_sqrt_s: float = _f(3.0e-4, min=0.0, max=0.1, min_exclusive=True)
+    accel_vrw_mps_per_sqrt_s: float = _f(3.0e-3, min=0.0, max=1.0, min_exclusive=True)
+    gyro_bias_rw_radps_per_sqrt_s: float = _f(1.0e-5, min=0.0, max=0.01)
+    accel_bias_rw_mps2_per_sqrt_s: float = _f(1.0e-4, min=0.0, max=0.1)
+    clock_bias_psd_m2ps: float = _f(0.1, min=0.0, max=1e6)
+    clock_drift_psd_m2ps3: float = _f(0.01, min=0.0, max=1e6)
     use_pseudorange: bool = _f(True)
     use_dgps: bool = _f(True)
     use_tdcp: bool = _f(True)
     use_doppler: bool = _f(False)
     use_loose: bool = _f(False)
     elevation_mask_deg: float = _f(10.0, min=0.0, max=90.0)
-    gate_probability: float = _f(0.999, min=0.5, max=1.0, min_exclusive=False)
-    sigma_doppler_mps: float = _f(0.1, min=0.0, min_exclusive=True)
-    sigma_phase_m: float = _f(0.005, min=0.0, min_exclusive=True)
-    sigma_tdcp_floor_mps: float = _f(0.01, min=0.0)
-    sigma_pseudorange_floor_m: float = _f(0.0, min=0.0)
-    tdcp_max_interval_s: float = _f(1.5, min=0.0, min_exclusive=True)
+    gate_probability: float = _f(0.999, min=0.5, max=1.0,
+                                 doc="chi-square gate of every update (1 = never reject)")
+    sigma_doppler_mps: float = _f(0.1, min=0.0, max=100.0, min_exclusive=True)
+    sigma_phase_m: float = _f(0.005, min=0.0, max=1.0, min_exclusive=True)
+    sigma_tdcp_floor_mps: float = _f(0.01, min=0.0, max=10.0)
+    sigma_pseudorange_floor_m: float = _f(0.0, min=0.0, max=1000.0)
+    tdcp_max_interval_s: float = _f(1.5, min=0.0, max=60.0, min_exclusive=True)
     tdcp_base_correction: str = _f("auto", choices=("auto", "off"))
     history_s: float = _f(2.0, min=0.1, max=60.0)
-    coasting_after_s: float = _f(3.0, min=0.1)
-    untrusted_sigma_h_m: float = _f(50.0, min=0.0, min_exclusive=True)
-    clock_jump_sigmas: float = _f(8.0, min=0.0, min_exclusive=True,
+    coasting_after_s: float = _f(3.0, min=0.1, max=3600.0)
+    untrusted_sigma_h_m: float = _f(50.0, min=0.0, max=1e4, min_exclusive=True)
+    clock_jump_sigmas: float = _f(8.0, min=0.0, max=1000.0, min_exclusive=True,
                                   doc="common pseudorange step, in clock sigmas, that re-seeds the clock")
-    clock_jump_min_m: float = _f(30.0, min=0.0)
+    clock_jump_min_m: float = _f(30.0, min=0.0, max=1e7)
     sigma_phase_elevation_scaling: bool = _f(False, doc="carrier noise x 1/sin(elevation)")
-    pseudorange_correlation_time_s: float = _f(0.0, min=0.0, doc="multipath correlation time (0 = white)")
-    zupt_enabled: bool = _f(False)
-    zupt_window_s: float = _f(0.5, min=0.0, min_exclusive=True)
-    zupt_accel_std_mps2: float = _f(0.05, min=0.0, min_exclusive=True)
-    zupt_gyro_std_radps: float = _f(0.005, min=0.0, min_exclusive=True)
-    zupt_max_speed_mps: float = _f(0.5, min=0.0, min_exclusive=True)
-    zupt_sigma_mps: float = _f(0.02, min=0.0, min_exclusive=True)
-    zaru_sigma_floor_radps: float = _f(2e-4, min=0.0)
+    pseudorange_correlation_time_s: float = _f(0.0, min=0.0, max=3600.0, doc="multipath correlation time (0 = white)")
+    zupt_enabled: bool = _f(True, doc="zero velocity and zero angular rate (ZUPT/ZARU) whenever the IMU shows "
+                            "the vehicle at rest: without them the heading is unobservable on the ground and "
+                            "runs away within minutes")
+    zupt_window_s: float = _f(0.5, min=0.0, max=60.0, min_exclusive=True)
+    zupt_accel_std_mps2: float = _f(0.05, min=0.0, max=10.0, min_exclusive=True)
+    zupt_gyro_std_radps: float = _f(0.005, min=0.0, max=1.0, min_exclusive=True)
+    zupt_max_speed_mps: float = _f(0.5, min=0.0, max=10.0, min_exclusive=True)
+    zupt_sigma_mps: float = _f(0.02, min=0.0, max=10.0, min_exclusive=True)
+    zaru_sigma_floor_radps: float = _f(2e-4, min=0.0, max=1.0)
     nhc_enabled: bool = _f(False, doc="non-holonomic constraint (seed 002) while on the ground: a rover or "
                            "boat always, an aircraft when landed (EXTENDED_SYS_STATE) or disarmed")
-    nhc_sigma_lateral_mps: float = _f(0.1, min=0.0, min_exclusive=True)
-    nhc_sigma_vertical_mps: float = _f(0.1, min=0.0, min_exclusive=True)
-    nhc_min_speed_mps: float = _f(1.0, min=0.0)
+    nhc_sigma_lateral_mps: float = _f(0.1, min=0.0, max=10.0, min_exclusive=True)
+    nhc_sigma_vertical_mps: float = _f(0.1, min=0.0, max=10.0, min_exclusive=True)
+    nhc_min_speed_mps: float = _f(1.0, min=0.0, max=100.0)
     course_alignment_enabled: bool = _f(False, doc="on the ground, take the heading from the GNSS course over "
                                         "ground once driving straight at speed (a rover or car without a usable "
                                         "compass; never for a boat or anything that crabs)")
-    course_alignment_min_speed_mps: float = _f(3.0, min=0.5)
-    course_alignment_max_yaw_rate_radps: float = _f(0.05, min=0.0, min_exclusive=True)
-    course_alignment_slip_sigma_rad: float = _f(0.0175, min=0.0, doc="side-slip while driving straight (1-sigma)")
-    course_alignment_reset_above_rad: float = _f(0.26, min=0.0, min_exclusive=True,
+    course_alignment_min_speed_mps: float = _f(3.0, min=0.5, max=100.0)
+    course_alignment_max_yaw_rate_radps: float = _f(0.05, min=0.0, max=10.0, min_exclusive=True)
+    course_alignment_slip_sigma_rad: float = _f(0.0175, min=0.0, max=1.0, doc="side-slip while driving straight (1-sigma)")
+    course_alignment_reset_above_rad: float = _f(0.26, min=0.0, max=math.pi, min_exclusive=True,
                                                  doc="heading uncertainty or disagreement beyond which the "
                                                  "heading is reset to the course instead of fused")
     course_alignment_epochs: int = _f(5, min=1, max=100)
-    gravity_gradient_refresh_m: float = _f(200.0, min=0.0, min_exclusive=True)
+    imu_screen_enabled: bool = _f(True, doc="screen IMU samples (clip, implausible jump) before integration")
+    imu_clip_fraction: float = _f(0.98, min=0.5, max=1.0, doc="fraction of full scale counted as clipped")
+    imu_accel_jump_mps2: float = _f(60.0, min=1.0, max=2000.0,
+                                    doc="largest specific-force jump from the running median in one sample")
+    imu_gyro_jump_radps: float = _f(10.0, min=0.1, max=200.0,
+                                    doc="largest angular-rate jump from the running median in one sample")
+    imu_median_window: int = _f(9, min=3, max=101)
+    integrity_enabled: bool = _f(True, doc="divergence detection from the GNSS innovations")
+    integrity_window_s: float = _f(5.0, min=1.0, max=60.0)
+    integrity_min_updates: int = _f(3, min=1, max=100)
+    integrity_min_rows: int = _f(10, min=1, max=1000)
+    integrity_max_rejected_fraction: float = _f(0.5, min=0.05, max=1.0)
+    integrity_max_nis_mean: float = _f(4.0, min=1.0, max=100.0,
+                                       doc="mean NIS of the fused rows of a window above which the filter "
+                                       "is inconsistent (1 expected)")
+    integrity_probation_max_rejected_fraction: float = _f(0.2, min=0.0, max=1.0)
+    gravity_gradient_refresh_m: float = _f(200.0, min=0.0, max=1e6, min_exclusive=True)
 
     def process_noise(self):
         from .nav.filter import ProcessNoise
@@ -245,8 +316,11 @@ _NOISE_FIELDS = {"gyro_arw_rad_per_sqrt_s", "accel_vrw_mps_per_sqrt_s", "gyro_bi
 class LogConfig:
     enabled: bool = _f(True)
     dir: str = _f("logs")
-    max_bytes: int = _f(64 * 1024 * 1024, min=4096)
-    fsync_interval_s: float = _f(1.0, min=0.0)
+    max_bytes: int = _f(64 * 1024 * 1024, min=4096, max=2 ** 40, doc="rotate the field log at this size")
+    fsync_interval_s: float = _f(1.0, min=0.0, max=60.0,
+                                doc="flush to the card this often: at most this much is lost at a power cut")
+    max_total_bytes: int = _f(1 << 30, min=16384, max=2 ** 40,
+                              doc="the log directory's total size; the oldest files are deleted first")
 
 
 @dataclass(frozen=True, slots=True)
@@ -259,6 +333,16 @@ class TelemetryConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class NmeaConfig:
+    enabled: bool = _f(False)
+    destination: str = _f("udp:127.0.0.1:10110",
+                          doc="udp:HOST:PORT (one datagram per epoch) or DEVICE,BAUD (serial port)")
+    rate_hz: float = _f(1.0, min=0.1, max=20.0)
+    talker: str = _f("GN", choices=("GN", "GP"))
+    sentences: tuple[str, ...] = _f(("GGA", "RMC", "GST"), choices=("GGA", "RMC", "GST"))
+
+
+@dataclass(frozen=True, slots=True)
 class Config:
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     gnss: GnssConfig = field(default_factory=GnssConfig)
@@ -267,6 +351,7 @@ class Config:
     filter: FilterConfig = field(default_factory=FilterConfig)
     log: LogConfig = field(default_factory=LogConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
+    nmea: NmeaConfig = field(default_factory=NmeaConfig)
     source_path: str = field(default="", compare=False, metadata={"internal": True})
 
     def engine_config(self):
@@ -276,8 +361,9 @@ class Config:
                                    moving_baseline_b_m=g.moving_baseline_b_m,
                                    baseline_length_tol_m=g.baseline_length_tol_m)
 
-    def to_toml(self, comments: bool = True) -> str:
-        return _to_toml(self, comments)
+    def to_toml(self, comments: bool = True, redact: bool = False) -> str:
+        """TOML that :func:`loads_config` reads back; ``redact`` writes secrets as ``***``."""
+        return _to_toml(self, comments, redact)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -285,6 +371,17 @@ class Config:
 
 def _is_dataclass_type(tp) -> bool:
     return isinstance(tp, type) and dataclasses.is_dataclass(tp)
+
+
+def _check_range(value, key: str, md: dict, err) -> None:
+    lo, hi = md.get("min"), md.get("max")
+    if lo is not None:
+        if md.get("min_exclusive") and not value > lo:
+            err(f"must be > {lo}, got {value!r}")
+        if value < lo:
+            err(f"must be >= {lo}, got {value!r}")
+    if hi is not None and value > hi:
+        err(f"must be <= {hi}, got {value!r}")
 
 
 def _check_value(value: Any, tp, key: str, where: str, md: dict):
@@ -305,10 +402,18 @@ def _check_value(value: Any, tp, key: str, where: str, md: dict):
         if len(set(out)) != len(out):
             err(f"duplicate entries in {list(out)!r}")
         return out
-    if origin is tuple:
+    if origin is tuple:                                                   # a fixed-size vector
         if not isinstance(value, (list, tuple)) or len(value) != len(args):
             err(f"expected an array of {len(args)} numbers, got {value!r}")
-        return tuple(_check_value(v, a, f"{key}[{i}]", where, {}) for i, (v, a) in enumerate(zip(value, args)))
+        element_md = {k: md.get(k) for k in ("min", "max")}
+        out = tuple(_check_value(v, a, f"{key}[{i}]", where, element_md)
+                    for i, (v, a) in enumerate(zip(value, args)))
+        if md.get("norm"):
+            lo, hi = md["norm"]
+            length = math.sqrt(sum(x * x for x in out))
+            if not lo <= length <= hi:
+                err(f"length must be between {lo} and {hi} m, got {length:.6g} m")
+        return out
     if tp is bool:
         if not isinstance(value, bool):
             err(f"expected true or false, got {value!r}")
@@ -320,22 +425,30 @@ def _check_value(value: Any, tp, key: str, where: str, md: dict):
             err(f"expected a number, got {value!r}")
         value = float(value)
         if not math.isfinite(value):
-            err(f"must be finite, got {value!r}")
+            err(f"must be a finite number, got {value!r}")
     elif tp is str:
         if not isinstance(value, str):
             err(f"expected a string, got {value!r}")
     choices = md.get("choices")
     if choices is not None and value not in choices:
         err(f"must be one of {', '.join(map(str, choices))}, got {value!r}")
-    lo, hi = md.get("min"), md.get("max")
-    if lo is not None:
-        if md.get("min_exclusive") and not value > lo:
-            err(f"must be > {lo}, got {value!r}")
-        if value < lo:
-            err(f"must be >= {lo}, got {value!r}")
-    if hi is not None and value > hi:
-        err(f"must be <= {hi}, got {value!r}")
+    if tp in (int, float):
+        _check_range(value, key, md, err)
     return value
+
+
+def _unknown_keys_error(unknown: list[str], known, prefix: str, where: str) -> ConfigError:
+    import difflib
+    parts, guessed = [], True
+    for u in unknown:
+        close = difflib.get_close_matches(u, list(known), n=1, cutoff=0.6)
+        parts.append(prefix + u + (f" (did you mean {prefix}{close[0]}?)" if close else ""))
+        guessed = guessed and bool(close)
+    msg = f"{where}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(parts)}"
+    if not guessed:                      # no close match: list what the section does hold
+        section = f"[{prefix.rstrip('.')}]" if prefix else "the top level"
+        msg += f"; keys of {section}: {', '.join(known)} (all of them: `companion config example`)"
+    return ConfigError(msg)
 
 
 def _build(cls, table: dict, prefix: str, where: str):
@@ -345,9 +458,7 @@ def _build(cls, table: dict, prefix: str, where: str):
     fields = {f.name: f for f in dataclasses.fields(cls) if not f.metadata.get("internal")}
     unknown = sorted(set(table) - set(fields))
     if unknown:
-        raise ConfigError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} "
-                          f"{', '.join(prefix + u for u in unknown)} "
-                          f"(known: {', '.join(prefix + k for k in fields)})")
+        raise _unknown_keys_error(unknown, fields, prefix, where)
     kw = {}
     for name, f in fields.items():
         if name not in table:
@@ -357,9 +468,7 @@ def _build(cls, table: dict, prefix: str, where: str):
             kw[name] = _build(tp, table[name], f"{prefix}{name}.", where)
         else:
             kw[name] = _check_value(table[name], tp, prefix + name, where, dict(f.metadata))
-    obj = cls(**kw)
-    # validate defaults too (a default outside a range is a bug here, not the user's)
-    return obj
+    return cls(**kw)
 
 
 def _cross_checks(cfg: Config, where: str) -> None:
@@ -368,8 +477,9 @@ def _cross_checks(cfg: Config, where: str) -> None:
         raise ConfigError(f"{where}: corrections.ntrip.mountpoint: required when corrections.source = 'ntrip'")
     if c.source == "file" and not c.file.path:
         raise ConfigError(f"{where}: corrections.file.path: required when corrections.source = 'file'")
-    if cfg.output.rate_hz > 50.0:
-        raise ConfigError(f"{where}: output.rate_hz: must be <= 50")
+    if c.source == "serial" and cfg.gnss.source == "serial" and c.serial.port == cfg.gnss.serial.port:
+        raise ConfigError(f"{where}: corrections.serial.port: {c.serial.port!r} is also gnss.serial.port; "
+                          f"one serial port cannot carry both")
 
 
 def config_from_dict(data: dict, where: str = "<config>") -> Config:
@@ -380,15 +490,24 @@ def config_from_dict(data: dict, where: str = "<config>") -> Config:
 
 
 def load_config(path: str | Path) -> Config:
-    """Read, parse and validate a TOML configuration file."""
+    """Read, parse and validate a TOML configuration file; every failure is a :class:`ConfigError`."""
     p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{p}: is a directory, not a configuration file "
+                          f"(give the TOML file, e.g. {p / 'companion.toml'})")
     try:
         with p.open("rb") as fh:
             data = tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(f"{p}: configuration file not found") from None
+    except PermissionError:
+        raise ConfigError(f"{p}: configuration file not readable (permission denied)") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not a text file (not UTF-8 at byte {exc.start})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read the configuration file: {exc.strerror or exc}") from None
     return config_from_dict(data, str(p))
 
 
@@ -398,6 +517,87 @@ def loads_config(text: str, where: str = "<string>") -> Config:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{where}: not valid TOML: {exc}") from None
     return config_from_dict(data, where)
+
+
+# ---------------------------------------------------------------------------------------------
+# what a configuration needs from its surroundings
+
+def missing_extras(cfg: Config) -> list[str]:
+    """One message per optional dependency this configuration needs and the machine lacks."""
+    from .extras import available, install_hint
+    out = []
+    if not available("aiomqtt"):
+        for key, used in (("telemetry.enabled = true", cfg.telemetry.enabled),
+                          ("corrections.source = 'mqtt'", cfg.corrections.source == "mqtt")):
+            if used:
+                out.append(f"{cfg.source_path}: {key} needs aiomqtt, which is not installed: "
+                           f"{install_hint('aiomqtt')}")
+    return out
+
+
+def secrets_readable_by_others(cfg: Config) -> str | None:
+    """A warning when the file holds a secret and other users can read it (it should be 0600)."""
+    import os
+    import stat
+    if not any(v for _, v in _secret_values(cfg)) or not cfg.source_path:
+        return None
+    try:
+        mode = os.stat(cfg.source_path).st_mode
+    except OSError:
+        return None
+    if mode & (stat.S_IROTH | stat.S_IRGRP):
+        keys = ", ".join(k for k, v in _secret_values(cfg) if v)
+        return (f"{cfg.source_path}: holds {keys} but is readable by other users "
+                f"(mode {stat.S_IMODE(mode):04o}); chmod 600 {cfg.source_path}")
+    return None
+
+
+# ---------------------------------------------------------------------------------------------
+# secrets
+
+def secret_keys(cls=Config, prefix: str = "") -> tuple[str, ...]:
+    """Dotted keys of every secret field (``corrections.ntrip.password``)."""
+    hints = typing.get_type_hints(cls)
+    out: list[str] = []
+    for f in dataclasses.fields(cls):
+        if _is_dataclass_type(hints[f.name]):
+            out += secret_keys(hints[f.name], f"{prefix}{f.name}.")
+        elif f.metadata.get("secret"):
+            out.append(prefix + f.name)
+    return tuple(out)
+
+
+def _secret_values(cfg: Config):
+    for key in secret_keys():
+        obj = cfg
+        for part in key.split("."):
+            obj = getattr(obj, part)
+        yield key, obj
+
+
+def _as_dict(obj, redact: bool) -> dict[str, Any]:
+    hints = typing.get_type_hints(type(obj))
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(obj):
+        if f.metadata.get("internal"):
+            continue
+        v = getattr(obj, f.name)
+        if _is_dataclass_type(hints[f.name]):
+            out[f.name] = _as_dict(v, redact)
+        elif v is None:
+            continue                                      # TOML has no null: an unset optional is absent
+        elif redact and f.metadata.get("secret") and v:
+            out[f.name] = REDACTED
+        else:
+            out[f.name] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+def redacted(cfg: Config) -> dict[str, Any]:
+    """The configuration as a TOML-shaped dict (sections as dicts, vectors as lists, unset optionals
+    absent) with every non-empty secret (:func:`secret_keys`) replaced by ``"***"``.  Safe to log or
+    to copy into a field log; ``config_from_dict(redacted(cfg))`` is valid."""
+    return _as_dict(cfg, redact=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -418,7 +618,20 @@ def _toml_value(v) -> str:
     raise TypeError(f"cannot write {v!r} as TOML")
 
 
-def _to_toml(obj, comments: bool) -> str:
+def _allowed(md: dict, is_list: bool = False) -> str:
+    """'allowed: 0.0 < x <= 100.0' or 'one of: a, b' from a field's metadata ('' if it has none)."""
+    lo, hi, norm, choices = md.get("min"), md.get("max"), md.get("norm"), md.get("choices")
+    if choices:
+        return f"{'entries' if is_list else 'one'} of: {', '.join(map(str, choices))}"
+    if lo is None and hi is None:
+        return ""
+    left = "" if lo is None else f"{lo} {'<' if md.get('min_exclusive') else '<='} "
+    right = "" if hi is None else f" <= {hi}"
+    text = f"allowed: {left}x{right}"
+    return text + (f", length {norm[0]} to {norm[1]}" if norm else "")
+
+
+def _to_toml(obj, comments: bool, redact: bool = False) -> str:
     lines: list[str] = []
 
     def section(o, name: str):
@@ -432,9 +645,13 @@ def _to_toml(obj, comments: bool) -> str:
             lines.append(f"[{name}]")
         for f in scalars:
             v = getattr(o, f.name)
-            doc = f.metadata.get("doc", "")
-            if comments and doc:
-                lines.append(f"# {doc}")
+            if comments:
+                is_list = "tuple[str" in str(hints[f.name])
+                doc = "; ".join(x for x in (f.metadata.get("doc", ""), _allowed(f.metadata, is_list)) if x)
+                if doc:
+                    lines.append(f"# {doc}")
+            if redact and f.metadata.get("secret") and v:
+                v = REDACTED
             if v is None:
                 lines.append(f"# {f.name} = ...   (optional, not set)")
             else:
@@ -448,13 +665,16 @@ def _to_toml(obj, comments: bool) -> str:
 
 
 def example_config_toml() -> str:
-    """A complete configuration file with every key at its default, commented."""
+    """A complete configuration file with every key at its default, commented
+    (``companion config example``; ``deploy/companion.toml`` holds the same keys and values)."""
     head = ("# companion configuration (TOML).  Every key is optional; shown are the defaults.\n"
-            "# Units are in the key names.  Unknown keys are errors.\n\n")
+            "# Units are in the key names.  Unknown keys are errors.  Check a file with\n"
+            "# `companion config check FILE`; keep it private (chmod 600) when it holds a password.\n\n")
     return head + Config().to_toml(comments=True)
 
 
 __all__ = ["Config", "ConfigError", "MavlinkConfig", "GnssConfig", "SerialPortConfig", "NtripConfig",
            "CorrectionsConfig", "CorrectionsMqttConfig", "CorrectionsFileConfig", "OutputConfig",
-           "FilterConfig", "LogConfig", "TelemetryConfig", "load_config", "loads_config",
-           "config_from_dict", "example_config_toml"]
+           "FilterConfig", "LogConfig", "TelemetryConfig", "REDACTED", "load_config", "loads_config",
+           "config_from_dict", "example_config_toml", "missing_extras", "redacted", "secret_keys",
+           "secrets_readable_by_others"]

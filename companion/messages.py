@@ -141,6 +141,9 @@ class GnssFix:
     sigma_vel_mps: float = 0.5
     num_sats: int = 0
     fix_type: int = 3                 # 0-1 no fix, 2 2-D, 3 3-D, 4 DGPS, 5 RTK float, 6 RTK fixed
+    # False when the source carries no vertical velocity (GPS_RAW_INT: speed and course only); the
+    # vertical component of v_e is then a placeholder and only the horizontal velocity is fused
+    vertical_velocity_valid: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,7 +188,10 @@ class NavSolution:
     sigma_r_n_m: np.ndarray           # 1-sigma position error, north/east/down, m
     sigma_v_n_mps: np.ndarray         # 1-sigma velocity error, north/east/down, m/s
     sigma_att_rad: np.ndarray         # 1-sigma attitude error about ECEF axes, rad
-    status: str                       # 'init', 'nav', 'coasting' (no GNSS update recently), 'untrusted'
+    # 'init', 'nav', 'coasting' (no GNSS update recently), 'untrusted', and from the integrity
+    # monitor (companion.nav.integrity) 'suspect' (one inconsistent epoch), 'diverged' (an
+    # inconsistent window), 'converging' (after a re-initialisation, until a consistent window)
+    status: str
     last_gnss_update_t_gps: float = float("nan")
     reset_counter: int = 0            # bumped at every discontinuity (re-initialisation)
     extras: dict = field(default_factory=dict)

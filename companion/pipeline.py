@@ -44,16 +44,27 @@ epoch's Doppler (SPP), else zero when the autopilot is disarmed (on the ground),
 The engine starts at the newest IMU sample; ``engine.reset_counter`` counts (re)initialisations.
 
 Re-initialisation (logged, counted, announced): autopilot reboot, IMU time jump larger than
-``REINIT_GAP_S`` in either direction (clock jump, long link loss), or an untrusted solution.
+``REINIT_GAP_S`` in either direction (clock jump, long link loss), an untrusted solution, or a
+diverged one (companion.nav.integrity: the GNSS innovations of a window say the filter is wrong).
+After a re-initialisation other than a reboot the learnt sensor biases are kept when plausible;
+after a divergence the new filter is on probation (status ``converging``, not injected) until
+one consistent window has passed.
 
-Injection rule (``solution.extras['inject']``): status ``nav`` or ``coasting`` and horizontal
+Injection rule (``solution.extras['inject']``): status ``nav`` or ``coasting`` (so not
+``suspect``: the last epoch was inconsistent; nor ``diverged``/``converging``) and horizontal
 1-sigma <= ``output.max_sigma_h_m`` and vertical <= ``output.max_sigma_v_m``, everything finite.
+After a stop on sigma, injection resumes below ``output.resume_sigma_fraction`` (0.8) of the
+thresholds, so a sigma hovering at a threshold does not switch it (and announce it) every second.
+IMU samples are screened before integration (companion.nav.imu_screen) with the full scale of
+the stream's message type.  GPS_RAW_INT: ``gnss.gps_raw_latency_s`` is taken off its time tag,
+and only its horizontal velocity is fused (it has no vertical one).
 A coasting filter (no GNSS update for ``filter.coasting_after_s``) is still injected while its
 own covariance says it is good enough: the autopilot gets the growing sigma with every estimate
 and the injection stops when the thresholds are crossed.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -76,6 +87,7 @@ from .messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoc
 from .nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm  # noqa: E402
 from .nav.engine import NavEngine  # noqa: E402
 from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
+from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale  # noqa: E402
 
 log = logging.getLogger(__name__)
 m = mavlink2
@@ -104,7 +116,8 @@ class InitSigmas:
     drift_mps: float = 5.0
 
 
-STATUS_CODES = {"init": 0, "nav": 1, "coasting": 2, "untrusted": 3}
+STATUS_CODES = {"init": 0, "nav": 1, "coasting": 2, "untrusted": 3, "diverged": 4, "converging": 5,
+                "suspect": 6}
 STATUS_NAMES = {v: k for k, v in STATUS_CODES.items()}
 MODE_CODES = {"none": 0, "tight": 1, "loose": 2}
 MODE_NAMES = {v: k for k, v in MODE_CODES.items()}
@@ -139,7 +152,7 @@ def decode_solution(data: bytes) -> NavSolution:
 
 def config_event(config) -> bytes:
     """The 'event' record that makes a log self-describing (replay rebuilds the pipeline from it)."""
-    return json.dumps({"event": "config", "toml": config.to_toml(comments=False)}).encode()
+    return json.dumps({"event": "config", "toml": config.to_toml(comments=False, redact=True)}).encode()
 
 
 class NavPipeline:
@@ -176,6 +189,7 @@ class NavPipeline:
         self.last_imu_boot_us: int | None = None
         self.last_raw_t: float = -math.inf        # GPS time (IMU clock) of the last rover epoch
         self.attitude = None                      # (time_boot_ms, roll, pitch, yaw)
+        self._last_ap_heading_boot_s = -1e9       # last autopilot heading fused on the ground
         self.on_ground = False
         self.engine.ground_mode = False            # no NHC until the autopilot says we are on the ground
         self.vehicle_type: int | None = None       # HEARTBEAT type (MAV_TYPE)
@@ -193,6 +207,17 @@ class NavPipeline:
         self._held: list[GnssEpoch] = []          # rover epochs waiting for their base epoch
         self._base_times: list[float] = []        # recent base epoch times
         self.wait_for_base = config.corrections.source != "none" and config.filter.use_dgps
+        self._probation_next = False              # the next initialisation follows a divergence
+        self._position_hold = False               # the engine holds the GNSS position back
+        self._keep_biases_next = False            # ... follows a re-init of the same IMU in flight
+        self._sigma_hold = False                  # injection stopped on sigma: resume below the hysteresis
+        self._imu_full_scale_for: str | None = None
+        # GPS_RAW_INT time_usec is when the autopilot got the fix: the receiver's output latency later
+        self.gps_raw_latency_s = float(getattr(config.gnss, "gps_raw_latency_s", 0.0))
+        # injection resumes after a sigma stop only below this fraction of the thresholds (no flapping)
+        self.resume_sigma_fraction = float(getattr(config.output, "resume_sigma_fraction", 0.8))
+        if self.cluster_streams:
+            self._set_imu_full_scale(tuple(t for t, _, _ in self.cluster_streams))
 
     # ------------------------------------------------------------------ helpers
     def _t_ref(self):
@@ -207,12 +232,16 @@ class NavPipeline:
         self.events.append((severity, text))
         (log.warning if severity <= m.MAV_SEVERITY_WARNING else log.info)("%s", text)
 
-    def _reinit(self, reason: str) -> None:
+    def _reinit(self, reason: str, detail: str = "") -> None:
+        """``reason`` is a stable counter key; ``detail`` only goes into the announcement."""
         if self.engine.initialized:
             self.engine.initialized = False
             self._held.clear()
+            # same IMU, same flight: the learnt biases are a better prior than zero (not after a
+            # reboot, which may have re-initialised the sensors)
+            self._keep_biases_next = reason != "autopilot reboot"
             self.counters[f"re-init: {reason}"] += 1
-            self._event(m.MAV_SEVERITY_WARNING, f"nav re-init: {reason}")
+            self._event(m.MAV_SEVERITY_WARNING, f"nav re-init: {reason}" + (f" ({detail})" if detail else ""))
 
     # ------------------------------------------------------------------ input
     def feed(self, kind: str, t_rx_ns: int, data: bytes) -> list[NavSolution]:
@@ -292,6 +321,7 @@ class NavPipeline:
             vals = (msg.roll, msg.pitch, msg.yaw)
             if all(math.isfinite(v) for v in vals):
                 self.attitude = (int(msg.time_boot_ms), *vals)
+                self._ground_heading(msg)
             else:
                 self.counters["attitude not finite"] += 1
         elif mt == "SERIAL_CONTROL":
@@ -335,7 +365,24 @@ class NavPipeline:
                 self._restart_cluster()
             self._reinit("autopilot reboot")
 
+    def _adopt_broadcast_klobuchar(self) -> None:
+        """Klobuchar coefficients from the navigation message (subframe 4 page 18, once the UBX
+        decoder's LNAV assembler exposes them as ``klobuchar``) for the standalone pseudorange
+        models, unless the configuration gave its own (``filter.klobuchar``) or
+        ``gnss.broadcast_klobuchar`` is false.  DGPS-corrected ranges never use it."""
+        klob = getattr(getattr(self.ubx, "ephemerides", None), "klobuchar", None)
+        eng = self.engine
+        if klob is None or klob == eng.cfg.klobuchar or not getattr(self.cfg.gnss, "broadcast_klobuchar", True):
+            return
+        if getattr(self.cfg.filter, "klobuchar", None) is not None:
+            return
+        eng.cfg = dataclasses.replace(eng.cfg, klobuchar=klob)
+        self.counters["klobuchar from the navigation message"] += 1
+        log.info("ionosphere: Klobuchar coefficients from the navigation message")
+
     def _feed_messages(self, msgs) -> list[NavSolution]:
+        if msgs:
+            self._adopt_broadcast_klobuchar()
         for msg in msgs:
             if isinstance(msg, GnssEpoch):
                 if msg.source == "base":
@@ -379,10 +426,25 @@ class NavPipeline:
         self._check_reboot()
         if s is None:
             return []
+        if self.imu_dec.message != self._imu_full_scale_for:
+            self._set_imu_full_scale((self.imu_dec.message,))
         if not self._imu_finite(s):
             return []
         boot_us = int(getattr(msg, "time_usec", getattr(msg, "time_boot_ms", 0) * 1000))
         return self._imu_sample(s, boot_us)
+
+    def _set_imu_full_scale(self, message_types) -> None:
+        """The screen's clip limits: the smallest full scale of the streams in use, per message type
+        (companion.nav.imu_screen), unless ``mavlink.imu_accel_full_scale_mps2`` /
+        ``imu_gyro_full_scale_radps`` say otherwise (0 = per message type)."""
+        scr = self.engine.imu_screen
+        self._imu_full_scale_for = message_types[0] if len(message_types) == 1 else None
+        if scr is None:
+            return
+        fs = [FULL_SCALE_BY_MESSAGE.get(t, FULL_SCALE_BY_MESSAGE["HIGHRES_IMU"]) for t in message_types]
+        acc = float(getattr(self.cfg.mavlink, "imu_accel_full_scale_mps2", 0.0) or min(f.accel_mps2 for f in fs))
+        gyro = float(getattr(self.cfg.mavlink, "imu_gyro_full_scale_radps", 0.0) or min(f.gyro_radps for f in fs))
+        scr.set_full_scale(ImuFullScale(acc, gyro))
 
     def _imu_finite(self, s: ImuSample, unit: str = "") -> bool:
         if all(math.isfinite(x) for x in (*s.dtheta_b.tolist(), *s.dv_b.tolist())):
@@ -432,7 +494,7 @@ class NavPipeline:
         if eng.initialized:
             step = s.t_gps - eng.t_gps
             if abs(step) > REINIT_GAP_S:
-                self._reinit(f"IMU time jump {step:+.1f} s")
+                self._reinit("IMU time jump", f"{step:+.1f} s")
                 # the boot-to-GPS mapping is in doubt until SYSTEM_TIME confirms it: no loose
                 # (GPS_RAW_INT) initialisation for another RAW_TIMEOUT_S
                 self.last_raw_t = s.t_gps
@@ -454,23 +516,72 @@ class NavPipeline:
         sol = eng.solution()
         if sol.status == "untrusted":
             self._reinit("solution untrusted")
+        elif sol.status == "diverged":
+            # injection stops with this solution; start over from GNSS, on probation
+            self._reinit("diverged", sol.extras.get("integrity_reason", ""))
+            self._probation_next = True
+        self._announce_hold(sol.extras.get("integrity"))
         return [self._finish(sol)]
+
+    AP_HEADING_PERIOD_S = 1.0
+    AP_HEADING_SIGMA_RAD = math.radians(5.0)
+
+    def _ground_heading(self, msg) -> None:
+        """At rest with one antenna our heading is unobservable (ZARU holds it, nothing corrects
+        it): keep it on the autopilot's compass heading once a second instead of the copy taken at
+        initialisation, which can predate the autopilot's own convergence (ArduCopter SITL: 10 deg
+        off).  Off with ``mavlink.autopilot_heading_on_ground`` or a dual-antenna heading."""
+        eng = self.engine
+        if not (eng.initialized and self.on_ground and self.cfg.mavlink.autopilot_heading_on_ground) \
+                or self.cfg.gnss.moving_baseline_b_m is not None:
+            return
+        t_boot = msg.time_boot_ms * 1e-3
+        if t_boot - self._last_ap_heading_boot_s < self.AP_HEADING_PERIOD_S:
+            return
+        t_gps = self.time_map.to_gps(t_boot)
+        if t_gps is None:
+            return
+        self._last_ap_heading_boot_s = t_boot
+        eng.process(GnssAttitude(t_gps, heading_rad=float(msg.yaw), sigma_heading_rad=self.AP_HEADING_SIGMA_RAD))
+        self.counters["autopilot heading fused (on the ground)"] += 1
+
+    def _announce_hold(self, integrity: str | None) -> None:
+        """One event when the GNSS position starts / stops being held back (companion.nav.integrity)."""
+        holding = integrity == "hold"
+        if holding != self._position_hold:
+            self._position_hold = holding
+            if holding:
+                self.counters["integrity: position hold"] += 1
+                self._event(m.MAV_SEVERITY_WARNING, "GNSS position rejected: disagrees with INS (spoofed?)")
+            else:
+                self._event(m.MAV_SEVERITY_INFO, "GNSS position agrees with INS again")
 
     def _finish(self, sol: NavSolution) -> NavSolution:
         o = self.cfg.output
         sr = sol.sigma_r_n_m
-        inject = bool(sol.status in ("nav", "coasting") and bool(np.all(np.isfinite(sol.r_e)))
-                  and bool(np.all(np.isfinite(sr))) and math.hypot(sr[0], sr[1]) <= o.max_sigma_h_m
-                  and float(sr[2]) <= o.max_sigma_v_m)
+        sig_h, sig_v = math.hypot(sr[0], sr[1]), float(sr[2])
+        # after a stop on sigma, resume only below a fraction of the thresholds: a sigma hovering
+        # at the threshold (coasting growth against GNSS updates) must not switch every second
+        k = self.resume_sigma_fraction if self._sigma_hold else 1.0
+        sigma_ok = sig_h <= k * o.max_sigma_h_m and sig_v <= k * o.max_sigma_v_m
+        good = (sol.status in ("nav", "coasting") and bool(np.all(np.isfinite(sol.r_e)))
+                and bool(np.all(np.isfinite(sr))))
+        inject = bool(good and sigma_ok)
+        if good and not sigma_ok and self.output_state == "injecting":
+            self._sigma_hold = True       # stopped on sigma (not the first convergence after an init)
+        elif inject:
+            self._sigma_hold = False
         sol.extras.update({"inject": inject, "mode": self.mode, "imu_count": self.imu_count,
                            "t_boot_us": self.last_imu_boot_us})
         state = "injecting" if inject else f"not injecting ({sol.status})"
+        if sol.status == "suspect":
+            state = self.output_state     # a pause of one epoch or two is not a change to announce
         if state != self.output_state:
             if inject:
-                self._event(m.MAV_SEVERITY_INFO, f"nav OK {self.mode}: sigma_h {math.hypot(sr[0], sr[1]):.2f} m")
-            else:
-                self._event(m.MAV_SEVERITY_WARNING,
-                            f"nav not injected: {sol.status} sigma_h {math.hypot(sr[0], sr[1]):.1f} m")
+                self._event(m.MAV_SEVERITY_INFO, f"nav OK {self.mode}: sigma_h {sig_h:.2f} m")
+            elif sol.status not in ("diverged", "converging") and (
+                    self.output_state in ("init", "injecting")):     # not every change of the reason
+                self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {sol.status} sigma_h {sig_h:.1f} m")
             self.output_state = state
         self.counters["solutions"] += 1
         self.counters["solutions injectable" if inject else "solutions withheld"] += 1
@@ -480,8 +591,7 @@ class NavPipeline:
     # ------------------------------------------------------------------ GNSS
     def _rover_epoch(self, epoch: GnssEpoch) -> None:
         self.counters["rover epochs"] += 1
-        have = set(self.engine.ephemerides.sats)
-        usable = sum(1 for o in epoch.observations if o.sat in have) >= 4
+        usable = self._usable(epoch)
         if not usable:
             self.counters["rover epochs without ephemerides"] += 1
         if self.last_imu is not None and usable:
@@ -510,11 +620,22 @@ class NavPipeline:
                 keep.append(ep)
         self._held = keep
 
+    def _usable(self, epoch: GnssEpoch) -> bool:
+        """At least four satellites with ephemerides: the epoch can position the filter."""
+        have = set(self.engine.ephemerides.sats)
+        return sum(1 for o in epoch.observations if o.sat in have) >= 4
+
     def _use_rover_epoch(self, epoch: GnssEpoch) -> None:
-        if self.mode != "tight" and self.engine.initialized:
-            self._event(m.MAV_SEVERITY_INFO, "nav: raw GNSS observations, tight coupling")
         if self.engine.initialized:
-            self.mode = "tight"
+            # only an epoch that can be used switches to tight coupling: raw epochs without
+            # ephemerides (no corrections stream) beside loose GPS_RAW_INT fusion made the mode
+            # flap every second; back to loose happens after RAW_TIMEOUT_S without usable epochs
+            if self.mode != "tight":
+                if not self._usable(epoch):
+                    self.counters["rover epochs not used (loose mode, no ephemerides)"] += 1
+                    return
+                self._event(m.MAV_SEVERITY_INFO, "nav: raw GNSS observations, tight coupling")
+                self.mode = "tight"
             self.engine.process(epoch)
             return
         self._try_init_tight(epoch)
@@ -569,10 +690,12 @@ class NavPipeline:
         self.mode = "tight"
 
     def _gps_raw(self, msg) -> list[NavSolution]:
-        fix = gps_fix_from_gps_raw_int(msg, self.time_map, leap_seconds=self.cfg.gnss.leap_seconds)
+        fix = gps_fix_from_gps_raw_int(msg, self.time_map, leap_seconds=self.cfg.gnss.leap_seconds,
+                                       latency_s=self.gps_raw_latency_s)
         if fix is None:
             self.counters["GPS_RAW_INT without fix/time"] += 1
             return []
+        fix = dataclasses.replace(fix, vertical_velocity_valid=False)   # speed and course only
         key = int(msg.time_usec)
         if key == self._last_fix_key:
             return []                       # the same fix repeated at the stream rate
@@ -627,11 +750,30 @@ class NavPipeline:
         p0 = {"att_rad": sig.att_rad, "pos_m": sig_pos, "vel_mps": sig_vel, "ba_mps2": sig.ba_mps2,
               "bg_radps": sig.bg_radps, "clk_m": sig.clk_m, "drift_mps": sig.drift_mps,
               "pos_cov_e_m2": pos_cov_e_m2}
-        self.engine.initialize(t_gps, r, v, C, p0, clock_bias_m=clock_bias_m, clock_drift_mps=clock_drift_mps)
+        probation, self._probation_next = self._probation_next, False
+        b_a, b_g = self._biases_to_keep() if self._keep_biases_next else (None, None)
+        self._keep_biases_next = False
+        self.engine.initialize(t_gps, r, v, C, p0, clock_bias_m=clock_bias_m, clock_drift_mps=clock_drift_mps,
+                               probation=probation, b_a=b_a, b_g=b_g)
         self.counters["initialisations"] += 1
         self.last_init_reason = how
         self.output_state = "init"
-        self._event(m.MAV_SEVERITY_INFO, f"nav init #{self.engine.reset_counter}: {how}")
+        self._sigma_hold = False
+        self._event(m.MAV_SEVERITY_INFO, f"nav init #{self.engine.reset_counter}: {how}"
+                    + ("; not injected until consistent" if probation else ""))
+
+    def _biases_to_keep(self):
+        """After a re-init in flight (same IMU): the sensor biases the filter had learnt, when
+        they are within 3 sigma of the turn-on uncertainty, as the prior mean of the new filter (its
+        uncertainty is the turn-on one again); else zero.  Zero is known to be wrong by the turn-on
+        bias, and re-learning it in flight, without the rest phase, takes the new filter long."""
+        eng, sig = self.engine, self.init_sigmas
+        ba, bg = eng.b_a, eng.b_g
+        if (np.all(np.isfinite(ba)) and np.all(np.isfinite(bg)) and float(np.max(np.abs(ba))) <= 3.0 * sig.ba_mps2
+                and float(np.max(np.abs(bg))) <= 3.0 * sig.bg_radps):
+            self.counters["re-init: sensor biases kept"] += 1
+            return ba.copy(), bg.copy()
+        return None, None
 
     # ------------------------------------------------------------------ reporting
     def drain_events(self) -> list[tuple[int, str]]:
@@ -641,13 +783,15 @@ class NavPipeline:
     def health(self) -> dict:
         sol = self.last_solution
         filt = {"initialized": self.engine.initialized, "mode": self.mode, "init": self.last_init_reason,
-                "reset_counter": self.engine.reset_counter}
+                "reset_counter": self.engine.reset_counter,
+                "integrity": {"state": self.engine.integrity.state, "reason": self.engine.integrity.reason}}
         if sol is not None:
             filt.update({"status": sol.status, "t_gps": sol.t_gps,
                          "sigma_r_ned_m": [round(float(x), 3) for x in sol.sigma_r_n_m],
                          "sigma_v_ned_mps": [round(float(x), 3) for x in sol.sigma_v_n_mps],
                          "inject": sol.extras.get("inject")})
         return {"filter": filt, "pipeline": dict(self.counters), "engine": dict(self.engine.counters),
+                "aid_sources": self.engine.aid.snapshot(),
                 "imu": dict(self.imu_dec.counters), "time_map": dict(self.time_map.counters),
                 **({"imu_cluster": self.cluster_health()} if self.cluster is not None else {}),
                 "ubx": dict(self.ubx.counters), "rtcm": dict(self.rtcm.counters)}

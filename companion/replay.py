@@ -15,15 +15,23 @@ record (receive time from the tlog stamp).  What works depends on what was logge
 ATTITUDE, GPS_RAW_INT (loose coupling: the pipeline falls back to it when no raw observations
 arrive) and SERIAL_CONTROL replies (raw UBX, if a GCS was tunnelling the receiver).  There is no
 RTCM in a tlog (GPS_RTCM_DATA *to* the vehicle is not fed back) and no reference solution, so
-the comparison is empty.  A tlog recorded by a GCS usually has the IMU at 2-10 Hz: the filter
-runs, but it is not the navigation the service would do at 200 Hz.
+the comparison is empty.  A tlog recorded by a GCS usually has the IMU at 1-10 Hz: below
+:data:`IMU_RATE_NEEDED_HZ` the replay refuses (names the rate found and the rate needed, exit
+status 3) rather than return nothing in silence.
+
+ArduPilot DataFlash logs (``.BIN``, recognised by their first bytes): the records become the
+MAVLink messages the service would have received (:mod:`companion.io.dataflash`) and go through
+the same pipeline.  Without ``--config`` the configuration is the default one adapted to what the
+log holds (:func:`dataflash_config`: loose coupling on the GPS fixes, the IMU rate found, the lever
+arm from ``GPS_POS``/``INS_POS``, SITL's simulated gyro drift).  When the log has the simulator's
+truth (``SIM``) the trajectory is scored against it beside the autopilot EKF's ``POS`` over the
+same span (:mod:`companion.post_report`).  The filter runs forward only (no smoothing).
 """
 from __future__ import annotations
 
 import json
 import logging
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -34,6 +42,13 @@ import numpy as np
 from .pipeline import NavPipeline, encode_solution
 
 log = logging.getLogger(__name__)
+
+# The pipeline integrates each IMU sample as rate x interval and drops any interval of 0.1 s or
+# more (ImuDecoder.max_dt_s, NavEngine.process_imu): 10 Hz is the hard floor, twice that leaves
+# room for jitter and an odd lost sample.  The live service streams 200 Hz.
+IMU_RATE_NEEDED_HZ = 20.0
+EXIT_NO_SOLUTION = 3            # the input cannot give a solution (reason on stderr)
+_IMU_TYPES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "SCALED_IMU")
 
 
 @dataclass
@@ -47,6 +62,13 @@ class ReplayResult:
     config_error: str = ""          # the log's configuration could not be read (e.g. a newer version's)
     log_stats: dict = field(default_factory=dict)
     pipeline_health: dict = field(default_factory=dict)
+    kind: str = "field log"         # 'field log', 'tlog' or 'dataflash'
+    imu_check: dict = field(default_factory=dict)   # stream, rate found, rate needed
+    refusal: str = ""               # why this log cannot give a solution (nothing was run)
+    notes: list = field(default_factory=list)       # what was assumed or adapted, for the report
+    truth_score: dict = field(default_factory=dict)  # against the log's truth (SIM), if any
+    time_base: dict = field(default_factory=dict)   # DataFlash: boot -> GPS time
+    tracks: dict = field(default_factory=dict)      # name -> (N, 3) lat deg, lon deg, alt m (plot)
 
     def comparison(self) -> dict:
         n = min(len(self.logged), len(self.produced))
@@ -136,39 +158,250 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
     return res
 
 
-def replay_tlog(path, config=None, progress: bool = False) -> ReplayResult:
+def imu_rate_check(stream: str, times_us, needed_hz: float = IMU_RATE_NEEDED_HZ) -> dict:
+    """The IMU stream's rate (median of the positive intervals of its time stamps) against the
+    rate the pipeline needs; ``reason`` is empty when it is enough."""
+    t = np.asarray(times_us, float)
+    d = np.diff(t)
+    d = d[d > 0]
+    rate = float(1e6 / np.median(d)) if len(d) else 0.0
+    out = {"stream": stream, "samples": int(len(t)), "rate_hz": round(rate, 3), "needed_hz": needed_hz,
+           "median_interval_s": float(np.median(d) * 1e-6) if len(d) else None, "reason": ""}
+    if not stream:
+        out["reason"] = ("no IMU in the log (HIGHRES_IMU, RAW_IMU or SCALED_IMU2/3; DataFlash IMU): "
+                         "an inertial solution needs one")
+    elif rate < needed_hz:
+        out["reason"] = (f"IMU {stream} at {rate:.2f} Hz (median interval {out['median_interval_s'] or 0:.3f} s, "
+                         f"{len(t)} samples); the inertial filter needs at least {needed_hz:.0f} Hz: it integrates "
+                         f"rate x interval and drops every interval of 0.1 s or more, so this log cannot give a "
+                         f"tightly (or loosely) coupled solution")
+    return out
+
+
+def _tlog_imu_stream(msgs, cfg) -> tuple[str, list]:
+    """The IMU stream the pipeline would fuse from these messages (its rules: the configured
+    message, the cluster's primary, or 'auto' = HIGHRES_IMU if present, else the first seen) and
+    its time stamps in microseconds."""
+    from .io.mavlink import parse_imu_stream
+    target = (cfg.mavlink.target_system, cfg.mavlink.target_component)
+    want, want_id = (parse_imu_stream(cfg.mavlink.imu_cluster[0]) if cfg.mavlink.imu_cluster
+                     else (None if cfg.mavlink.imu_message == "auto" else cfg.mavlink.imu_message, None))
+    times: dict[str, list] = {}
+    first = None
+    for _, msg in msgs:
+        mt = msg.get_type()
+        if mt not in _IMU_TYPES or (msg.get_srcSystem(), msg.get_srcComponent()) != target:
+            continue
+        if want_id is not None and int(getattr(msg, "id", 0)) != want_id:
+            continue
+        first = first or mt
+        t_us = int(msg.time_boot_ms) * 1000 if mt.startswith("SCALED_IMU") else int(msg.time_usec)
+        times.setdefault(mt, []).append(t_us)
+    stream = want or ("HIGHRES_IMU" if "HIGHRES_IMU" in times else first or "")
+    return stream, times.get(stream, [])
+
+
+def _tlog_messages(path) -> list:
     from pymavlink import mavutil
-    from .config import Config
-    cfg = config or Config()
-    pipe = NavPipeline(cfg)
-    res = ReplayResult(config_from="--config" if config is not None else "defaults")
     conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega", robust_parsing=True)
-    total = os.path.getsize(path)
-    prog = _Progress(total, progress)
-    t0 = time.perf_counter()
+    out = []
     while True:
         msg = conn.recv_msg()
         if msg is None:
             break
-        if msg.get_type() == "BAD_DATA":
-            continue
+        if msg.get_type() != "BAD_DATA":
+            out.append((int(getattr(msg, "_timestamp", 0.0) * 1e9), msg))
+    return out
+
+
+def replay_tlog(path, config=None, progress: bool = False, needed_imu_hz: float = IMU_RATE_NEEDED_HZ) -> ReplayResult:
+    from .config import Config
+    cfg = config or Config()
+    res = ReplayResult(config_from="--config" if config is not None else "defaults", kind="tlog")
+    t0 = time.perf_counter()
+    msgs = _tlog_messages(path)
+    res.imu_check = imu_rate_check(*_tlog_imu_stream(msgs, cfg), needed_hz=needed_imu_hz)
+    if res.imu_check["reason"]:
+        res.refusal = res.imu_check["reason"] + (
+            "; a ground station logs the IMU at the rate it requested (ArduPilot SRn_RAW_SENS, "
+            "often 1-4 Hz): replay the autopilot's DataFlash .BIN log from its SD card instead, or "
+            "record the telemetry with the IMU at 50 Hz or more")
+        res.records = len(msgs)
+        res.elapsed_s = time.perf_counter() - t0
+        return res
+    pipe = NavPipeline(cfg)
+    prog = _Progress(len(msgs), progress)
+    for k, (t_ns, msg) in enumerate(msgs):
         res.records += 1
-        prog.update(getattr(conn, "offset", 0) or 0)
-        t_ns = int(getattr(msg, "_timestamp", 0.0) * 1e9)
+        prog.update(k)
         for sol in pipe.feed("mavlink", t_ns, bytes(msg.get_msgbuf())):
             res.solutions.append(sol)
             res.produced.append(encode_solution(sol))
-    prog.update(total, final=True)
+    prog.update(len(msgs), final=True)
     res.elapsed_s = time.perf_counter() - t0
     res.pipeline_health = pipe.health()
     return res
 
 
-def replay(path, config=None, progress: bool = False) -> ReplayResult:
+def dataflash_config(dlog, imu_rate_hz: float, base=None):
+    """The configuration for a DataFlash log without ``--config``: the defaults, adapted to what
+    the log holds.  Returns ``(config, notes)``; every adaptation is named in the notes.
+
+    * no raw observations decoded from DataFlash yet: ``gnss.source = 'none'`` (loose coupling on
+      the GPS fixes from the first one, not after waiting for raw data);
+    * ``mavlink.imu_message = 'HIGHRES_IMU'``, ``imu_rate_hz`` = the rate found;
+    * ``gnss.lever_arm_b_m`` = ``GPS_POS{n}`` - ``INS_POS{n}`` when the log sets them;
+    * a SITL log with ``SIM_DRIFT_SPEED`` (deg/s per minute; ArduPilot's simulated gyro drifts on
+      all three axes as a triangle wave, ``minutes x SIM_DRIFT_SPEED``, rising for
+      ``SIM_DRIFT_TIME`` minutes): the gyro-bias random walk is set so that its spread over one
+      rise equals the rise, ``sigma = r sqrt(T)`` with ramp ``r`` (rad/s per s) and ``T`` (s) --
+      the default (1e-5 rad/s/sqrt(s), a real MEMS gyro at constant temperature) lags a
+      1.5e-5 rad/s^2 ramp and leaves a tilt error (0.10 m horizontal RMS instead of 0.02 m on the
+      shared SITL log).
+    """
+    import dataclasses
+    from .config import Config
+    from .io.dataflash import lever_arm_from_params
+    notes = []
+    cfg = base or Config()
+    if base is not None:
+        return cfg, ["configuration from --config, used as it is"]
+    g = dataclasses.replace(cfg.gnss, source="none")
+    notes.append("GPS fixes only (GPS/GPA records, loosely coupled): no raw GNSS observations used")
+    lever = lever_arm_from_params(dlog)
+    if lever is not None and any(abs(x) > 0 for x in lever):
+        g = dataclasses.replace(g, lever_arm_b_m=lever)
+        notes.append(f"lever arm {lever} m (body FRD) from GPS_POS/INS_POS")
+    mc = dataclasses.replace(cfg.mavlink, imu_message="HIGHRES_IMU", imu_cluster=(),
+                             imu_rate_hz=float(min(max(imu_rate_hz, 1.0), 2000.0)))
+    f = cfg.filter
+    speed, period = dlog.params.get("SIM_DRIFT_SPEED", 0.0), dlog.params.get("SIM_DRIFT_TIME", 0.0)
+    if dlog.sitl and speed > 0 and period > 0:
+        ramp = math.radians(speed) / 60.0
+        sigma = ramp * math.sqrt(period * 60.0)
+        if sigma > f.gyro_bias_rw_radps_per_sqrt_s:
+            f = dataclasses.replace(f, gyro_bias_rw_radps_per_sqrt_s=sigma)
+            notes.append(f"SITL gyro drift SIM_DRIFT_SPEED {speed:g} deg/s/min over SIM_DRIFT_TIME {period:g} min: "
+                         f"gyro bias random walk {sigma:.2e} rad/s/sqrt(s)")
+    return dataclasses.replace(cfg, gnss=g, mavlink=mc, filter=f), notes
+
+
+def replay_dataflash(path, config=None, progress: bool = False, t_start_s: float | None = None,
+                     t_end_s: float | None = None, options=None,
+                     needed_imu_hz: float = IMU_RATE_NEEDED_HZ) -> ReplayResult:
+    """Post-process an ArduPilot DataFlash log through the pipeline (boot-time window optional)."""
+    import dataclasses
+    from .io.dataflash import AdapterOptions, iter_mavlink_messages, read_dataflash, time_base
+    from .nav.earth import ecef_to_geodetic
+    from .post_report import score_against_truth
+    t0 = time.perf_counter()
+    dlog = read_dataflash(path, t_start_s, t_end_s)
+    res = ReplayResult(kind="dataflash")
+    opts = options or AdapterOptions()
+    imu = dlog.imu.get(opts.imu_instance, np.zeros((0, 7)))
+    res.imu_check = imu_rate_check(f"IMU[{opts.imu_instance}]" if len(imu) else "", imu[:, 0], needed_imu_hz)
+    res.log_stats = {"imu_samples": {str(i): int(len(a)) for i, a in dlog.imu.items()},
+                     "imu_unhealthy": {str(i): n for i, n in dlog.imu_unhealthy.items()},
+                     "gps_fixes": {str(i): int(len(a)) for i, a in dlog.gps.items()},
+                     "gps_fixes_without_week": {str(i): int(np.sum(a[:, 3] <= 0)) for i, a in dlog.gps.items()},
+                     "sim_truth": int(len(dlog.sim)), "ekf_pos": int(len(dlog.pos)),
+                     "raw_gnss_records": dlog.raw_gnss_records, "sitl": dlog.sitl, "parameters": len(dlog.params)}
+    if res.imu_check["reason"]:
+        res.refusal = res.imu_check["reason"] + ("; ArduPilot logs the IMU at the loop rate with the "
+                                                 "INS_LOG_BAT_* batch sampler or 'Fast IMU' in LOG_BITMASK")
+        res.elapsed_s = time.perf_counter() - t0
+        return res
+    cfg, res.notes = dataflash_config(dlog, res.imu_check["rate_hz"], config)
+    res.config_from = "--config" if config is not None else "defaults adapted to the DataFlash log"
+    if dlog.raw_gnss_records:
+        res.notes.append(f"{dlog.raw_gnss_records} GRXH/GRXS raw-observation records not decoded (not supported "
+                         f"yet): loosely coupled")
+    opts = dataclasses.replace(opts, leap_seconds=cfg.gnss.leap_seconds, target_system=cfg.mavlink.target_system,
+                               target_component=cfg.mavlink.target_component)
+    tb = time_base(dlog, opts)
+    if tb is None:
+        res.refusal = "no GPS fix with a GPS week and time in the log (GPS records): no GPS time, no position"
+        res.elapsed_s = time.perf_counter() - t0
+        return res
+    res.time_base = tb.as_dict()
+    if tb.gms_is_delivery and tb.latency_s > 0:
+        res.notes.append(f"SITL GPS: fix time = GMS - {tb.latency_s * 1e3:.0f} ms (SIM_GPS_LAG_MS)")
+    elif tb.latency_s > 0:
+        res.notes.append(f"GPS delivered {tb.latency_s * 1e3:.0f} ms after its epoch (GPS_DELAY_MS)")
+    earth = dlog.sitl if opts.earth_rate is None else opts.earth_rate
+    if earth:
+        res.notes.append("SITL gyros do not sense the Earth's rotation: added from ATT")
+    pipe = NavPipeline(cfg)
+    prog = _Progress(len(imu), progress)          # about one message per IMU sample
+    for t_us, msg in iter_mavlink_messages(dlog, dataclasses.replace(opts, earth_rate=earth), tb):
+        res.records += 1
+        if not res.records & 1023:
+            prog.update(res.records)
+        for sol in pipe.feed_mavlink_record(t_us * 1000, msg):
+            res.solutions.append(sol)
+            res.produced.append(encode_solution(sol))
+    prog.update(len(imu), final=True)
+    res.pipeline_health = pipe.health()
+    sols = [s for s in res.solutions if np.all(np.isfinite(s.r_e))]
+    if sols:
+        llh = np.array([ecef_to_geodetic(s.r_e) for s in sols])
+        ours = np.c_[np.degrees(llh[:, 0]), np.degrees(llh[:, 1]), llh[:, 2]]
+        t_boot = np.array([tb.to_boot(s.t_gps) for s in sols])
+        res.tracks["ours"] = ours
+        if len(dlog.sim) >= 2:
+            res.truth_score = score_against_truth(t_boot, ours[:, 0], ours[:, 1], ours[:, 2], dlog.sim,
+                                                  dlog.pos if len(dlog.pos) else None, "EKF3 POS")
+    for name, arr in (("SIM truth", dlog.sim), ("EKF3 POS", dlog.pos)):
+        if len(arr):
+            res.tracks[name] = arr[:, 1:4]
+    res.elapsed_s = time.perf_counter() - t0
+    return res
+
+
+def replay(path, config=None, progress: bool = False, *, needed_imu_hz: float = IMU_RATE_NEEDED_HZ,
+           dataflash_options=None, t_start_s: float | None = None, t_end_s: float | None = None) -> ReplayResult:
+    """Replay any log: a DataFlash .BIN (by its first bytes or name), a .tlog, else a field log.
+    ``dataflash_options`` (:class:`~companion.io.dataflash.AdapterOptions`) and the boot-time window
+    apply to DataFlash logs only."""
     p = str(path)
+    if Path(p).is_file() and (p.lower().endswith(".bin") or _is_dataflash(p)):
+        return replay_dataflash(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz)
     if p.endswith(".tlog") or p.endswith(".mavlink"):
-        return replay_tlog(path, config, progress)
+        return replay_tlog(path, config, progress, needed_imu_hz)
     return replay_field_log(path, config, progress)
+
+
+def _cli_options(args) -> dict:
+    """Optional replay flags (``--min-imu-rate-hz``, ``--gps-latency-ms``, ``--imu-instance``,
+    ``--start``, ``--end``), read with defaults so the parser may or may not define them."""
+    from .io.dataflash import AdapterOptions
+    lat_ms = getattr(args, "gps_latency_ms", None)
+    opts = AdapterOptions(imu_instance=int(getattr(args, "imu_instance", None) or 0),
+                          gps_latency_s=None if lat_ms is None else float(lat_ms) * 1e-3)
+    return {"needed_imu_hz": float(getattr(args, "min_imu_rate_hz", None) or IMU_RATE_NEEDED_HZ),
+            "dataflash_options": opts, "t_start_s": getattr(args, "start", None), "t_end_s": getattr(args, "end", None)}
+
+
+def _is_dataflash(p) -> bool:
+    from .io.dataflash import is_dataflash
+    return is_dataflash(p)
+
+
+def why_no_solution(res: ReplayResult) -> str:
+    """The likeliest reason a replay that ran produced no solution, from the pipeline's counters."""
+    h = res.pipeline_health
+    pc, imu, tm = h.get("pipeline", {}), h.get("imu", {}), h.get("time_map", {})
+    if not imu.get("samples"):
+        if imu.get("no_time") or not tm.get("system_time"):
+            return "IMU samples could not be put on GPS time: no SYSTEM_TIME with UTC in the log"
+        if imu.get("gap_reset"):
+            return f"every IMU interval was 0.1 s or more ({imu['gap_reset']} dropped)"
+        return "no usable IMU sample"
+    if not pc.get("GPS_RAW_INT fixes") and not pc.get("rover epochs"):
+        return "no GPS fix (GPS_RAW_INT with a 3-D fix) and no raw GNSS observations in the log"
+    if pc.get("init: waiting for ATTITUDE") or pc.get("init: ATTITUDE too old"):
+        return "no recent ATTITUDE to initialise the attitude from"
+    return "the filter never initialised (see the pipeline counters in --json)"
 
 
 def _sol_json(sol) -> dict:
@@ -180,14 +413,19 @@ def _sol_json(sol) -> dict:
 
 
 def plot_replay(res: ReplayResult, path: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from .nav.earth import ecef_to_ned
+    from .extras import pyplot
+    from .nav.earth import ecef_to_ned, geodetic_to_ecef
+    plt = pyplot("companion replay --plot")
     sols = [s for s in res.solutions if np.all(np.isfinite(s.r_e))]
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 5))
     if sols:
         ref = sols[0].r_e
+        for name, llh in res.tracks.items():
+            if name == "ours":
+                continue
+            ned = np.array([ecef_to_ned(geodetic_to_ecef(math.radians(r[0]), math.radians(r[1]), r[2]), ref)
+                            for r in llh])
+            a1.plot(ned[:, 1], ned[:, 0], "-", lw=0.8, label=name)
         ned = np.array([ecef_to_ned(s.r_e, ref) for s in sols])
         inj = np.array([bool(s.extras.get("inject")) for s in sols])
         a1.plot(ned[:, 1], ned[:, 0], "-", lw=0.8, color="0.6", label="all")
@@ -204,10 +442,51 @@ def plot_replay(res: ReplayResult, path: str) -> None:
         a2.set_ylabel("1-sigma position [m]")
         a2.legend()
     c = res.comparison()
-    fig.suptitle(f"replay: {len(res.solutions)} solutions; bit-for-bit {c['identical']}/{c['logged_solutions']}")
+    title = f"replay: {len(res.solutions)} solutions"
+    sc = res.truth_score
+    if sc.get("ours", {}).get("horizontal", {}).get("rms_m") is not None:
+        title += f"; horizontal RMS vs truth {sc['ours']['horizontal']['rms_m']:.3f} m"
+        if "reference" in sc:
+            title += f" ({sc['reference_name']} {sc['reference']['horizontal']['rms_m']:.3f} m)"
+    elif res.kind == "field log":
+        title += f"; bit-for-bit {c['identical']}/{c['logged_solutions']}"
+    fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _print_summary(res: ReplayResult, c: dict) -> None:
+    rate = res.records / res.elapsed_s if res.elapsed_s > 0 else float("nan")
+    if res.refusal:
+        ic = res.imu_check
+        print(f"read {res.records} records in {res.elapsed_s:.2f} s: not replayed"
+              + (f" (IMU {ic['stream'] or 'none'} at {ic['rate_hz']:.1f} Hz, needed {ic['needed_hz']:.0f} Hz)"
+                 if ic else ""))
+        return
+    print(f"replayed {res.records} records in {res.elapsed_s:.2f} s ({rate:,.0f} records/s); "
+          f"config from {res.config_from or 'nowhere (no config event: nothing replayed)'}")
+    if res.imu_check:
+        ic = res.imu_check
+        print(f"IMU: {ic['stream'] or 'none'} at {ic['rate_hz']:.1f} Hz ({ic['samples']} samples; "
+              f"needed {ic['needed_hz']:.0f} Hz)")
+    for n in res.notes:
+        print(f"note: {n}")
+    if res.kind == "field log":
+        print(f"solutions: {c['replayed_solutions']} replayed, {c['logged_solutions']} logged; "
+              f"identical {c['identical']}, differing {c['differing']}"
+              + (f", first difference at #{c['first_difference_index']}" if c["first_difference_index"] is not None else "")
+              + ("  -> BIT FOR BIT" if c["bit_for_bit"] else ""))
+    else:
+        modes = sorted({str(s.extras.get("mode")) for s in res.solutions})
+        print(f"solutions: {len(res.solutions)} (mode {', '.join(modes) or 'none'}; forward filter only)")
+    if res.solutions:
+        last = res.solutions[-1]
+        print(f"last solution: status {last.status}, sigma NED {np.round(last.sigma_r_n_m, 3).tolist()} m")
+    if res.truth_score:
+        from .post_report import format_score
+        for line in format_score(res.truth_score, "SIM truth"):
+            print(line)
 
 
 def run_replay_cli(args) -> int:
@@ -216,30 +495,26 @@ def run_replay_cli(args) -> int:
         from .config import load_config
         cfg = load_config(args.config)
     if not Path(args.log).exists() and not list(Path(args.log).parent.glob(Path(args.log).name + "*")):
-        print(f"error: {args.log}: no such field log, directory or .tlog", file=sys.stderr)
+        print(f"error: {args.log}: no such field log, directory, .tlog or DataFlash .BIN", file=sys.stderr)
         return 2
-    res = replay(args.log, cfg, progress=not getattr(args, "no_progress", False))
+    res = replay(args.log, cfg, progress=not getattr(args, "no_progress", False), **_cli_options(args))
     c = res.comparison()
-    rate = res.records / res.elapsed_s if res.elapsed_s > 0 else float("nan")
-    print(f"replayed {res.records} records in {res.elapsed_s:.2f} s ({rate:,.0f} records/s); "
-          f"config from {res.config_from or 'nowhere (no config event: nothing replayed)'}")
-    print(f"solutions: {c['replayed_solutions']} replayed, {c['logged_solutions']} logged; "
-          f"identical {c['identical']}, differing {c['differing']}"
-          + (f", first difference at #{c['first_difference_index']}" if c["first_difference_index"] is not None else "")
-          + ("  -> BIT FOR BIT" if c["bit_for_bit"] else ""))
-    if res.solutions:
-        last = res.solutions[-1]
-        print(f"last solution: status {last.status}, sigma NED {np.round(last.sigma_r_n_m, 3).tolist()} m")
+    _print_summary(res, c)
     if args.json:
-        obj = {"log": str(args.log), "records": res.records, "elapsed_s": res.elapsed_s, "comparison": c,
+        obj = {"log": str(args.log), "kind": res.kind, "records": res.records, "elapsed_s": res.elapsed_s,
+               "config_from": res.config_from, "imu": res.imu_check, "refusal": res.refusal, "notes": res.notes,
+               "forward_only": True, "comparison": c, "truth": res.truth_score, "time_base": res.time_base,
                "log_stats": res.log_stats, "pipeline": res.pipeline_health,
                "solutions": [_sol_json(s) for s in res.solutions]}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(obj, default=str))
         print(f"wrote {args.json}")
-    if args.plot:
+    if args.plot and res.solutions:
         plot_replay(res, args.plot)
         print(f"wrote {args.plot}")
+    if res.refusal:
+        print(f"error: {args.log}: {res.refusal}", file=sys.stderr)
+        return EXIT_NO_SOLUTION
     if res.records == 0:
         print(f"error: {args.log}: no records found (a field log is a *.cflog file or a directory of them)",
               file=sys.stderr)
@@ -248,9 +523,13 @@ def run_replay_cli(args) -> int:
         print(f"error: the field log's configuration cannot be read by this version ({res.config_error}); "
               f"replay with --config FILE", file=sys.stderr)
         return 2
+    if res.kind != "field log" and not res.solutions:
+        print(f"error: {args.log}: no solution: {why_no_solution(res)}", file=sys.stderr)
+        return EXIT_NO_SOLUTION
     if res.logged and not c["bit_for_bit"] and res.config_from == "field log":
         return 1
     return 0
 
 
-__all__ = ["replay", "replay_field_log", "replay_tlog", "ReplayResult", "plot_replay", "run_replay_cli"]
+__all__ = ["replay", "replay_field_log", "replay_tlog", "replay_dataflash", "dataflash_config", "imu_rate_check",
+           "why_no_solution", "ReplayResult", "plot_replay", "run_replay_cli", "IMU_RATE_NEEDED_HZ", "EXIT_NO_SOLUTION"]

@@ -10,17 +10,26 @@ import sys
 
 
 def cmd_run(args) -> int:
-    import asyncio
-    from .config import ConfigError, load_config
-    from .service import Service
+    from .config import ConfigError, load_config, missing_extras, secrets_readable_by_others
     root = logging.getLogger()
     if root.level > logging.INFO:
         root.setLevel(logging.INFO)          # a service logs its health at INFO
-    try:
+    try:                                     # the configuration first: its errors come in milliseconds
         cfg = load_config(args.config)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    missing = missing_extras(cfg)
+    if missing:
+        for msg in missing:
+            print(f"error: {msg}", file=sys.stderr)
+        return 2
+    warning = secrets_readable_by_others(cfg)
+    if warning:
+        logging.getLogger("companion").warning("%s", warning)
+    import asyncio
+
+    from .service import Service
     if args.log_dir:
         import dataclasses
         cfg = dataclasses.replace(cfg, log=dataclasses.replace(cfg.log, dir=args.log_dir))
@@ -38,12 +47,19 @@ def register(subparsers) -> None:
     p.add_argument("--config", required=True, help="TOML configuration (see deploy/companion.toml)")
     p.add_argument("--log-dir", help="override log.dir of the configuration")
     p.set_defaults(func=cmd_run)
-    r = subparsers.add_parser("replay", help="replay a field log (or a MAVLink .tlog) through the navigation pipeline")
-    r.add_argument("log", help="field log file, rotated-log directory or stem, or a .tlog")
+    r = subparsers.add_parser("replay", help="replay a field log, a MAVLink .tlog or an ArduPilot DataFlash .BIN "
+                                             "through the navigation pipeline")
+    r.add_argument("log", help="field log file, rotated-log directory or stem, a .tlog, or a DataFlash .BIN")
     r.add_argument("--config", help="TOML configuration (default: the one recorded in the field log)")
     r.add_argument("--json", help="write solutions and the comparison as JSON here")
     r.add_argument("--plot", help="write a PNG of the track and sigmas here")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--min-imu-rate-hz", type=float, help="refuse a log whose IMU is slower (default 20)")
+    r.add_argument("--gps-latency-ms", type=float, help="DataFlash: GPS fix age at its record "
+                   "(default SIM_GPSn_LAG_MS in SITL, else GPSn_DELAY_MS, else 0)")
+    r.add_argument("--imu-instance", type=int, help="DataFlash: IMU instance (default 0)")
+    r.add_argument("--start", type=float, help="DataFlash: first boot time used, s")
+    r.add_argument("--end", type=float, help="DataFlash: last boot time used, s")
     r.set_defaults(func=cmd_replay)
 
 
@@ -55,7 +71,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return int(args.func(args) or 0)
+    from .extras import MissingExtra
+    try:
+        return int(args.func(args) or 0)
+    except MissingExtra as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -26,6 +26,18 @@
 * **Health**: every ``HEALTH_INTERVAL_S`` a one-line summary is logged (inputs and rates, filter
   status and sigmas, outputs, rejections) and the full report (:meth:`health`) is written to the
   field log and MQTT; SIGUSR1 logs the full report at once.
+* **Untrusted input, bounded** (issue 14): correction bytes are handled in slices of at most
+  ``corrections.max_bytes_per_turn`` (default 512) with a yield to the event loop between
+  slices, so a burst can never hold the IMU path for more than one slice's decoding; correction
+  chunks from the network or a radio and UBX chunks from a local port beyond a byte-rate cap
+  (``corrections.max_rate_bps``, ``gnss.max_rate_bps``; a recorded file is not capped) are
+  dropped before they are logged or decoded (counted, one warning per 10 s; replay sees exactly
+  what the pipeline saw).  The field log has a total size cap with retention
+  (``log.max_total_bytes``), is fsync-ed at least every ``FSYNC_MAX_INTERVAL_S`` and pauses on a
+  full disk: the writer's events become STATUSTEXT, navigation goes on.
+* **Secrets**: the configuration copy in the field log is redacted (``***`` for secret fields;
+  replay does not need them), and the service warns when its configuration file can be read by
+  other users.
 """
 from __future__ import annotations
 
@@ -37,15 +49,25 @@ import signal
 import time
 from collections import Counter
 
-from .pipeline import NavPipeline, config_event, encode_solution
+from .pipeline import NavPipeline, encode_solution
 
 log = logging.getLogger(__name__)
+
+MAV_SEVERITY_ERROR, MAV_SEVERITY_INFO = 3, 6         # MAVLink common.xml MAV_SEVERITY
 
 HEALTH_INTERVAL_S = 5.0
 BACKOFF_INITIAL_S = 0.5
 BACKOFF_MAX_S = 30.0
 BACKOFF_RESET_AFTER_S = 60.0
 ORIGIN_REPEAT_S = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
+# kill -9 must lose at most 1 s of field log: data reaches the kernel every fsync interval plus
+# the flusher's period (a quarter of it), so 0.5 s leaves a real margin whatever the config says
+FSYNC_MAX_INTERVAL_S = 0.5
+DEFAULT_MAX_TOTAL_LOG_BYTES = 1 << 30
+DEFAULT_CORRECTIONS_MAX_RATE_BPS = 64_000.0
+DEFAULT_UBX_MAX_RATE_BPS = 256_000.0
+DEFAULT_MAX_BYTES_PER_TURN = 512
+DROP_LOG_INTERVAL_S = 10.0
 
 
 def _json_default(x):
@@ -53,6 +75,12 @@ def _json_default(x):
         return x.item()          # numpy scalars
     except Exception:
         return str(x)
+
+
+def redacted_config_event(config) -> bytes:
+    """The config record for the field log, secrets written as ``***`` (replay does not need them;
+    the logs get shared)."""
+    return json.dumps({"event": "config", "toml": config.to_toml(comments=False, redact=True)}).encode()
 
 
 class Service:
@@ -76,7 +104,15 @@ class Service:
         self._tasks: list[asyncio.Task] = []
         self._t_start = time.monotonic()
         self._last_telemetry = 0.0
+        self.nmea = None                        # NmeaSink when [nmea] is enabled
+        self._nmea_slot = None
+        self._named_value_slot = None
+        self._last_rtcm_mono_ns = None
         self._fragmenter = None
+        from .sdnotify import SystemdNotifier
+        self.notifier = SystemdNotifier()       # Type=notify + WatchdogSec under systemd, else no-op
+        self._caps: dict = {}                 # input kind -> ByteRateCap
+        self._last_drop_log: dict[str, float] = {}
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -90,13 +126,23 @@ class Service:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, self._on_signal, sig)
             loop.add_signal_handler(signal.SIGUSR1, self._log_full_health)
+        from . import config as config_module
+        exposed = getattr(config_module, "secrets_readable_by_others", lambda cfg: None)(self.cfg)
+        if exposed:
+            # in the health report too: a warning at start-up scrolls away
+            self.counters["config file readable by others"] += 1
+            log.warning("%s", exposed)
         lc = self.cfg.log
+        cfg_event = redacted_config_event(self.cfg)
         if lc.enabled:
             from .io.fieldlog import FieldLogWriter
-            self.fieldlog = FieldLogWriter(lc.dir, max_bytes=lc.max_bytes, fsync_interval_s=lc.fsync_interval_s)
+            self.fieldlog = FieldLogWriter(
+                lc.dir, max_bytes=lc.max_bytes, fsync_interval_s=min(lc.fsync_interval_s, FSYNC_MAX_INTERVAL_S),
+                max_total_bytes=getattr(lc, "max_total_bytes", DEFAULT_MAX_TOTAL_LOG_BYTES),
+                preamble=[("event", cfg_event)])     # every file replays, even after retention
             log.info("field log %s", self.fieldlog.current_path)
         self._event({"event": "start", "config": self.cfg.source_path})
-        self._record("event", time.monotonic_ns(), config_event(self.cfg))
+        self._record("event", time.monotonic_ns(), cfg_event)
         specs = [("mavlink", self._mavlink_task), ("output", self._output_task), ("health", self._health_task)]
         if self.cfg.gnss.source == "serial":
             specs.append(("gnss-serial", self._gnss_serial_task))
@@ -106,6 +152,7 @@ class Service:
             specs.append(("telemetry", self._telemetry_task))
         self._tasks = [asyncio.create_task(self._supervise(n, f), name=n) for n, f in specs]
         log.info("companion running: %s", ", ".join(n for n, _ in specs))
+        self.notifier.ready("running: " + ", ".join(n for n, _ in specs))
         try:
             await self._stop.wait()
         finally:
@@ -116,6 +163,7 @@ class Service:
         self.stop()
 
     async def _shutdown(self) -> None:
+        self.notifier.stopping()
         for t in self._tasks:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -125,6 +173,8 @@ class Service:
             await self.link.close()
             self.link = None
         self._event({"event": "stop", "health": h})
+        if self.nmea is not None:
+            self.nmea.close()
         if self.fieldlog is not None:
             self.fieldlog.close()
             log.info("field log closed: %d records in %s", self.fieldlog.records_written,
@@ -156,10 +206,36 @@ class Service:
         self.record_bytes[kind] += len(data)
         if self.fieldlog is not None:
             try:
-                self.fieldlog.write(kind, data, t_ns)
+                if not self.fieldlog.write(kind, data, t_ns):
+                    self.counters["field log records dropped"] += 1
             except Exception:
+                # the writer handles I/O errors itself; this is a bug: never per record in the log
                 self.counters["field log write errors"] += 1
-                log.exception("field log write failed")
+                if self.counters["field log write errors"] <= 3:
+                    log.exception("field log write failed")
+
+    def _admit(self, kind: str, data: bytes) -> bool:
+        """Byte-rate cap of an untrusted input kind: False = drop this chunk (count, warn at most
+        every DROP_LOG_INTERVAL_S).  Dropped before logging, so replay sees what the pipeline saw."""
+        cap = self._caps.get(kind)
+        if cap is None:
+            from .io.ratecap import ByteRateCap
+            if kind == "rtcm":
+                bps = getattr(self.cfg.corrections, "max_rate_bps", DEFAULT_CORRECTIONS_MAX_RATE_BPS)
+            else:
+                bps = getattr(self.cfg.gnss, "max_rate_bps", DEFAULT_UBX_MAX_RATE_BPS)
+            cap = self._caps[kind] = ByteRateCap(bps)
+        if cap.admit(len(data)):
+            return True
+        key = f"{kind} dropped: rate cap"
+        self.counters[key] += 1
+        self.counters[f"{kind} bytes dropped: rate cap"] += len(data)
+        now = time.monotonic()
+        if now - self._last_drop_log.get(kind, -math.inf) >= DROP_LOG_INTERVAL_S:
+            self._last_drop_log[kind] = now
+            log.warning("%s input faster than %.0f B/s: chunks dropped (%d so far)", kind, cap.rate_bps,
+                        self.counters[key])
+        return False
 
     def _event(self, obj: dict) -> None:
         self._record("event", time.monotonic_ns(), json.dumps(obj, default=_json_default).encode())
@@ -183,7 +259,9 @@ class Service:
                 # copy is discarded
                 children.append(asyncio.create_task(self._drain(self.tunnel), name="serial-control-drain"))
             pipe = self.pipeline
+            pet = self.notifier.pet
             async for lm in link:
+                pet()                  # the IMU path is alive (the watchdog restarts a stuck one)
                 self._record("mavlink", lm.t_mono_ns, lm.raw)
                 sols = pipe.feed_mavlink_record(lm.t_mono_ns, lm.msg)
                 if sols:
@@ -225,6 +303,42 @@ class Service:
             if now - self._last_telemetry >= 1.0 / tc.rate_hz:
                 self._last_telemetry = now
                 self.telemetry.publish_solution(sols[-1])
+        if self.cfg.nmea.enabled and sols:
+            self._send_nmea(sols[-1])
+        if self.cfg.output.named_value_rate_hz > 0 and sols:
+            self._send_named_values(sols[-1])
+
+    def _send_named_values(self, sol) -> None:
+        """The companion's state for the ground station (companion.io.gcs_values), paced by GPS time."""
+        slot = math.floor(sol.t_gps * self.cfg.output.named_value_rate_hz)
+        if slot == self._named_value_slot or self.link is None or not self.link.connected:
+            return
+        self._named_value_slot = slot
+        from .io.gcs_values import named_values
+        for msg in named_values(sol, int((time.monotonic() - self._t_start) * 1000)):
+            self.link.send(msg)
+        self.counters["named values sent"] += 1
+
+    def _send_nmea(self, sol) -> None:
+        """NMEA at nmea.rate_hz slots of GPS time (as the MAVLink outputs: paced by the data)."""
+        nc = self.cfg.nmea
+        slot = math.floor(sol.t_gps * nc.rate_hz)
+        if slot == self._nmea_slot:
+            return
+        self._nmea_slot = slot
+        from .io.nmea import NmeaSink, nmea_sentences
+        if self.nmea is None:
+            try:
+                self.nmea = NmeaSink(nc.destination)
+            except (OSError, ValueError) as exc:
+                self.counters["nmea output unavailable"] += 1
+                if self.counters["nmea output unavailable"] == 1:
+                    log.error("NMEA output %s cannot be opened: %s", nc.destination, exc)
+                return
+        recent = self._last_rtcm_mono_ns is not None and time.monotonic_ns() - self._last_rtcm_mono_ns < 30e9
+        self.nmea.send(nmea_sentences(sol, leap_seconds=self.cfg.gnss.leap_seconds,
+                                      geoid_undulation_m=self.cfg.output.geoid_undulation_m, talker=nc.talker,
+                                      sentences=nc.sentences, differential=recent))
 
     def _send_estimate(self, sol) -> None:
         from .io import mavlink as mv
@@ -287,11 +401,27 @@ class Service:
                 self.link.send(statustext(sev, "CC: " + text))
                 self.counters["sent STATUSTEXT"] += 1
 
+    def _announce_fieldlog(self) -> None:
+        """The field log's pause/resume (disk full, space back) as STATUSTEXT: the pilot must know
+        the flight is not being recorded."""
+        if self.fieldlog is None or not self.fieldlog.events:
+            return
+        from .io.mavlink import statustext
+        for level, text in self.fieldlog.drain_events():
+            sev = MAV_SEVERITY_ERROR if level == "error" else MAV_SEVERITY_INFO
+            self.counters[f"field log {'paused' if level == 'error' else 'resumed'}"] += 1
+            self._event({"event": "status", "severity": sev, "text": text})
+            if self.link is not None:
+                self.link.send(statustext(sev, "CC: " + text))
+                self.counters["sent STATUSTEXT"] += 1
+
     async def _output_task(self) -> None:
         while True:
             self._maybe_send_origin()
             if self.pipeline.events:
                 self._announce()
+            self._announce_fieldlog()
+            self.notifier.pet()        # the event loop turns even without an autopilot
             await asyncio.sleep(0.25)
 
     # ------------------------------------------------------------------ GNSS receiver on a local port
@@ -301,6 +431,8 @@ class Service:
         src = SerialCorrectionSource(sc.port, sc.baud)
         pipe = self.pipeline
         async for raw in src.stream():
+            if not self._admit("ubx", raw):
+                continue
             t = time.monotonic_ns()
             self._record("ubx", t, raw)
             pipe.feed("ubx", t, raw)
@@ -315,22 +447,32 @@ class Service:
         framer = RtcmFramer() if c.forward_to_autopilot else None
         if framer is not None and self._fragmenter is None:
             self._fragmenter = GpsRtcmDataFragmenter()
-        pipe = self.pipeline
+        step = max(64, int(getattr(c, "max_bytes_per_turn", DEFAULT_MAX_BYTES_PER_TURN)))
+        capped = c.source != "file"          # a local recording is paced by its own rate_bps
         try:
             async for raw in src.stream():
-                t = time.monotonic_ns()
-                self._record("rtcm", t, raw)
-                pipe.feed("rtcm", t, raw)
-                if framer is not None and self.link is not None:
-                    from .io.mavlink import gps_rtcm_data_messages
-                    for frame in framer.feed(raw):
-                        for msg in gps_rtcm_data_messages(frame, self._fragmenter):
-                            self.link.send(msg)
-                            self.counters["sent GPS_RTCM_DATA"] += 1
+                if capped and not self._admit("rtcm", raw):
+                    continue
+                for i in range(0, len(raw), step):
+                    self._correction_slice(raw[i:i + step], framer)
+                    # one slice per event-loop turn: the IMU and the estimates go first
+                    await asyncio.sleep(0)
         finally:
             close = getattr(src, "close", None)
             if close is not None:
                 close()
+
+    def _correction_slice(self, raw: bytes, framer) -> None:
+        t = time.monotonic_ns()
+        self._last_rtcm_mono_ns = t
+        self._record("rtcm", t, raw)
+        self.pipeline.feed("rtcm", t, raw)
+        if framer is not None and self.link is not None:
+            from .io.mavlink import gps_rtcm_data_messages
+            for frame in framer.feed(raw):
+                for msg in gps_rtcm_data_messages(frame, self._fragmenter):
+                    self.link.send(msg)
+                    self.counters["sent GPS_RTCM_DATA"] += 1
 
     def _position_llh(self):
         sol = self.pipeline.last_solution
@@ -362,6 +504,8 @@ class Service:
                "task_restarts": dict(self.restarts), "task_errors": dict(self.task_errors),
                "pipeline": ph["pipeline"], "engine": ph["engine"], "imu_decoder": ph["imu"],
                "time_map": ph["time_map"], "ubx": ph["ubx"], "rtcm": ph["rtcm"]}
+        if "aid_sources" in ph:
+            out["aid_sources"] = ph["aid_sources"]
         if "imu_cluster" in ph:
             out["imu_cluster"] = ph["imu_cluster"]
         if self.link is not None:
@@ -373,6 +517,13 @@ class Service:
         src = getattr(self, "corrections_source", None)
         if src is not None and hasattr(src, "health"):
             out["corrections_source"] = src.health()
+        if self.fieldlog is not None:
+            out["field_log"] = {"paused": self.fieldlog.paused, "last_error": self.fieldlog.last_error,
+                                **self.fieldlog.counters}
+        if self._caps:
+            out["rate_caps"] = {k: dict(c.counters) for k, c in self._caps.items()}
+        if self.nmea is not None:
+            out["nmea"] = {"destination": self.nmea.destination, **self.nmea.counters}
         return out
 
     def health_line(self, h: dict | None = None) -> str:

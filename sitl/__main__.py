@@ -97,10 +97,13 @@ def main(argv=None) -> int:
     pb.add_argument("--duration", type=float, default=None, help="seconds of the uav flight to use (default: all)")
     pb.add_argument("--json", help="write the figures as JSON here")
     pb.set_defaults(func=cmd_bench)
-    from . import fly, ins_errors, slips
+    from . import faults, fly, ins_errors, slips
     fly.register(sub)
+    faults.register(sub)
     ins_errors.register(sub)
     slips.register(sub)
+    from . import ardupilot
+    ardupilot.register(sub)
     args = p.parse_args(argv)
     return int(args.func(args) or 0)
 

@@ -375,7 +375,7 @@ class EmulatedAutopilot:
         if self.clock.started.is_set() and self.clock.now_gps() < self.silent_until_gps:
             return                      # rebooting: deaf
         if mt in ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT", "SET_GPS_GLOBAL_ORIGIN", "STATUSTEXT",
-                  "GPS_RTCM_DATA"):
+                  "GPS_RTCM_DATA", "NAMED_VALUE_FLOAT"):
             self.received.append(Received(t_ns, mt, msg))
         elif mt == "COMMAND_LONG" and msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL:
             mid, iv = int(msg.param1), float(msg.param2)

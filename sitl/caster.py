@@ -25,6 +25,12 @@ the simulated time each base epoch becomes available (epoch + ``latency_s``), pa
 front of it: RTKLIB ``str2str -in tcpcli://127.0.0.1:SRC -out ntripc://user:pass@:PORT/MOUNT``
 when ``str2str`` is installed, else :class:`MiniNtripCaster` (a few lines of asyncio that answers
 ``GET /MOUNT`` with ``ICY 200 OK`` and relays the stream; no source table beyond a minimal one).
+
+Exposure: the source and :class:`MiniNtripCaster` listen on 127.0.0.1 only.  RTKLIB's ``ntripc``
+output cannot be given a listen address (2.4.3: ``ntripc://u:p@127.0.0.1:PORT/MNT`` still binds
+0.0.0.0, checked with ``ss -ltn``), so with str2str the caster is reachable from the network while
+the harness runs; the password is therefore a fresh random token per run unless the caller gives
+one (the stream is the simulation's, but a fixed ``sitl:sitl`` would let anyone on the LAN in).
 """
 from __future__ import annotations
 
@@ -32,6 +38,7 @@ import asyncio
 import base64
 import logging
 import math
+import secrets
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -363,9 +370,14 @@ def free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
-async def start_caster(source_port: int, *, mountpoint: str = "SITL", user: str = "sitl", password: str = "sitl",
-                       prefer_str2str: bool = True, log_path: str | None = None) -> Caster:
-    """NTRIP caster in front of the TCP source on ``source_port`` (str2str if available)."""
+async def start_caster(source_port: int, *, mountpoint: str = "SITL", user: str = "sitl",
+                       password: str | None = None, prefer_str2str: bool = True,
+                       log_path: str | None = None) -> Caster:
+    """NTRIP caster in front of the TCP source on ``source_port`` (str2str if available).
+    ``password`` None: a random token for this run (see the module docstring: str2str's caster
+    listens on every interface)."""
+    if password is None:
+        password = secrets.token_hex(12)
     exe = shutil.which("str2str") if prefer_str2str else None
     if exe:
         port = free_tcp_port()

@@ -92,14 +92,9 @@ def _sigma_h_m(r) -> float:
 
 def score_fault(ap, sim, case: FaultCase, duration_s: float) -> dict:
     """The matrix's figures for one flight, from the estimates the emulated autopilot received."""
-    from .fly import ESTIMATE_TYPES, _estimate_error, _origin_of
-    origin = None
+    from .fly import scored_estimates
     t_rel, err_h, sig_h = [], [], []
-    for r in ap.received:
-        origin = _origin_of(r, origin)
-        if r.msg_type not in ESTIMATE_TYPES:
-            continue
-        e = _estimate_error(ap, sim, r, origin)
+    for r, e in scored_estimates(ap, sim):
         if e is None:
             continue
         t_rel.append(e[1] - ap.t0)
@@ -183,6 +178,12 @@ def cmd_faults(args) -> int:
                   file=sys.stderr)
             return 2
         cases = [c for c in cases if c.name in want]
+    short = [c.name for c in cases if args.duration < c.window_s[1] + RECOVERY_WINDOW_S]
+    if short:
+        need = max(c.window_s[1] for c in cases) + RECOVERY_WINDOW_S
+        print(f"--duration {args.duration:g} s is too short for {', '.join(short)}: the fault and its "
+              f"{RECOVERY_WINDOW_S:g}-s recovery window need {need:g} s", file=sys.stderr)
+        return 2
     rows = []
     t0 = time.monotonic()
     try:

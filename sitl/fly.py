@@ -192,17 +192,21 @@ def _estimate_error(ap, sim, r, origin):
 ESTIMATE_TYPES = ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT")
 
 
+def scored_estimates(ap, sim):
+    """(received estimate, _estimate_error of it or None) for every estimate the autopilot got."""
+    origin = None
+    for r in ap.received:
+        origin = _origin_of(r, origin)
+        if r.msg_type in ESTIMATE_TYPES:
+            yield r, _estimate_error(ap, sim, r, origin)
+
+
 def score(ap, sim, rate_hz: float, duration_s: float) -> dict:
     """Errors, rates and latencies of the estimates the emulated autopilot received."""
-    origin = None
     errs3, errsh, lat_ms, t_list = [], [], [], []
     unmatched = 0
     resets = set()
-    for r in ap.received:
-        origin = _origin_of(r, origin)
-        if r.msg_type not in ESTIMATE_TYPES:
-            continue
-        e = _estimate_error(ap, sim, r, origin)
+    for _r, e in scored_estimates(ap, sim):
         if e is None:
             unmatched += 1
             continue
@@ -316,12 +320,14 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               keep_companion_log: bool = True, imu_units: int = 1, max_imu_rate_hz: float | None = None,
               moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None,
               system_time_late_s: float = 0.0, progress: bool = False, handle_signals: bool = False,
-              base_outage_s: tuple[float, float] | None = None, keep_autopilot: dict | None = None) -> dict:
+              base_outage_s: tuple[float, float] | None = None, keep_autopilot: dict | None = None,
+              extra_config: str = "") -> dict:
     """Fly once; ``progress`` prints set-up steps and status lines to stderr, ``handle_signals`` makes
     the first SIGINT/SIGTERM a clean stop (the result then has ``interrupted`` True and the figures
     of the part that was flown).  ``base_outage_s`` (start, end from the start of the flight): the
     base station sends nothing then.  ``keep_autopilot`` (a dict) receives the emulated autopilot
-    and the simulation ('ap', 'sim') for scoring of one's own."""
+    and the simulation ('ap', 'sim') for scoring of one's own.  ``extra_config``: TOML sections
+    appended to the companion's configuration (e.g. an ``[nmea]`` output)."""
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     prog = _Progress(progress)
@@ -367,7 +373,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                                          moving_baseline_b_m=moving_baseline_b_m,
                                          gps_yaw_sigma_deg=gps_yaw_sigma_deg)
         cfg_path = out / "companion.toml"
-        cfg_path.write_text(cfg_text)
+        cfg_path.write_text(cfg_text + ("\n" + extra_config if extra_config else ""))
         ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
                                leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
                                max_imu_rate_hz=max_imu_rate_hz, moving_baseline_b_m=moving_baseline_b_m,

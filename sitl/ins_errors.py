@@ -266,9 +266,8 @@ def format_table(res: dict) -> str:
 
 
 def plot(res: dict, path: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from companion.extras import pyplot
+    plt = pyplot("python -m sitl ins-errors --plot")
 
     n = len(res["cases"])
     fig, axes = plt.subplots(n, 2, figsize=(12, 2.6 * n), squeeze=False)

@@ -287,9 +287,8 @@ def format_table(result: dict) -> str:
 
 
 def plot(result: dict, path: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from companion.extras import pyplot
+    plt = pyplot("python -m sitl paper --plot")
 
     fig, ax = plt.subplots(figsize=(9, 5))
     for m in MODES + EXTRA_MODES:

@@ -147,3 +147,125 @@ def test_sigkill_loses_at_most_the_last_interval(tmp_path):
     assert lost_s < interval + 0.5, lost_s        # at most about one flush interval lost
     # record timestamps are the child's monotonic clock at write time
     assert all(r.t_mono_ns >= struct.unpack_from("<Iq", r.payload)[1] for r in got[:50])
+
+
+# -- resource limits (issue 14) ----------------------------------------------------------------
+def test_total_size_cap_deletes_the_oldest_files_first_and_every_file_replays(tmp_path):
+    d = tmp_path / "capped"
+    # an older session in the same directory goes first
+    with FieldLogWriter(d / "old.cflog", max_bytes=4096, background_flush=False) as w0:
+        for i in range(100):
+            w0.write("ubx", bytes(60))
+    old_files = list(w0.files)
+    cap = 40_000
+    cfg = ("event", b'{"event": "config", "toml": ""}')
+    with FieldLogWriter(d / "new.cflog", max_bytes=1 << 20, background_flush=False,
+                        max_total_bytes=cap, preamble=[cfg]) as w:
+        assert w.max_bytes == cap // 4                 # files are a quarter of the cap
+        for i in range(3000):
+            w.write("rtcm", struct.pack("<I", i) + bytes(60), t_mono_ns=i, t_wall_ns=i)
+            total = sum(f.stat().st_size for f in d.glob("*.cflog"))
+            assert total <= cap, (i, total)
+    assert not any(f.exists() for f in old_files)      # the other session's files went first
+    assert w.counters["files_deleted"] >= len(old_files) + 1
+    kept = field_log_files(d)
+    assert kept and w.files[0] not in kept and w.files[-1] in kept
+    # what is left is the newest records, contiguous, and every file starts with the preamble
+    idx = []
+    for f in kept:
+        recs = list(read_field_log(f))
+        assert recs[0].kind == "event" and recs[0].payload == cfg[1]
+        idx += [struct.unpack_from("<I", r.payload)[0] for r in recs[1:]]
+    assert idx == list(range(idx[0], 3000))
+
+
+class _FullDisk:
+    """os.write stand-in: raises ENOSPC while ``full``."""
+
+    def __init__(self):
+        self.full = False
+        self.calls = 0
+
+    def __call__(self, fd, data):
+        self.calls += 1
+        if self.full:
+            raise OSError(28, "No space left on device")
+        return os.write(fd, data)
+
+
+def test_disk_full_pauses_once_drops_counted_and_resumes(tmp_path, caplog):
+    import errno
+    import logging
+    assert errno.ENOSPC == 28
+    d = tmp_path / "full"
+    w = FieldLogWriter(d, background_flush=False, fsync_interval_s=0.0, retry_interval_s=0.0)
+    disk = _FullDisk()
+    w._os_write = disk
+    for i in range(10):
+        assert w.write("rtcm", struct.pack("<I", i))
+    disk.full = True
+    with caplog.at_level(logging.INFO, logger="companion.io.fieldlog"):
+        results = [w.write("rtcm", struct.pack("<I", i)) for i in range(10, 510)]   # never raises
+        errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+        assert len(errors) == 1 and "disk full" in errors[0].getMessage()    # one line, not 500
+        ev = w.drain_events()
+        assert ev == [("error", "field log paused: disk full; navigation continues")]
+        assert w.paused and not any(results[1:])
+        assert w.counters["write_errors"] >= 1 and w.counters["dropped_records"] >= 499
+        files_while_full = set(d.glob("*.cflog"))
+        disk.full = False                                 # space returns
+        for i in range(510, 520):
+            w.write("rtcm", struct.pack("<I", i))
+        assert not w.paused and w.counters["resumed"] == 1
+        assert [e[0] for e in w.drain_events()] == ["info"]
+        assert any("resumed" in r.getMessage() for r in caplog.records)
+    assert set(d.glob("*.cflog")) - files_while_full       # logging went on in a new file
+    w.close()
+    reader = read_field_log(d)
+    idx = [struct.unpack_from("<I", r.payload)[0] for r in reader]
+    assert idx[:10] == list(range(10)) and idx[-9:] == list(range(511, 520))
+    assert reader.stats.crc_errors == 0
+
+
+def test_disk_full_on_the_flusher_thread_never_reaches_the_writer(tmp_path):
+    w = FieldLogWriter(tmp_path / "bg", fsync_interval_s=0.05, retry_interval_s=0.05)
+    disk = _FullDisk()
+    w._os_write = disk
+    disk.full = True
+    deadline = time.monotonic() + 10
+    while not w.paused and time.monotonic() < deadline:
+        w.write("mavlink", bytes(30))
+        time.sleep(0.005)
+    assert w.paused
+    disk.full = False
+    while w.paused and time.monotonic() < deadline:
+        w.write("mavlink", bytes(30))
+        time.sleep(0.005)
+    assert not w.paused and w.counters["resumed"] == 1
+    w.close()
+
+
+def test_write_only_queues_the_flusher_thread_does_the_io(tmp_path):
+    # the caller (the IMU path) must never wait for a slow card: no os.write on its thread
+    import threading
+    w = FieldLogWriter(tmp_path / "q", fsync_interval_s=0.05)
+    callers = set()
+    real = w._os_write
+
+    def spy(fd, data):
+        callers.add(threading.current_thread().name)
+        return real(fd, data)
+    w._os_write = spy
+    for i in range(200):
+        w.write("mavlink", bytes(30))
+        time.sleep(0.001)
+    time.sleep(0.3)
+    assert callers == {"fieldlog-flush"}
+    w.close()
+    assert len(list(read_field_log(tmp_path / "q"))) == 200
+
+
+def test_files_are_private(tmp_path):
+    with FieldLogWriter(tmp_path / "p.cflog", background_flush=False) as w:
+        w.write("event", b"{}")
+    assert (w.files[0].stat().st_mode & 0o077) == 0

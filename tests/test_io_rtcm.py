@@ -4,7 +4,6 @@ from __future__ import annotations
 import math
 import random
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,14 +17,15 @@ from companion.io.rtcm import (GpsRtcmDataFragmenter, RtcmDecoder, RtcmFramer, c
 from companion.messages import (SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS, BaseStationPosition,
                                 GnssEpoch, GpsEphemeris)
 from companion.nav.earth import ecef_to_geodetic
+from tests._data import DATA_DIR
 
-DATA = Path("/work/shared/data")
+DATA = DATA_DIR
 HIROSHIMA = DATA / "qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm"      # MSM7 x6 + 1005 + eph
 HIROSHIMA_2019 = DATA / "qzsl6tool-hiroshima-rtcm3-ubx/20190529hiroshima.rtcm"  # 1002 + MSM7 + 1006
 GEONET_LEGACY = DATA / "rtklib-testdata-geonet-2005/rcvraw/testglo.rtcm3"       # 1004/1012 + 1005
 GEONET_MSM = DATA / "rtklib-testdata-geonet-2005/rcvraw/GMSD7_20121014.rtcm3"  # MSM7 + eph
 
-pytestmark = pytest.mark.skipif(not HIROSHIMA.exists(), reason="recorded data not available")
+pytestmark = pytest.mark.real_data
 
 
 @pytest.fixture(scope="module")
@@ -303,3 +303,90 @@ def test_gps_rtcm_data_fragments_round_trip_through_ardupilot_logic():
     for fl, chunk in rtcm_to_gps_rtcm_data_fragments(bytes(360), 3)[:-1]:
         ap2.handle(fl, chunk)
     assert ap2.injected == []
+
+
+# -- hostile streams: bounded work per byte (issue 14) -----------------------------------------
+def _cpu_rate(make, data: bytes, chunk: int = 1024, min_cpu_s: float = 0.15) -> float:
+    """Bytes per CPU second (process time, not wall clock) of ``make().feed`` over ``data``."""
+    import time
+    total, t0 = 0, time.process_time()
+    while True:
+        obj = make()
+        for i in range(0, len(data), chunk):
+            obj.feed(data[i:i + chunk])
+        total += len(data)
+        if time.process_time() - t0 >= min_cpu_s:
+            return total / (time.process_time() - t0)
+
+
+def test_false_sync_flood_costs_less_per_byte_than_real_rtcm():
+    # The issue's flood: 'D3 03' repeated claims a 979-byte frame at every other byte.  Measured
+    # in the same run against the decoder on real RTCM (what the service spends on good bytes):
+    # before the fix a flood byte cost 18x a real byte, now about 0.1x.
+    import logging
+    from sitl.rtcm_flood import flood_streams
+    logging.disable(logging.WARNING)
+    try:
+        real = HIROSHIMA.read_bytes()[:60000]
+        real_rate = _cpu_rate(lambda: RtcmDecoder(week_hint=2240), real)
+        floods = flood_streams(20000)
+        for name in ("d3_03", "random"):
+            rate = _cpu_rate(lambda: RtcmDecoder(week_hint=2240), floods[name])
+            assert rate > 1.0 * real_rate, (name, rate, real_rate)
+    finally:
+        logging.disable(logging.NOTSET)
+
+
+@pytest.mark.skipif(__import__("companion.io.crc24q", fromlist=["BACKEND"]).BACKEND != "anycrc",
+                    reason="needs the C CRC (pip install anycrc); the pure-Python CRC is 150x slower")
+def test_crafted_false_syncs_that_reach_the_crc_are_cheap_with_the_c_crc():
+    import logging
+    from sitl.rtcm_flood import flood_streams
+    logging.disable(logging.WARNING)
+    try:
+        real_rate = _cpu_rate(lambda: RtcmDecoder(week_hint=2240), HIROSHIMA.read_bytes()[:60000])
+        rate = _cpu_rate(lambda: RtcmDecoder(week_hint=2240), flood_streams(20000)["crafted_1077"])
+        assert rate > 1.0 * real_rate, (rate, real_rate)
+    finally:
+        logging.disable(logging.NOTSET)
+
+
+def test_false_syncs_rejected_before_the_crc_and_counted():
+    from sitl.rtcm_flood import flood_streams
+    fl = flood_streams(20000)
+    f = RtcmFramer()
+    assert f.feed(fl["d3_03"]) == []
+    c = f.counters
+    assert c.get("crc_bytes", 0) == 0                     # no CRC at all: message number 61
+    assert c["bad_message_number"] >= 9990
+    # reserved bits, a zero length and a wrong fixed length (1005 is always 19 bytes)
+    f = RtcmFramer()
+    f.feed(b"\xd3\x40\x10\x3e\xd0" + b"\xd3\x00\x00\x3e\xd0" + b"\xd3\x00\x30\x3e\xd0" + bytes(60))
+    assert (f.counters["bad_header"], f.counters["bad_length"], f.counters.get("crc_bytes", 0)) == (1, 2, 0)
+    # crafted candidates that pass every pre-check cost one CRC each, never more
+    f = RtcmFramer()
+    data = fl["crafted_1077"]
+    f.feed(data)
+    n_cand = data.count(b"\xd3\x00\xff\x43\x50")
+    assert f.counters["bad_crc"] >= n_cand - 52               # the last ones still wait for bytes
+    assert f.counters["crc_bytes"] <= 258 * n_cand
+
+
+def test_framer_work_does_not_depend_on_chunking_and_real_frames_survive_a_flood():
+    # real frames with 'D3 03' floods and random garbage between them; byte-at-a-time feeding
+    # costs exactly the CRC work of one big feed (no rescans) and recovers every frame.
+    rng = random.Random(5)
+    frames = RtcmFramer().feed(HIROSHIMA.read_bytes()[:30000])
+    stream = bytearray()
+    for fr in frames:
+        stream += b"\xd3\x03" * rng.randrange(0, 300) + bytes(rng.getrandbits(8) for _ in range(rng.randrange(0, 40)))
+        stream += fr
+    whole = RtcmFramer()
+    got_whole = whole.feed(bytes(stream))
+    small = RtcmFramer()
+    got_small = []
+    for i in range(0, len(stream), 7):
+        got_small += small.feed(bytes(stream[i:i + 7]))
+    assert got_whole == got_small == frames
+    assert whole.counters == small.counters
+    assert whole.counters["crc_bytes"] <= 3 * len(stream)

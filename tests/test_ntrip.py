@@ -11,7 +11,6 @@ import socket
 import subprocess
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,8 +19,9 @@ from companion.io.ntrip import (ChunkedDecoder, NtripClient, build_request, nmea
                                 parse_response_head)
 from companion.io.rtcm import RtcmDecoder
 from companion.messages import BaseStationPosition, GnssEpoch
+from tests._data import data_path
 
-RTCM_FILE = Path("/work/shared/data/qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm")
+RTCM_FILE = data_path("qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm")
 WEEK_2022_12_13 = 2240
 ARP = np.array([-3551876.8287, 3887786.8598, 3586946.3873])
 
@@ -231,6 +231,7 @@ def test_str2str_wrong_credentials_and_mountpoint_are_reported():
 
 
 # ------------------------------------------------------------------------------------------ rev 2
+@pytest.mark.real_data
 def test_ntrip2_chunked_with_gga_upload():
     payload = RTCM_FILE.read_bytes()[:40000]
 
@@ -278,3 +279,104 @@ def test_ntrip2_chunked_with_gga_upload():
     req = seen["request"].decode()
     assert "Ntrip-Version: Ntrip/2.0" in req and "GET /VRS HTTP/1.1" in req
     assert seen["gga"].startswith(b"$GPGGA,") and b"3424.00000,N,13224.00000,E" in seen["gga"]
+
+
+# -- hostile casters (issue 14), each on a real loopback socket ---------------------------------
+async def _one_session(handle, **client_kw):
+    """Run one client session against ``handle`` (an asyncio server callback); returns
+    (exception raised by the session, client)."""
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    client = NtripClient("127.0.0.1", port, "MNT", **client_kw)
+    exc = None
+    try:
+        async for _ in client._session():
+            pass
+    except Exception as e:          # noqa: BLE001 - the test inspects the type
+        exc = e
+    finally:
+        server.close()
+        await server.wait_closed()
+    return exc, client
+
+
+def test_malformed_status_line_is_an_ntrip_error_not_a_value_error():
+    from companion.io.ntrip import NtripError
+    # '\u00b2'.isdigit() is True in Python, and int() of it raises ValueError
+    for status in ("HTTP/1.1 \u00b200 OK", "HTTP/1.1 2OO OK", "HTTP/1.1 -200 OK", "HTTP/1.1 ٢٠٠ OK"):
+        with pytest.raises(NtripError):
+            parse_response_head((status + "\r\n\r\n").encode("utf-8"))
+
+    async def handle(reader, writer):
+        await reader.readuntil(b"\r\n\r\n")
+        writer.write("HTTP/1.1 \u00b200 OK\r\nContent-Type: gnss/data\r\n\r\n".encode("utf-8") + b"\xd3" * 50)
+        await writer.drain()
+        await asyncio.sleep(0.5)
+        writer.close()
+
+    exc, client = asyncio.run(_one_session(handle))
+    assert isinstance(exc, NtripError) and "unexpected caster answer" in str(exc)
+
+
+def test_slow_header_times_out_as_ntrip_error():
+    from companion.io.ntrip import NtripError
+    header = b"HTTP/1.1 200 OK\r\nContent-Type: gnss/data\r\nX-Pad: " + b"a" * 400 + b"\r\n\r\n"
+    sent = []
+
+    async def handle(reader, writer):
+        await reader.readuntil(b"\r\n\r\n")
+        try:
+            for b in header:                      # one byte every 10 ms: each read succeeds
+                writer.write(bytes([b]))
+                await writer.drain()
+                sent.append(b)
+                await asyncio.sleep(0.01)
+        except (ConnectionError, OSError):
+            pass
+        writer.close()
+
+    # timeout_s (per read) is never hit; only the header deadline can end this
+    exc, client = asyncio.run(_one_session(handle, timeout_s=5.0, header_timeout_s=0.5))
+    assert isinstance(exc, NtripError) and "response header" in str(exc)
+    assert client.counters["header_timeouts"] == 1
+    assert len(sent) < len(header)              # gave up before the caster finished
+
+
+def test_flooding_caster_is_throttled_and_counted():
+    # the caster writes as fast as TCP takes it; the client must read at most its cap
+    cap = 200_000.0
+    stats = {"sent": 0}
+
+    async def handle(reader, writer):
+        await reader.readuntil(b"\r\n\r\n")
+        writer.write(b"ICY 200 OK\r\n")
+        block = b"\xd3\x03" * 32768
+        try:
+            while True:
+                writer.write(block)
+                await writer.drain()
+                stats["sent"] += len(block)
+        except (ConnectionError, OSError):
+            pass
+
+    async def main():
+        server = await asyncio.start_server(handle, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        client = NtripClient("127.0.0.1", port, "MNT", version=1, max_rate_bps=cap)
+        got = 0
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        async for data in client._session():
+            got += len(data)
+            if loop.time() - t0 > 1.5:
+                break
+        elapsed = loop.time() - t0
+        client.close()
+        server.close()
+        return got, elapsed, client
+
+    got, elapsed, client = asyncio.run(main())
+    assert client.counters["rate_limited"] > 0
+    # one second of burst plus the sustained cap, with slack for read granularity (ratio, not time)
+    assert got <= cap * (elapsed + 1.0) + 65536, (got, elapsed)
+    assert stats["sent"] > got                  # the caster had more to give: we pushed back

@@ -4,6 +4,8 @@ import struct
 import subprocess
 import sys
 
+import pytest
+
 from companion.io.fieldlog import read_field_log
 from companion.replay import replay
 
@@ -65,3 +67,58 @@ def test_replay_of_a_log_whose_config_this_version_cannot_read_says_so(tmp_path)
     assert p.returncode == 2, p.stdout + p.stderr
     assert "cannot be read by this version" in p.stderr and "some_future_key" in p.stderr
     assert "--config" in p.stderr
+
+
+def _write_tlog(path, imu_hz: float, duration_s: float = 30.0, system_time: bool = True):
+    """A ground-station tlog of a vehicle at rest: HEARTBEAT, SYSTEM_TIME, ATTITUDE and
+    GPS_RAW_INT at 1 Hz, RAW_IMU at ``imu_hz`` (as a GCS streams them), 8-byte UNIX-us stamps."""
+    import os
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink.dialects.v20 import ardupilotmega as m
+    mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
+    unix0_us, boot0_ms = 1_700_000_000_000_000, 60_000
+    events = [(k * 1000.0, "slow", k) for k in range(int(duration_s))]
+    events += [(k * 1000.0 / imu_hz, "imu", k) for k in range(int(duration_s * imu_hz))]
+    with open(path, "wb") as fh:
+        for t_ms, kind, k in sorted(events):
+            boot_ms = boot0_ms + int(round(t_ms))
+            if kind == "imu":
+                msgs = [m.MAVLink_raw_imu_message(boot_ms * 1000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)]
+            else:
+                msgs = [m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
+                                                    m.MAV_STATE_STANDBY, 3),
+                        m.MAVLink_attitude_message(boot_ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+                        m.MAVLink_gps_raw_int_message(boot_ms * 1000, 3, -353632613, 1491652297, 584090,
+                                                      80, 120, 0, 0, 12)]
+                if system_time:
+                    msgs.append(m.MAVLink_system_time_message(unix0_us + int(t_ms * 1000), boot_ms))
+            for msg in msgs:
+                fh.write(struct.pack(">Q", unix0_us + int(t_ms * 1000)) + bytes(msg.pack(mav)))
+    return path
+
+
+def test_tlog_with_1hz_imu_says_why_and_exits_nonzero(tmp_path):
+    """Issue 15: a real ground-station tlog with RAW_IMU at ~1 Hz gave 0 solutions, exit 0 and no
+    reason.  Now it names the rate found and the rate needed and exits with EXIT_NO_SOLUTION."""
+    from companion.replay import EXIT_NO_SOLUTION, IMU_RATE_NEEDED_HZ
+    tlog = _write_tlog(tmp_path / "gcs.tlog", imu_hz=1.0)
+    res = replay(str(tlog))
+    assert res.imu_check["stream"] == "RAW_IMU" and res.imu_check["rate_hz"] == pytest.approx(1.0)
+    assert res.refusal and not res.solutions
+    js = tmp_path / "gcs.json"
+    p = subprocess.run([sys.executable, "-m", "companion.run_cli", "replay", str(tlog), "--no-progress",
+                        "--json", str(js)], capture_output=True, text=True, timeout=60)
+    assert p.returncode == EXIT_NO_SOLUTION, p.stdout + p.stderr
+    assert "RAW_IMU at 1.00 Hz" in p.stderr and f"at least {IMU_RATE_NEEDED_HZ:.0f} Hz" in p.stderr
+    assert "DataFlash" in p.stderr                                 # and what to do instead
+    assert json.loads(js.read_text())["refusal"]
+
+
+def test_tlog_that_gives_no_solution_says_why(tmp_path):
+    """Enough IMU, but no SYSTEM_TIME (so no GPS time): no solution, a reason, a non-zero exit."""
+    from companion.replay import EXIT_NO_SOLUTION
+    tlog = _write_tlog(tmp_path / "notime.tlog", imu_hz=50.0, duration_s=10.0, system_time=False)
+    p = subprocess.run([sys.executable, "-m", "companion.run_cli", "replay", str(tlog), "--no-progress"],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == EXIT_NO_SOLUTION, p.stdout + p.stderr
+    assert "RAW_IMU at 50.0 Hz" in p.stdout and "no solution" in p.stderr and "SYSTEM_TIME" in p.stderr

@@ -121,3 +121,50 @@ def test_pos_output_is_read_by_rtklib_pos2kml(tmp_path, coords, time_format):
     assert len(points) >= len(sols)
     lon, lat, _ = (float(v) for v in points[-1].split("<coordinates>")[1].split("</coordinates>")[0].split(","))
     assert abs(lat - 35.160872) < 1e-5 and abs(lon - 139.613837) < 1e-5
+
+
+def _shift_header(src, dst, delta_h_m: float):
+    """A copy of a RINEX 2 file whose marker is ``delta_h_m`` below the antenna: APPROX POSITION
+    moved down along the ellipsoid normal and ANTENNA: DELTA H set, so the antenna stays put."""
+    from companion.nav.earth import C_n_e, ecef_to_geodetic
+    lines = src.read_text().splitlines()
+    out = []
+    for ln in lines:
+        label = ln[60:].strip()
+        if label == "APPROX POSITION XYZ":
+            r = np.array([float(ln[0:14]), float(ln[14:28]), float(ln[28:42])])
+            lat, lon, _ = ecef_to_geodetic(r)
+            r = r + C_n_e(lat, lon) @ np.array([0.0, 0.0, delta_h_m])        # down
+            ln = f"{r[0]:14.4f}{r[1]:14.4f}{r[2]:14.4f}" + " " * 18 + "APPROX POSITION XYZ"
+        elif label == "ANTENNA: DELTA H/E/N":
+            ln = f"{delta_h_m:14.4f}{0.0:14.4f}{0.0:14.4f}" + " " * 18 + "ANTENNA: DELTA H/E/N"
+        out.append(ln)
+    dst.write_text("\n".join(out) + "\n")
+
+
+@pytest.mark.parametrize("mode", ["dgps", "rtk"])
+def test_base_antenna_delta_is_applied(tmp_path, mode):
+    """A base marker 1.5 m below its antenna (the header says so): the same rover solution."""
+    import json
+    from companion.cli import main
+    base2 = tmp_path / "30400920.05o"
+    _shift_header(BASE, base2, 1.5)
+    res = {}
+    for name, b in (("orig", BASE), ("shifted", base2)):
+        js = tmp_path / f"{name}.json"
+        assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--base", str(b), "--mode", mode,
+                     "--json", str(js)]) == 0
+        res[name] = np.array([s["r_e"] for s in json.loads(js.read_text())["solutions"]])
+    assert res["orig"].shape == res["shifted"].shape
+    assert np.max(np.linalg.norm(res["orig"] - res["shifted"], axis=1)) < 0.002
+
+
+def test_cli_rtk_writes_rtklib_pos_with_fix_flags(tmp_path):
+    from companion.cli import main
+    pos = tmp_path / "rtk.pos"
+    assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--base", str(BASE), "--mode", "rtk",
+                 "--truth-xyz=" + ",".join(f"{v}" for v in REF_0759), "--pos", str(pos)]) == 0
+    rows = [ln.split() for ln in pos.read_text().splitlines() if not ln.startswith("%")]
+    assert len(rows) == 120 and sum(r[5] == "1" for r in rows) >= 115
+    assert all(float(r[-1]) >= 3.0 for r in rows if r[5] == "1")        # ratio column of fixed epochs
+    assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--mode", "rtk"]) == 2   # no base

@@ -274,8 +274,11 @@ def test_cli_end_to_end(tmp_path):
     s0 = j["solutions"][0]
     assert {"t_gps", "r_e", "clock_bias_m", "n_sats", "sats"} <= set(s0)
     assert abs(s0["t_gps"] - 796435200.0) < 1e-6                    # 2005-04-02 00:00:00 GPS
-    lines = [ln for ln in pos.read_text().splitlines() if not ln.startswith("%")]
-    assert len(lines) == 120 and float(lines[0].split()[0]) == pytest.approx(s0["t_gps"])
+    # RTKLIB's .pos: GPST calendar time, lat/lon/height, Q 4 (DGPS), ns
+    lines = [ln.split() for ln in pos.read_text().splitlines() if not ln.startswith("%")]
+    assert len(lines) == 120 and lines[0][:2] == ["2005/04/02", "00:00:00.000"]
+    assert all(ln[5] == "4" for ln in lines) and int(lines[0][6]) == s0["n_sats"]
+    assert float(lines[0][2]) == pytest.approx(35.1608, abs=1e-3) and float(lines[0][3]) == pytest.approx(139.6138, abs=1e-3)
     # clear errors with non-zero exit
     r = subprocess.run([sys.executable, "-m", "companion", "gnss", "--rover", str(tmp_path / "missing.05o"),
                         "--nav", str(NAV_R)], capture_output=True, text=True, cwd=REPO, timeout=60)

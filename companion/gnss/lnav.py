@@ -187,6 +187,25 @@ def decode_ephemeris(sat: str, sf1: Subframe, sf2: Subframe, sf3: Subframe, ref_
         health=health, ura_m=URA_M[ura_index], fit_interval_h=fit_interval_h(fit_flag, iodc))
 
 
+KLOBUCHAR_PAGE_SV_ID = 56      # subframe 4 page 18: ionospheric and UTC parameters
+
+
+def decode_klobuchar(sf4: Subframe) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
+    """Klobuchar coefficients from subframe 4 page 18 (IS-GPS-200 20.3.3.5.1.7, Table 20-X), or
+    None for any other subframe/page.  Returns (alpha[4], beta[4]) in the broadcast units (s,
+    s/semicircle^n), as :func:`companion.gnss.atmosphere.klobuchar_delay_m` and the RINEX header
+    reader give them.  Word 3: data ID (2 bits), SV (page) ID (6), alpha0, alpha1; word 4: alpha2,
+    alpha3, beta0; word 5: beta1, beta2, beta3 (8-bit two's complement each)."""
+    if sf4.subframe_id != 4 or sf4.bits.u(3, 3, 6) != KLOBUCHAR_PAGE_SV_ID:
+        return None
+    b = sf4.bits
+    alpha = (b.s(3, 9, 8) * 2.0 ** -30, b.s(3, 17, 8) * 2.0 ** -27, b.s(4, 1, 8) * 2.0 ** -24,
+             b.s(4, 9, 8) * 2.0 ** -24)
+    beta = (b.s(4, 17, 8) * 2.0 ** 11, b.s(5, 1, 8) * 2.0 ** 14, b.s(5, 9, 8) * 2.0 ** 16,
+            b.s(5, 17, 8) * 2.0 ** 16)
+    return alpha, beta
+
+
 class LnavEphemerisAssembler:
     """Collects subframes 1-3 per satellite; yields an ephemeris once per new consistent set.
 
@@ -200,7 +219,8 @@ class LnavEphemerisAssembler:
         self._sf: dict[str, dict[int, Subframe]] = {}
         self._last: dict[str, tuple[int, float, int]] = {}
         self.counters: dict[str, int] = {"parity": 0, "preamble": 0, "inconsistent": 0,
-                                         "subframes": 0, "ephemerides": 0}
+                                         "subframes": 0, "ephemerides": 0, "klobuchar": 0}
+        self.klobuchar: tuple | None = None     # (alpha[4], beta[4]) from subframe 4 page 18
 
     def add(self, sat: str, words, ref_week: int) -> GpsEphemeris | None:
         if self.check_parity and not all(word_parity_ok(w) for w in words):
@@ -211,6 +231,13 @@ class LnavEphemerisAssembler:
             self.counters["preamble"] += 1
             return None
         self.counters["subframes"] += 1
+        if sf.subframe_id == 4:
+            klob = decode_klobuchar(sf)
+            if klob is not None:
+                if klob != self.klobuchar:
+                    self.counters["klobuchar"] += 1
+                self.klobuchar = klob         # the latest broadcast set (same for all satellites)
+            return None
         if sf.subframe_id not in (1, 2, 3):
             return None
         store = self._sf.setdefault(sat, {})

@@ -1,4 +1,9 @@
-"""`companion gnss`: RTKLIB-style post-processing of RINEX files (SPP or code DGPS).
+"""`companion gnss`: RTKLIB-style post-processing of RINEX files (SPP, code DGPS or carrier-phase RTK).
+
+Solutions are at the rover's marker and the base antenna is its marker plus the header's
+``ANTENNA: DELTA H/E/N``, as RTKLIB applies them; ``--pos`` writes RTKLIB's solution format
+(:mod:`companion.gnss.pos_format`: Q 5 single, 4 DGPS, 1 fixed / 2 float RTK) that rtkplot and
+pos2kml read.  ``--mode rtk`` is :mod:`companion.gnss.rtk_post` (L1+L2 double differences, LAMBDA).
 
 Pipeline per rover epoch: (optional) divergence-free carrier smoothing of rover and base code
 (:class:`CarrierSmoother`), base corrections from the latest base epoch at or before the rover
@@ -23,8 +28,10 @@ from ..messages import BaseStationPosition
 from ..nav.earth import ecef_to_geodetic, ecef_to_ned
 from .dgps import DgpsCorrector
 from .ephemeris_store import EphemerisStore
+from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, write_pos
 from .prepare import CarrierSmoother
 from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
+from .rtk_post import antenna_delta_e
 from .spp import SppSolution, spp_epoch
 
 log = logging.getLogger(__name__)
@@ -139,7 +146,8 @@ def _load(args):
             r_b = bhdr["approx_position_e"]
         else:
             raise GnssProcessingError("base position unknown: give --base-xyz (header has no APPROX POSITION XYZ)")
-        base = BaseStationPosition(station_id=0, r_e=np.asarray(r_b, float))
+        r_b = np.asarray(r_b, float)
+        base = BaseStationPosition(station_id=0, r_e=r_b + antenna_delta_e(r_b, bhdr.get("antenna_delta_hen_m")))
         t_r = {round(e.t_gps) for e in rover}
         if not t_r & {round(e.t_gps) for e in base_epochs}:
             raise GnssProcessingError("no epochs in common between rover and base observations")
@@ -160,6 +168,8 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
+    if args.mode == "rtk":
+        return _run_rtk(args)
     store, klob, hdr, rover, base_epochs, base = _load(args)
     opts = ProcessOptions(mode=args.mode, elevation_mask_rad=math.radians(args.elevation_mask_deg))
     truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
@@ -171,6 +181,9 @@ def _run(args) -> int:
                   file=sys.stderr, flush=True)
 
     sols = process(rover, store, opts, klobuchar=klob, base_epochs=base_epochs, base=base, progress=progress)
+    for s in sols:                          # antenna -> marker
+        if s is not None:
+            s.r_e = s.r_e - antenna_delta_e(s.r_e, hdr.get("antenna_delta_hen_m"))
     solved = [s for s in sols if s is not None]
     if not solved:
         raise GnssProcessingError(f"no epoch could be solved ({len(rover)} epochs; ephemeris rejections: "
@@ -196,10 +209,56 @@ def _run(args) -> int:
         with open(args.json, "w") as fh:
             json.dump({**summary, "solutions": rows}, fh, indent=1)
     if args.pos:
-        with open(args.pos, "w") as fh:
-            fh.write(f"% companion gnss {args.mode} ({opts.signal}), rover {args.rover}\n")
-            fh.write("%  t_gps_s           x_e_m          y_e_m          z_e_m   lat_deg       lon_deg     h_m     ns  pdop\n")
-            for r in rows:
-                fh.write(f"{r['t_gps']:.3f} {r['r_e'][0]:14.4f} {r['r_e'][1]:14.4f} {r['r_e'][2]:14.4f} "
-                         f"{r['lat_deg']:13.9f} {r['lon_deg']:14.9f} {r['h_m']:9.4f} {r['n_sats']:3d} {r['pdop']:5.2f}\n")
+        q = Q_DGPS if args.mode == "dgps" else Q_SINGLE
+        write_pos(args.pos, [PosRecord(s.t_gps, s.r_e, s.cov_r_e, q, s.n_sats) for s in solved],
+                  program=f"companion gnss {args.mode} ({opts.signal})",
+                  inputs=[args.rover, *args.nav, *([args.base] if args.base else [])],
+                  options={"pos mode": "single" if args.mode == "spp" else "dgps",
+                           "elev mask": f"{args.elevation_mask_deg:.1f} deg"})
+    return 0
+
+
+def _run_rtk(args) -> int:
+    """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
+    from .rtk import RtkConfig
+    from .rtk_post import pos_records, solve_rtk_rinex
+    for p in [args.rover, *args.nav, *([args.base] if args.base else [])]:
+        if not Path(p).is_file():
+            raise GnssProcessingError(f"file not found: {p}")
+    if not args.base:
+        raise GnssProcessingError("--mode rtk needs --base")
+    base_xyz = _xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
+    truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
+    cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg)
+    try:
+        sols, info = solve_rtk_rinex(args.rover, args.base, args.nav, base_xyz=base_xyz, config=cfg)
+    except (ValueError, IndexError) as exc:
+        raise GnssProcessingError(str(exc)) from exc
+    if not sols:
+        raise GnssProcessingError(f"no epoch could be solved ({info['paired_epochs']} rover/base epoch pairs; "
+                                  f"{info['counters']})")
+    n_fix = sum(1 for s in sols if s.quality == 1)
+    summary = {"mode": "rtk", "signals": list(cfg.signals), "epochs": info["rover_epochs"],
+               "paired_epochs": info["paired_epochs"], "solved": len(sols), "fixed": n_fix,
+               "elevation_mask_deg": args.elevation_mask_deg, "counters": info["counters"]}
+    if truth is not None:
+        summary.update(statistics(sols, truth))
+        fixed = [s for s in sols if s.quality == 1]
+        if fixed:
+            summary["fixed_stats"] = statistics(fixed, truth)
+    print(f"companion gnss rtk: {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
+          + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
+             f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
+    if args.json:
+        rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
+                 "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,
+                 **({"err_ned_m": [float(x) for x in ecef_to_ned(s.r_e, truth)]} if truth is not None else {})}
+                for s in sols]
+        with open(args.json, "w") as fh:
+            json.dump({**summary, "solutions": rows}, fh, indent=1)
+    if args.pos:
+        write_pos(args.pos, pos_records(sols), program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
+                  inputs=[args.rover, args.base, *args.nav],
+                  options={"pos mode": "kinematic", "freqs": "L1+L2", "elev mask": f"{args.elevation_mask_deg:.1f} deg",
+                           "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"})
     return 0

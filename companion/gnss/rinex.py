@@ -63,11 +63,8 @@ def _open_text(path) -> list[str]:
     if not p.is_file():
         raise FileNotFoundError(f"RINEX file not found: {p}")
     if _COMPRESSED.search(p.name):
-        try:
-            import hatanaka
-        except ImportError:
-            raise ImportError(f"{p.name}: reading compressed RINEX needs the 'hatanaka' package "
-                              "(pip install 'companion[rinex]')") from None
+        from ..extras import require
+        hatanaka = require("hatanaka", "rinex", f"reading the compressed RINEX file {p.name}")
         try:
             return hatanaka.decompress(p).decode("ascii", errors="replace").splitlines()
         except hatanaka.HatanakaException as exc:

@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
+from ..nav.chi2 import chi2_ppf
 
 from ..messages import GnssEpoch
 from ..nav.earth import C_n_e, ecef_to_geodetic
@@ -113,7 +113,7 @@ def solve_spp(prepared: PreparedEpoch, r_init_e=None, *, raim: bool = True) -> S
         if not raim or nsat < 5:
             break
         chi2_val = float(np.sum(w * v * v))
-        thr = float(chi2.ppf(1.0 - RAIM_P_FA, nsat - 4))
+        thr = float(chi2_ppf(1.0 - RAIM_P_FA, nsat - 4))
         if chi2_val <= thr:
             raim_ok = True
             break

@@ -227,8 +227,11 @@ def correction_source_from_config(cfg, position_cb=None):
     if s == "ntrip":
         from .ntrip import NtripClient
         n = cfg.ntrip
+        from .ntrip import DEFAULT_MAX_RATE_BPS
         return NtripClient(n.host, n.port, n.mountpoint, n.user, n.password, version=n.version,
-                           gga_interval_s=n.gga_interval_s, position_cb=position_cb, timeout_s=n.timeout_s)
+                           gga_interval_s=n.gga_interval_s, position_cb=position_cb, timeout_s=n.timeout_s,
+                           header_timeout_s=getattr(n, "header_timeout_s", None),
+                           max_rate_bps=getattr(n, "max_rate_bps", DEFAULT_MAX_RATE_BPS))
     if s == "serial":
         return SerialCorrectionSource(cfg.serial.port, cfg.serial.baud)
     if s == "mqtt":

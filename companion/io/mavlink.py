@@ -59,6 +59,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from ..messages import SECONDS_PER_WEEK, GnssFix, ImuSample, NavSolution, gps_week_tow  # noqa: E402
 from ..nav.earth import C_n_e, dcm_to_euler, ecef_to_geodetic, geodetic_to_ecef  # noqa: E402
+from .imu_streams import IMU_CLUSTER_STREAMS, IMU_MESSAGES  # noqa: E402  (names shared with the config)
 from .rtcm import GPS_RTCM_DATA_LEN, GpsRtcmDataFragmenter  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -75,9 +76,10 @@ SERIAL_CONTROL_DEV_GPS1 = m.SERIAL_CONTROL_DEV_GPS1
 SERIAL_CONTROL_DEV_GPS2 = m.SERIAL_CONTROL_DEV_GPS2
 SERIAL_CONTROL_DATA_LEN = 70
 
-IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")   # 'auto' picks among these
-# IMU streams an IMU cluster can name: these, PX4's SCALED_IMU, and HIGHRES_IMU of one unit ("HIGHRES_IMU:1")
-IMU_CLUSTER_STREAMS = IMU_MESSAGES + ("SCALED_IMU",) + tuple(f"HIGHRES_IMU:{i}" for i in range(8))
+# 'auto' requests HIGHRES_IMU alone (SI floats) and RAW_IMU (int16 mG, mrad/s) only if the autopilot
+# refuses HIGHRES_IMU or it does not arrive: one IMU stream on the link, never two at 200 Hz
+IMU_AUTO_FALLBACK = {"HIGHRES_IMU": "RAW_IMU"}
+STREAM_FALLBACK_AFTER_S = 3.0
 
 
 def parse_imu_stream(name: str) -> tuple[str, int | None]:
@@ -693,6 +695,9 @@ class MavlinkLink:
     * Link loss: no HEARTBEAT from ``target_system`` for ``link_timeout_s`` -> ``connected`` False,
       counted; a HEARTBEAT brings it back (counted) and re-requests the streams.
     * Bad CRC / unknown ids / truncated frames: counted by reason (``bad_data``), never yielded.
+    * ``fallback_streams`` {primary: alternative}: when the autopilot refuses the primary's interval
+      or none of it arrives within ``fallback_after_s`` of the link coming up, the alternative is
+      requested at the primary's rate instead (counted ``stream_fallbacks``; 'auto' IMU).
     * ``subscribe(type, callback)``: callback(msg, t_mono_ns) on the event loop for every message of
       that type (e.g. the SERIAL_CONTROL tunnel) in addition to the iterator.
     * The receive queue is bounded (``queue_size``); when full the newest message is dropped and
@@ -705,7 +710,8 @@ class MavlinkLink:
                  heartbeat_interval_s: float = 1.0, link_timeout_s: float = 3.0,
                  timesync_interval_s: float = 1.0, interval_retry_s: float = 1.0,
                  interval_max_retries: int = 10, queue_size: int = 20000,
-                 time_map: BootToGpsTime | None = None):
+                 time_map: BootToGpsTime | None = None, fallback_streams: dict[str, str] | None = None,
+                 fallback_after_s: float = STREAM_FALLBACK_AFTER_S):
         self.connection = connection
         self.source_system = source_system
         self.source_component = source_component
@@ -723,7 +729,8 @@ class MavlinkLink:
             "rx_messages": 0, "rx_bytes": 0, "tx_messages": 0, "tx_errors": 0, "bad_data": 0,
             "rx_queue_overflow": 0, "heartbeats_rx": 0, "link_losses": 0, "link_recoveries": 0,
             "interval_requests": 0, "interval_acks": 0, "interval_nacks": 0, "interval_gave_up": 0,
-            "timesync_answered": 0, "timesync_sent": 0, "timesync_replies": 0, "autopilot_reboots": 0}
+            "timesync_answered": 0, "timesync_sent": 0, "timesync_replies": 0, "autopilot_reboots": 0,
+            "stream_fallbacks": 0}
         self.bad_data_reasons: dict[str, int] = {}
         self.connected = False
         self.last_heartbeat_mono: float | None = None
@@ -743,6 +750,11 @@ class MavlinkLink:
         self._closed = False
         self._seen_reboot_epoch = 0
         self._last_boot_ms: int | None = None
+        # primaries still waiting for their first message -> their alternative
+        self._fallback = {k: v for k, v in (fallback_streams or {}).items() if k in self.message_rates_hz}
+        self._fallback_after_s = fallback_after_s
+        self._link_up_mono: float | None = None
+        self.peer_lock = None              # UdpPeerLock on a udpin connection
 
     # -- lifecycle ---------------------------------------------------------------------------
     async def start(self) -> None:
@@ -752,6 +764,9 @@ class MavlinkLink:
                                                source_component=self.source_component,
                                                dialect="ardupilotmega", autoreconnect=True)
         self.conn.mav.robust_parsing = True
+        if isinstance(self.conn, mavutil.mavudp) and self.conn.udp_server:
+            from .udp_peer import UdpPeerLock
+            self.peer_lock = UdpPeerLock(self.conn, relock_after_s=max(5.0, 2 * self.link_timeout_s))
         fd = getattr(self.conn, "fd", None)
         if fd is None:
             port = getattr(self.conn, "port", None)
@@ -862,6 +877,8 @@ class MavlinkLink:
         self.counters["rx_messages"] += 1
         self.counters["rx_bytes"] += len(raw)
         from_ap = msg.get_srcSystem() == self.target_system
+        if self._fallback and mtype in self._fallback:
+            del self._fallback[mtype]            # the primary arrives: no fallback needed
         if mtype == "HEARTBEAT" and from_ap and msg.type != m.MAV_TYPE_GCS \
                 and msg.get_srcComponent() == self.target_component:
             self._on_heartbeat(msg)
@@ -892,6 +909,8 @@ class MavlinkLink:
             self.counters["rx_queue_overflow"] += 1
 
     def _on_heartbeat(self, msg) -> None:
+        if self.peer_lock is not None:
+            self.peer_lock.lock()          # the datagram just parsed came from the autopilot
         self.counters["heartbeats_rx"] += 1
         self.last_heartbeat_mono = time.monotonic()
         self.autopilot_type = msg.type
@@ -901,6 +920,7 @@ class MavlinkLink:
                 self.counters["link_recoveries"] += 1
                 log.info("autopilot link recovered")
             self.connected = True
+            self._link_up_mono = self.last_heartbeat_mono
             self._request_streams("link up")
 
     def _on_timesync(self, msg, t_ns: int) -> None:
@@ -945,7 +965,19 @@ class MavlinkLink:
             self.counters["interval_nacks"] += 1
             log.warning("autopilot refused SET_MESSAGE_INTERVAL for message %d (result %d)",
                         pend.msg_id, msg.result)
+            primary = next((k for k in self._fallback if getattr(m, f"MAVLINK_MSG_ID_{k}", None) == pend.msg_id),
+                           None)
+            if primary is not None:
+                self._fall_back(primary, "refused")
         self._send_next_interval()
+
+    def _fall_back(self, primary: str, why: str) -> None:
+        alt = self._fallback.pop(primary)
+        rate = self.message_rates_hz[primary]
+        self.message_rates_hz[alt] = rate
+        self._intervals.append(_PendingInterval(getattr(m, f"MAVLINK_MSG_ID_{alt}"), float(rate)))
+        self.counters["stream_fallbacks"] += 1
+        log.warning("%s %s by the autopilot: requesting %s at %g Hz instead", primary, why, alt, rate)
 
     # -- stream rates ------------------------------------------------------------------------
     def _request_streams(self, why: str) -> None:
@@ -1012,11 +1044,17 @@ class MavlinkLink:
                 self.connected = False
                 self.counters["link_losses"] += 1
                 log.warning("autopilot link lost (no HEARTBEAT for %.1f s)", now - self.last_heartbeat_mono)
+            if self._fallback and self.connected and self._link_up_mono is not None \
+                    and now - self._link_up_mono > self._fallback_after_s:
+                for primary in list(self._fallback):
+                    self._fall_back(primary, f"not sent within {self._fallback_after_s:g} s")
             self._send_next_interval()
             await asyncio.sleep(0.01)
 
     def health(self) -> dict:
         return {"connected": self.connected, **self.counters, "bad_data_reasons": dict(self.bad_data_reasons),
+                "udp_peer": None if self.peer_lock is None else {
+                    "peer": self.peer_lock.peer and "%s:%d" % self.peer_lock.peer, **self.peer_lock.counters},
                 "time_map": dict(self.time_map.counters), "timesync_rtt_ms":
                     None if self.timesync_rtt_ns is None else self.timesync_rtt_ns * 1e-6}
 
@@ -1120,11 +1158,8 @@ def message_rates_from_config(cfg) -> dict[str, float]:
     if cfg.imu_cluster:
         for name in cfg.imu_cluster:
             rates[parse_imu_stream(name)[0]] = cfg.imu_rate_hz
-    else:
-        imu = cfg.imu_message if cfg.imu_message != "auto" else "RAW_IMU"
-        if cfg.imu_message == "auto":
-            rates["HIGHRES_IMU"] = cfg.imu_rate_hz
-        rates[imu] = cfg.imu_rate_hz
+    else:   # one stream: 'auto' asks for HIGHRES_IMU, RAW_IMU only as its fallback (link_from_config)
+        rates[cfg.imu_message if cfg.imu_message != "auto" else "HIGHRES_IMU"] = cfg.imu_rate_hz
     rates["SYSTEM_TIME"] = cfg.system_time_rate_hz
     if cfg.gps_raw_rate_hz > 0:
         rates["GPS_RAW_INT"] = cfg.gps_raw_rate_hz
@@ -1142,7 +1177,9 @@ def link_from_config(cfg, time_map: BootToGpsTime | None = None) -> MavlinkLink:
                        message_rates_hz=message_rates_from_config(cfg),
                        heartbeat_interval_s=cfg.heartbeat_interval_s, link_timeout_s=cfg.link_timeout_s,
                        timesync_interval_s=cfg.timesync_interval_s, interval_retry_s=cfg.interval_retry_s,
-                       time_map=time_map)
+                       time_map=time_map,
+                       fallback_streams=IMU_AUTO_FALLBACK if cfg.imu_message == "auto" and not cfg.imu_cluster
+                       else None)
 
 
 __all__ = ["BootToGpsTime", "ImuDecoder", "IMU_CLUSTER_STREAMS", "parse_imu_stream", "imu_from_mavlink",
@@ -1152,4 +1189,5 @@ __all__ = ["BootToGpsTime", "ImuDecoder", "IMU_CLUSTER_STREAMS", "parse_imu_stre
            "serial_control_request", "quality_from_sigma", "upper_triangle_covariance", "pack",
            "parse_bytes", "LinkMessage", "MavlinkLink", "SerialControlTunnel", "message_rates_from_config",
            "link_from_config", "unix_to_gps_s", "gps_to_unix_s", "DEFAULT_LEAP_SECONDS",
-           "SERIAL_CONTROL_DEV_GPS1", "SERIAL_CONTROL_DEV_GPS2", "MAV_COMP_ID_ONBOARD_COMPUTER"]
+           "SERIAL_CONTROL_DEV_GPS1", "SERIAL_CONTROL_DEV_GPS2", "MAV_COMP_ID_ONBOARD_COMPUTER",
+           "IMU_AUTO_FALLBACK"]

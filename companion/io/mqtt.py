@@ -25,13 +25,18 @@ import logging
 import math
 from typing import AsyncIterator
 
-import aiomqtt
 import numpy as np
 
+from ..extras import require
 from ..messages import NavSolution
 from ..nav.earth import C_n_e, dcm_to_euler, ecef_to_geodetic
 
+aiomqtt = require("aiomqtt", "mqtt", "MQTT (telemetry.enabled, corrections.source = 'mqtt')")
 log = logging.getLogger(__name__)
+
+# An RTCM frame is at most 1029 bytes; a payload of many frames is fine, a megabyte is not.
+MAX_RTCM_PAYLOAD = 65536
+MAX_QUEUED_MESSAGES = 1000        # aiomqtt's incoming queue is unbounded by default
 
 
 def _finite_or_none(x: float):
@@ -77,19 +82,30 @@ class MqttRtcmSubscriber:
         self.host, self.port, self.topic, self.qos = host, int(port), topic, qos
         self.identifier = identifier
         self._backoff = _Backoff(reconnect_initial_s, reconnect_max_s)
-        self.counters: dict[str, int] = {"connects": 0, "disconnects": 0, "errors": 0, "messages": 0, "bytes": 0}
+        self.counters: dict[str, int] = {"connects": 0, "disconnects": 0, "errors": 0, "messages": 0, "bytes": 0,
+                                         "dropped_empty": 0, "dropped_oversize": 0}
         self.connected = False
         self.last_error = ""
         self.name = f"mqtt://{host}:{port}/{topic}"
+        self._last_drop_log = -math.inf
         self._closed = False
 
     def close(self) -> None:
         self._closed = True
 
+    def _drop(self, reason: str, n: int) -> None:
+        self.counters[reason] += 1
+        now = asyncio.get_running_loop().time()
+        if now - self._last_drop_log >= 10.0:
+            self._last_drop_log = now
+            log.warning("MQTT %s: payload dropped (%s, %d bytes; %d so far)", self.name, reason, n,
+                        self.counters[reason])
+
     async def stream(self) -> AsyncIterator[bytes]:
         while not self._closed:
             try:
-                async with aiomqtt.Client(self.host, self.port, identifier=self.identifier) as client:
+                async with aiomqtt.Client(self.host, self.port, identifier=self.identifier,
+                                          max_queued_incoming_messages=MAX_QUEUED_MESSAGES) as client:
                     await client.subscribe(self.topic, qos=self.qos)
                     self.connected = True
                     self.counters["connects"] += 1
@@ -100,6 +116,10 @@ class MqttRtcmSubscriber:
                         if isinstance(payload, str):
                             payload = payload.encode("latin-1")
                         if not isinstance(payload, (bytes, bytearray)) or not payload:
+                            self._drop("dropped_empty", 0)
+                            continue
+                        if len(payload) > MAX_RTCM_PAYLOAD:
+                            self._drop("dropped_oversize", len(payload))
                             continue
                         self.counters["messages"] += 1
                         self.counters["bytes"] += len(payload)

@@ -18,8 +18,17 @@
   connection that delivered data.  Authentication failures are retried too (a caster may be
   misconfigured for a moment) but counted and logged as errors with the caster's answer.
 
+* Hostile casters: a status line that is not ``ICY 200`` / ``SOURCETABLE 200`` / ``HTTP/1.x`` with
+  a three-digit ASCII code (``HTTP/1.1 \u00b200``) is an :class:`NtripError`; the whole response
+  header must arrive within ``header_timeout_s`` (a caster that sends it one byte at a time is
+  dropped, ``header_timeouts``); the stream is read at most at ``max_rate_bps`` (bursts of one
+  second): a caster that floods is throttled (the client pauses reading, so TCP pushes back on the
+  caster instead of our SD card and CPU taking the flood; ``rate_limited`` counts the pauses); a
+  source table larger than 1 MB is an error.
+
 Counters (``client.counters``): ``bytes``, ``chunks``, ``connects``, ``reconnects``,
-``auth_failures``, ``mountpoint_errors``, ``errors``, ``timeouts``, ``gga_sent``.
+``auth_failures``, ``mountpoint_errors``, ``errors``, ``timeouts``, ``header_timeouts``,
+``rate_limited``, ``gga_sent``.
 ``client.last_error`` holds the last error text.
 """
 from __future__ import annotations
@@ -28,10 +37,17 @@ import asyncio
 import base64
 import logging
 import random
+import re
 import time
 from typing import AsyncIterator, Callable
 
+from .ratecap import ByteRateCap
+
 log = logging.getLogger(__name__)
+
+MAX_SOURCETABLE_BYTES = 1 << 20
+DEFAULT_MAX_RATE_BPS = 64_000.0     # 10x a four-constellation MSM7 stream at 1 Hz
+_STATUS_CODE = re.compile(r"[0-9]{3}")      # ASCII only: str.isdigit() accepts '\u00b2'
 
 USER_AGENT = "NTRIP companion/0.1"
 
@@ -183,7 +199,7 @@ def parse_response_head(buf: bytes, eof: bool = False) -> ResponseHead | None:
     parts = status_line.split(None, 2)
     if status_line.startswith("SOURCETABLE"):
         return ResponseHead("sourcetable", 200, headers, buf[j + 4:])
-    if len(parts) < 2 or not parts[0].startswith("HTTP/") or not parts[1].isdigit():
+    if len(parts) < 2 or not parts[0].startswith("HTTP/") or not _STATUS_CODE.fullmatch(parts[1]):
         raise NtripError(f"unexpected caster answer: {status_line[:80]!r}")
     status = int(parts[1])
     kind = "http"
@@ -202,7 +218,8 @@ class NtripClient:
                  position_cb: Callable[[], tuple[float, float, float] | None] | None = None,
                  timeout_s: float = 10.0, connect_timeout_s: float = 5.0, backoff_initial_s: float = 1.0,
                  backoff_max_s: float = 60.0, user_agent: str = USER_AGENT, read_size: int = 4096,
-                 rng: random.Random | None = None):
+                 rng: random.Random | None = None, header_timeout_s: float | None = None,
+                 max_rate_bps: float = DEFAULT_MAX_RATE_BPS):
         if version not in (1, 2):
             raise ValueError("NTRIP version must be 1 or 2")
         self.host, self.port, self.mountpoint = host, int(port), mountpoint
@@ -210,6 +227,8 @@ class NtripClient:
         self.gga_interval_s = gga_interval_s
         self.position_cb = position_cb
         self.timeout_s = timeout_s
+        self.header_timeout_s = timeout_s if header_timeout_s is None else header_timeout_s
+        self.max_rate_bps = max_rate_bps
         self.connect_timeout_s = connect_timeout_s
         self.backoff_initial_s = backoff_initial_s
         self.backoff_max_s = backoff_max_s
@@ -218,7 +237,8 @@ class NtripClient:
         self.rng = rng or random.Random()
         self.counters: dict[str, int] = {"bytes": 0, "chunks": 0, "connects": 0, "reconnects": 0,
                                          "auth_failures": 0, "mountpoint_errors": 0, "errors": 0,
-                                         "timeouts": 0, "gga_sent": 0}
+                                         "timeouts": 0, "header_timeouts": 0, "rate_limited": 0,
+                                         "gga_sent": 0}
         self.last_error: str = ""
         self.connected = False
         self._closed = False
@@ -248,8 +268,10 @@ class NtripClient:
                 if not chunk:
                     break
                 data += chunk
-                if b"ENDSOURCETABLE" in data:
+                if b"ENDSOURCETABLE" in data[-len(chunk) - 16:]:
                     break
+                if len(data) > MAX_SOURCETABLE_BYTES:
+                    raise NtripError(f"source table larger than {MAX_SOURCETABLE_BYTES} bytes")
             head = parse_response_head(bytes(data))
             if head is None:
                 raise NtripError("truncated source table answer")
@@ -290,17 +312,7 @@ class NtripClient:
                                 self.version, self.user_agent)
             writer.write(req)
             await writer.drain()
-            buf = b""
-            head = None
-            while head is None:
-                chunk = await asyncio.wait_for(reader.read(self.read_size), self.timeout_s)
-                if not chunk:
-                    head = parse_response_head(buf, eof=True) if buf.strip() else None
-                    if head is None or head.status == 200 and head.kind != "sourcetable":
-                        raise NtripError(f"caster closed the connection before answering ({buf[:60]!r})")
-                    break
-                buf += chunk
-                head = parse_response_head(buf)
+            head = await self._read_head(reader)
             if head.status == 401:
                 raise NtripAuthError(f"{self.name}: 401 Unauthorized (check user/password)")
             if head.kind == "sourcetable":
@@ -318,12 +330,22 @@ class NtripClient:
                 gga_task = asyncio.create_task(self._gga_loop(writer))
             dechunk = ChunkedDecoder() if head.chunked else None
             pending = head.body_start
+            cap = ByteRateCap(self.max_rate_bps) if self.max_rate_bps else None
             while True:
                 data = dechunk.feed(pending) if dechunk is not None else pending
                 if data:
                     self.counters["bytes"] += len(data)
                     self.counters["chunks"] += 1
                     yield data
+                if cap is not None and pending:
+                    pause = cap.delay_s(len(pending))
+                    if pause > 0:
+                        # a flooding caster: stop reading for a while (TCP back-pressure)
+                        n = self.counters["rate_limited"] = self.counters["rate_limited"] + 1
+                        if n in (1, 10, 100, 1000) or n % 10000 == 0:
+                            log.warning("NTRIP %s sends faster than %.0f B/s: throttled (%d times)",
+                                        self.name, self.max_rate_bps, n)
+                        await asyncio.sleep(pause)
                 if dechunk is not None and dechunk.done:
                     raise NtripError("caster ended the stream")
                 try:
@@ -339,6 +361,31 @@ class NtripClient:
                 gga_task.cancel()
             writer.close()
             self._writer = None
+
+    async def _read_head(self, reader: asyncio.StreamReader) -> ResponseHead:
+        """The caster's response header, complete within ``header_timeout_s`` in total (a caster
+        that trickles it must not hold the client), or an NtripError."""
+        deadline = time.monotonic() + self.header_timeout_s
+        buf = b""
+        while True:
+            remaining = deadline - time.monotonic()
+            try:
+                if remaining <= 0:
+                    raise asyncio.TimeoutError
+                chunk = await asyncio.wait_for(reader.read(self.read_size), remaining)
+            except asyncio.TimeoutError:
+                self.counters["header_timeouts"] += 1
+                raise NtripError(f"no complete response header within {self.header_timeout_s:g} s "
+                                 f"({len(buf)} bytes: {buf[:40]!r})") from None
+            if not chunk:
+                head = parse_response_head(buf, eof=True) if buf.strip() else None
+                if head is None or head.status == 200 and head.kind != "sourcetable":
+                    raise NtripError(f"caster closed the connection before answering ({buf[:60]!r})")
+                return head
+            buf += chunk
+            head = parse_response_head(buf)
+            if head is not None:
+                return head
 
     async def stream(self) -> AsyncIterator[bytes]:
         attempt = 0

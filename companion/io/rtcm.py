@@ -42,6 +42,7 @@ from pyrtcm import RTCMReader
 from ..gnss.lnav import URA_M, fit_interval_h
 from ..messages import (SECONDS_PER_WEEK, BaseStationPosition, GnssEpoch, GpsEphemeris,
                         SatObservation)
+from .crc24q import crc24q
 from .ubx import (DEFAULT_LEAP_SECONDS, RateLimitedLog, TimeReference, WeekHint,
                   wavelength_m)
 
@@ -54,31 +55,24 @@ MS_TO_M = 299792.458          # light travel in one millisecond, m
 PI_GPS = 3.1415926535898
 
 # --------------------------------------------------------------------------------------------
-# CRC-24Q (RTCM 10403 / Qualcomm), table driven.
-_CRC24Q_POLY = 0x1864CFB
+# Framing.  The CRC lives in crc24q.py (C speed when anycrc is installed).
+
+# Message numbers a frame may carry: the standard's 1001-1320 (RTCM 10403.3 ends at 1305) and
+# the proprietary 4001-4095.  Anything else after a 0xD3 (the experimental 1-100 included: never
+# seen from a caster) is a false sync, rejected before any CRC is computed.
+_MSG_RANGES = ((1001, 1320), (4001, 4095))
+# Messages of fixed payload length (bytes; checked on the recordings in tests/data): a false sync
+# claiming one of these numbers with another length is rejected before the CRC too.
+_FIXED_LENGTH = {1005: 19, 1006: 21, 1019: 61, 1020: 45, 1041: 61, 1042: 64, 1044: 61, 1045: 62,
+                 1046: 63}
+MAX_FRAME = 3 + 1023 + 3           # preamble + header, longest payload, CRC
 
 
-def _crc_table() -> list[int]:
-    table = []
-    for i in range(256):
-        c = i << 16
-        for _ in range(8):
-            c <<= 1
-            if c & 0x1000000:
-                c ^= _CRC24Q_POLY
-        table.append(c & 0xFFFFFF)
-    return table
-
-
-_CRC_TABLE = _crc_table()
-
-
-def crc24q(data: bytes | bytearray | memoryview) -> int:
-    crc = 0
-    table = _CRC_TABLE
-    for b in data:
-        crc = ((crc << 8) & 0xFFFFFF) ^ table[((crc >> 16) ^ b) & 0xFF]
-    return crc
+def known_message_number(mtype: int) -> bool:
+    for lo, hi in _MSG_RANGES:
+        if lo <= mtype <= hi:
+            return True
+    return False
 
 
 def frame_message_type(frame: bytes) -> int:
@@ -89,8 +83,17 @@ def frame_message_type(frame: bytes) -> int:
 class RtcmFramer:
     """Incremental splitter of a byte stream into CRC-checked RTCM 3 frames.
 
-    ``feed(data)`` returns the complete frames (bytes, preamble to CRC inclusive).  ``counters``:
-    ``frames``, ``bad_crc``, ``garbage_bytes``, ``bad_header`` (reserved bits set).
+    ``feed(data)`` returns the complete frames (bytes, preamble to CRC inclusive).  ``counters``
+    (stable keys): ``frames``; ``garbage_bytes`` (bytes skipped between frames); the false syncs,
+    each one 0xD3 that did not start a frame: ``bad_header`` (reserved bits set), ``bad_length``
+    (zero, or not the fixed length of its message number), ``bad_message_number`` (outside
+    1001-1320 / 4001-4095), ``bad_crc``.
+
+    Work per byte is bounded: every candidate 0xD3 costs a few byte tests, and only a candidate
+    that passes them all costs one CRC (over at most 1026 bytes, at C speed); a candidate is
+    examined once, however the stream is chunked (the scan resumes where it stopped, and a
+    candidate waiting for the rest of its frame is only re-checked when more bytes arrive).
+    ``crc_bytes`` in the counters is the total CRC work, so a test can bound it per input byte.
     """
 
     def __init__(self, log_interval_s: float = 10.0, name: str = "RTCM"):
@@ -98,6 +101,7 @@ class RtcmFramer:
         self.counters: dict[str, int] = {}
         self._rlog = RateLimitedLog(log, log_interval_s)
         self.name = name
+        self.bytes_in = 0
 
     def _count(self, reason: str, n: int = 1) -> None:
         self.counters[reason] = self.counters.get(reason, 0) + n
@@ -110,42 +114,69 @@ class RtcmFramer:
     def pending_bytes(self) -> int:
         return len(self._buf)
 
+    def _precheck(self, buf: bytearray, pos: int, n: int) -> str | None:
+        """Why the 0xD3 at ``pos`` cannot start a frame (None: it may; check the CRC).  Needs
+        ``n - pos >= 5``: preamble, reserved + length, 12-bit message number."""
+        b1 = buf[pos + 1]
+        if b1 & 0xFC:
+            return "bad_header"
+        length = ((b1 & 0x03) << 8) | buf[pos + 2]
+        if length < 2:
+            return "bad_length"
+        mtype = (buf[pos + 3] << 4) | (buf[pos + 4] >> 4)
+        if not known_message_number(mtype):
+            return "bad_message_number"
+        fixed = _FIXED_LENGTH.get(mtype)
+        if fixed is not None and fixed != length:
+            return "bad_length"
+        return None
+
     def feed(self, data: bytes) -> list[bytes]:
         frames: list[bytes] = []
         buf = self._buf
         buf += data
+        self.bytes_in += len(data)
         n = len(buf)
         pos = 0
+        false_syncs = garbage = 0
         while True:
             i = buf.find(PREAMBLE, pos)
             if i < 0:
-                if n > pos:
-                    self._reject("garbage_bytes", n=n - pos)
+                garbage += n - pos
                 pos = n
                 break
-            if i > pos:
-                self._reject("garbage_bytes", n=i - pos)
+            garbage += i - pos
             pos = i
-            if n - pos < 3:
+            if n - pos < 5:
                 break
-            if buf[pos + 1] & 0xFC:
-                # reserved bits must be zero: not a frame start
-                self._count("bad_header")
-                self._count("garbage_bytes")
-                pos += 1
-                continue
-            length = ((buf[pos + 1] & 0x03) << 8) | buf[pos + 2]
-            end = pos + 3 + length + 3
-            if end > n:
-                break
-            crc = (buf[end - 3] << 16) | (buf[end - 2] << 8) | buf[end - 1]
-            if length == 0 or crc24q(memoryview(buf)[pos:end - 3]) != crc:
-                self._reject("bad_crc", f"{length}-byte frame")
-                pos += 1
-                continue
-            frames.append(bytes(buf[pos:end]))
-            self._count("frames")
-            pos = end
+            why = self._precheck(buf, pos, n)
+            if why is None:
+                length = ((buf[pos + 1] & 0x03) << 8) | buf[pos + 2]
+                end = pos + 3 + length + 3
+                if end > n:
+                    break                  # wait for the rest; only this candidate is re-checked
+                self._count("crc_bytes", end - pos - 3)
+                crc = (buf[end - 3] << 16) | (buf[end - 2] << 8) | buf[end - 1]
+                if crc24q(memoryview(buf)[pos:end - 3]) == crc:
+                    frames.append(bytes(buf[pos:end]))
+                    self._count("frames")
+                    pos = end
+                    continue
+                why = "bad_crc"
+            # a false sync: count it, skip the 0xD3, resume the scan at the next byte
+            self._count(why)
+            garbage += 1
+            false_syncs += 1
+            pos += 1
+        if garbage:
+            self._count("garbage_bytes", garbage)
+        if false_syncs:
+            # one rate-limited line per chunk, not per false sync: a flood must not flood the log
+            self._rlog.warn(f"{self.name} false syncs", sum(
+                self.counters.get(k, 0) for k in ("bad_header", "bad_length", "bad_message_number", "bad_crc")),
+                f"{false_syncs} in the last {len(data)} bytes")
+        elif garbage:
+            self._rlog.warn(f"{self.name} garbage_bytes", self.counters["garbage_bytes"])
         del buf[:pos]
         return frames
 
@@ -258,6 +289,28 @@ def _msm_sat_id(system: str, prn: int) -> str | None:
     return f"{system}{prn:02d}"
 
 
+class _TimeReference(TimeReference):
+    """A ``week_hint`` callable that returns None (the pipeline before its first IMU sample) means
+    "no time reference yet": the decoder counts ``no_time_reference`` and drops the message,
+    instead of a logged traceback per frame.  A callable that raises is counted and logged at a
+    limited rate (``week_hint_errors``)."""
+
+    def __init__(self, week_hint: WeekHint, count, rlog: RateLimitedLog):
+        super().__init__(week_hint)
+        self._count_cb, self._rlog = count, rlog
+
+    def reference(self) -> float | None:
+        if self.t_last is None and callable(self.week_hint):
+            try:
+                t = self.week_hint()
+                return None if t is None else float(t)
+            except Exception as exc:
+                n = self._count_cb("week_hint_errors")
+                self._rlog.warn("RTCM week_hint_errors", n, repr(exc))
+                return None
+        return super().reference()
+
+
 @dataclass
 class _PendingEpoch:
     t_gps: float
@@ -277,10 +330,10 @@ class RtcmDecoder:
     def __init__(self, week_hint: WeekHint = None, leap_seconds: int = DEFAULT_LEAP_SECONDS,
                  log_interval_s: float = 10.0):
         self.framer = RtcmFramer(log_interval_s)
-        self.time_ref = TimeReference(week_hint)
         self.leap_seconds = leap_seconds
         self._counters: dict[str, int] = {}
         self._rlog = RateLimitedLog(log, log_interval_s)
+        self.time_ref = _TimeReference(week_hint, self._count, self._rlog)
         self._pending: _PendingEpoch | None = None
         self._lock: dict[tuple[str, str], float] = {}
         self._cp_adj: dict[tuple[str, str], float] = {}
@@ -294,8 +347,9 @@ class RtcmDecoder:
             out[k] = out.get(k, 0) + v
         return out
 
-    def _count(self, reason: str, n: int = 1) -> None:
-        self._counters[reason] = self._counters.get(reason, 0) + n
+    def _count(self, reason: str, n: int = 1) -> int:
+        self._counters[reason] = c = self._counters.get(reason, 0) + n
+        return c
 
     def _reject(self, reason: str, detail: str = "") -> None:
         self._count(reason)
@@ -639,6 +693,6 @@ def decode_rtcm_file(path: str, week_hint: WeekHint = None, chunk_size: int = 40
     return out, dec
 
 
-__all__ = ["RtcmFramer", "RtcmDecoder", "GpsRtcmDataFragmenter", "rtcm_to_gps_rtcm_data_fragments",
+__all__ = ["MAX_FRAME", "known_message_number", "RtcmFramer", "RtcmDecoder", "GpsRtcmDataFragmenter", "rtcm_to_gps_rtcm_data_fragments",
            "crc24q", "frame_message_type", "decode_rtcm_file", "lock_time_df013", "lock_time_df402",
            "lock_time_df407"]

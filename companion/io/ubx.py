@@ -152,10 +152,11 @@ class TimeReference:
             return None
         if callable(hint):
             try:
-                return float(hint())
+                t = hint()
             except Exception:  # a failing clock callback must not break decoding
                 log.exception("week_hint callable failed")
                 return None
+            return None if t is None else float(t)    # None = no reference yet: counted, no traceback
         return int(hint) * SECONDS_PER_WEEK + SECONDS_PER_WEEK / 2
 
     def week(self) -> int | None:

@@ -15,6 +15,7 @@ error state as constant over the latency (it changes by ~v_err * latency, far be
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
 import math
 from collections import Counter, deque
@@ -31,8 +32,12 @@ from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef,
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
 from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, baseline_batch, doppler_batch,
-                           line_of_sight, nhc_batch, position_fix_batch, pseudorange_batch, single_difference, tdcp_batch,
-                           velocity_fix_batch, zero_rate_batch, zero_velocity_batch)
+                           horizontal_velocity_fix_batch, line_of_sight, nhc_batch, position_fix_batch,
+                           pseudorange_batch, single_difference, tdcp_batch, velocity_fix_batch, zero_rate_batch,
+                           zero_velocity_batch)
+from .aid_status import AidSourceBook
+from .imu_screen import ImuScreen
+from .integrity import POSITION_SOURCES, IntegrityLimits, IntegrityMonitor, IntegrityState
 from .strapdown import strapdown_step_with_force
 
 log = logging.getLogger(__name__)
@@ -107,6 +112,22 @@ class EngineConfig:
     # 3 sigma) from it is a wrong carrier fix and is rejected; float solutions are not used
     moving_baseline_b_m: tuple[float, float, float] | None = None
     baseline_length_tol_m: float = 0.03
+    # IMU screening before integration (companion.nav.imu_screen): an axis at clip_fraction of the
+    # stream's full scale, or further from the running median of the last imu_median_window samples
+    # than the jump limits, is bridged with the last good sample and its covariance inflated
+    imu_screen_enabled: bool = True
+    imu_clip_fraction: float = 0.98
+    imu_accel_jump_mps2: float = 60.0
+    imu_gyro_jump_radps: float = 10.0
+    imu_median_window: int = 9
+    # divergence detection (companion.nav.integrity) over a sliding window of each GNSS source
+    integrity_enabled: bool = True
+    integrity_window_s: float = 5.0
+    integrity_min_updates: int = 3
+    integrity_min_rows: int = 10
+    integrity_max_rejected_fraction: float = 0.5
+    integrity_max_nis_mean: float = 4.0
+    integrity_probation_max_rejected_fraction: float = 0.2
 
 
 @dataclass
@@ -149,7 +170,16 @@ class NavEngine:
         self._phase: dict[str, PhaseRecord] = {}
         self._base_phase: dict[str, deque] = {}
         self._still = _StillnessDetector(config) if config.zupt_enabled else None
-        self.ground_mode = True           # NHC applies only on the ground (the shell may say otherwise)
+        self.imu_screen = ImuScreen(clip_fraction=config.imu_clip_fraction, accel_jump_mps2=config.imu_accel_jump_mps2,
+                                    gyro_jump_radps=config.imu_gyro_jump_radps, window=config.imu_median_window,
+                                    counters=self.counters) if config.imu_screen_enabled else None
+        self.aid = AidSourceBook(config.integrity_window_s)
+        self.integrity = IntegrityMonitor(IntegrityLimits(
+            window_s=config.integrity_window_s, min_updates=config.integrity_min_updates,
+            min_rows=config.integrity_min_rows, max_rejected_fraction=config.integrity_max_rejected_fraction,
+            max_nis_mean=config.integrity_max_nis_mean,
+            probation_max_rejected_fraction=config.integrity_probation_max_rejected_fraction), counters=self.counters)
+        self.ground_mode = True           # NHC, ZUPT and ZARU apply only on the ground (the shell may say otherwise)
         self._nhc_countdown_s = 0.0
         self._nhc_rejections = 0
         self._nhc_suspended_until = -math.inf
@@ -167,8 +197,10 @@ class NavEngine:
     # ------------------------------------------------------------------ set-up
     def initialize(self, t_gps: float, r_e, v_e, C_b_e, P0_sigmas: dict, *,
                    clock_bias_m: float | None = None, clock_drift_mps: float = 0.0,
-                   b_a=None, b_g=None) -> None:
-        """Start (or restart) navigating from a known state; bumps ``reset_counter``.
+                   b_a=None, b_g=None, probation: bool = False) -> None:
+        """Start (or restart) navigating from a known state; bumps ``reset_counter``.  With
+        ``probation`` (a restart after a divergence) the solution status is ``converging`` until
+        the integrity monitor has seen one consistent window of GNSS.
 
         ``P0_sigmas`` (1-sigma): tilt_rad and heading_rad (or att_rad for both), pos_m, vel_mps,
         ba_mps2, bg_radps, and optionally clk_m, drift_mps, and pos_cov_e_m2 (a 3x3 ECEF position
@@ -215,6 +247,8 @@ class NavEngine:
         self._last_epoch_t = math.nan
         self.course_epochs_fused = 0
         self.course_alignment_t_gps = math.nan
+        self.aid.clear_windows()
+        self.integrity.restart(t_gps, probation and self.cfg.integrity_enabled)
         self.initialized = True
         self.reset_counter += 1
 
@@ -304,6 +338,12 @@ class NavEngine:
         if not (0.0 < tau < 0.1) or not math.isfinite(th[0] + th[1] + th[2] + dvl[0] + dvl[1] + dvl[2]):
             self.counters["imu sample invalid (dropped)"] += 1
             return None
+        scr = self.imu_screen
+        bridged = False
+        if scr is not None and not scr.check(th, dvl, tau, s.t_gps):
+            if not scr.bridged:
+                return None            # nothing good to hold yet (counted by the screen)
+            th, dvl, bridged = scr.dtheta_b, scr.dv_b, True
         gap = s.t_gps - self.t_gps - tau
         if abs(gap) > 0.5 * tau:
             # a lost sample or a clock jump: integrate what we have, widen the covariance for the gap
@@ -325,12 +365,15 @@ class NavEngine:
             g = self._g_ref + self._grad @ d
         self.r_e, self.v_e, self.C_b_e, dv_e = strapdown_step_with_force(r0, self.v_e, C0, dtheta, dv, tau, g)
         self.kf.propagate(C0, dv_e, self._grad, tau + gap if gap > 0.5 * tau else tau)
+        if bridged:
+            self.kf.add_body_noise(C0, scr.var_dtheta_b, scr.var_dv_b)    # what the sample could have hidden
         self._last_dtheta = dtheta
         self._last_tau = tau
         self.clock_bias_m += self.clock_drift_mps * (s.t_gps - self.t_gps)
         self.t_gps = s.t_gps
         self._push_history()
-        if self._still is not None and self._still.add(th, dvl, tau):
+        # ZUPT/ZARU on the ground only: a hovering multirotor with a quiet IMU looks still too
+        if self._still is not None and self._still.add(th, dvl, tau) and self.ground_mode:
             self._zero_motion_update()
         if self.cfg.nhc_enabled:
             self._nhc_countdown_s -= tau
@@ -367,6 +410,7 @@ class NavEngine:
             return
         b = nhc_batch(self.v_e, self.C_b_e, self.cfg.nhc_sigma_lateral_mps, self.cfg.nhc_sigma_vertical_mps)
         rep = self.kf.gate(b)
+        self._record((rep,), self.t_gps)
         if rep.n_accepted < len(b):
             self._nhc_rejections += 1
             self.counters["nhc rejected: innovation gate"] += len(b) - rep.n_accepted
@@ -396,6 +440,7 @@ class NavEngine:
         for r in reports:
             self.counters[f"{r.kind} used"] += r.n_accepted
             self.counters[f"{r.kind} rejected"] += len(r.labels) - r.n_accepted
+        self._record(reports, self.t_gps)
         dx = self.kf.update(batches, reports)
         if any(r.n_accepted for r in reports):
             self._feedback(dx)
@@ -510,8 +555,9 @@ class NavEngine:
             self.counters[f"{r.kind} used"] += r.n_accepted
             for reason in r.rejected_reason.values():
                 self.counters[f"{r.kind} rejected: {reason}"] += 1
+        self._record(reports, epoch.t_gps)
         rep.reports = reports
-        dx = self.kf.update(batches, reports)
+        dx = self.kf.update(batches, self._held_back(reports))
         if any(r.n_accepted for r in reports):
             self._feedback(dx)
             rep.applied = True
@@ -519,6 +565,7 @@ class NavEngine:
             self.last_gnss_update_t = epoch.t_gps
         self._remember_phase(ins, dx, prep)
         self._last_epoch_t = epoch.t_gps
+        self._check_integrity(epoch.t_gps)
         self.epoch_reports.append(rep)
         if self.on_epoch is not None:
             self.on_epoch(rep)
@@ -606,17 +653,21 @@ class NavEngine:
         if fix.v_e is not None:
             ins = self._course_alignment(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2)
         batches = [position_fix_batch(ins, fix.r_e, cov, self.lever_arm_b)]
-        if fix.v_e is not None:
+        if fix.v_e is not None and fix.vertical_velocity_valid:
             batches.append(velocity_fix_batch(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2, self.lever_arm_b))
+        elif fix.v_e is not None:       # no vertical velocity in the message: do not assert zero
+            batches.append(horizontal_velocity_fix_batch(ins, fix.v_e, fix.sigma_vel_mps, Cne, self.lever_arm_b))
         reports = [self.kf.gate(b) for b in batches]
         for r in reports:
             self.counters[f"fix {r.kind} used"] += r.n_accepted
             for reason in r.rejected_reason.values():
                 self.counters[f"fix {r.kind} rejected: {reason}"] += 1
-        dx = self.kf.update(batches, reports)
+        self._record(reports, fix.t_gps)
+        dx = self.kf.update(batches, self._held_back(reports))
         if any(r.n_accepted for r in reports):
             self._feedback(dx)
             self.last_gnss_update_t = fix.t_gps
+        self._check_integrity(fix.t_gps)
         return reports
 
     def process_attitude(self, att: GnssAttitude):
@@ -739,10 +790,42 @@ class NavEngine:
         self.counters[used_counter] += rep.n_accepted
         for reason in rep.rejected_reason.values():
             self.counters[f"{what} rejected: {reason}"] += 1
+        self._record((rep,), self.t_gps)
         dx = self.kf.update([batch], [rep])
         if rep.n_accepted:
             self._feedback(dx)
         return rep
+
+    def _held_back(self, reports):
+        """In an integrity hold the position rows are tested and recorded, not fused (see
+        companion.nav.integrity: the GNSS position disagrees with an INS the velocity confirms)."""
+        if self.integrity.state != IntegrityState.HOLD:
+            return reports
+        out = []
+        for r in reports:
+            if r.kind in POSITION_SOURCES and r.n_accepted:
+                self.counters[f"{r.kind} held back (integrity hold)"] += r.n_accepted
+                r = dataclasses.replace(r, accepted=np.zeros_like(r.accepted))
+            out.append(r)
+        return out
+
+    def _record(self, reports, t_gps: float) -> None:
+        """Per aid source status (companion.nav.aid_status) of gated batches."""
+        g = self.kf.gate_chi2_1dof
+        for r in reports:
+            self.aid.record(r, t_gps, g)
+
+    def _check_integrity(self, t_gps: float) -> None:
+        """After a GNSS update: has the filter diverged, or has a probation window passed?"""
+        if not self.cfg.integrity_enabled or not self.integrity.evaluate(self.aid, t_gps):
+            return
+        state = self.integrity.state
+        if state == IntegrityState.DIVERGED:
+            log.warning("navigation diverged (%s)", self.integrity.reason)
+        elif state == IntegrityState.HOLD:
+            log.warning("GNSS position not fused (%s)", self.integrity.reason)
+        elif state == IntegrityState.SUSPECT:        # counted; the shell stops injecting
+            log.debug("navigation suspect (%s)", self.integrity.reason)
 
     def _feedback(self, dx: np.ndarray) -> None:
         """Closed loop: fold the estimated errors into the nominal state (error state back to zero)."""
@@ -810,8 +893,18 @@ class NavEngine:
         sig_v = np.sqrt(np.maximum(np.diag(Cen @ P[L.vel, L.vel] @ Cen.T), 0.0))
         sig_a = np.sqrt(np.maximum(np.diag(P[L.att, L.att]), 0.0))
         healthy = bool(np.all(np.isfinite(self.r_e)) and np.all(np.isfinite(P)))
+        integrity = self.integrity.state
         if not healthy or math.hypot(sig_r[0], sig_r[1]) > self.cfg.untrusted_sigma_h_m:
             status = "untrusted"
+        elif integrity == IntegrityState.DIVERGED:
+            status = "diverged"
+        elif integrity == IntegrityState.PROBATION:
+            status = "converging"
+        elif integrity == IntegrityState.SUSPECT:
+            status = "suspect"
+        elif integrity == IntegrityState.HOLD:
+            # the GNSS position is not fused; which side is wrong is unknown, so nothing is injected
+            status = "suspect"
         elif not (self.t_gps - self.last_gnss_update_t <= self.cfg.coasting_after_s):
             status = "coasting"
         else:
@@ -819,7 +912,8 @@ class NavEngine:
         return NavSolution(self.t_gps, self.r_e.copy(), self.v_e.copy(), self.C_b_e.copy(), sig_r, sig_v, sig_a,
                            status, self.last_gnss_update_t, self.reset_counter,
                            {"clock_bias_m": self.clock_bias_m, "clock_drift_mps": self.clock_drift_mps,
-                            "b_a": self.b_a.copy(), "b_g": self.b_g.copy()})
+                            "b_a": self.b_a.copy(), "b_g": self.b_g.copy(), "integrity": integrity,
+                            "integrity_reason": self.integrity.reason})
 
 
 class _StillnessDetector:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
-from scipy.stats import chi2
+from .chi2 import chi2_ppf
 
 from .earth import OMEGA_IE_RADPS
 
@@ -98,7 +98,7 @@ class ErrorStateKalmanFilter:
         self.layout = layout
         self.P = np.array(P0, dtype=float)
         self.noise = noise
-        self.gate_chi2_1dof = float(chi2.ppf(gate_probability, 1))
+        self.gate_chi2_1dof = float(chi2_ppf(gate_probability, 1))
         n = layout.n
         self._phi = np.eye(n)   # constant entries stay; the rest is rewritten every step
         self._phi_T = self._phi.T                  # a view: follows every in-place write to Phi
@@ -159,6 +159,14 @@ class ErrorStateKalmanFilter:
         P = self._phi_P @ self._phi_T
         P += self._Qd
         self.P = P
+
+    def add_body_noise(self, C_b_e: np.ndarray, var_att_b, var_vel_b) -> None:
+        """Extra process noise of one interval, given per body axis (rad^2 of attitude, (m/s)^2 of
+        velocity), e.g. what a bridged IMU sample could have hidden: P += C diag(var) C^T."""
+        L = self.layout
+        P = self.P
+        P[L.att, L.att] += (C_b_e * np.asarray(var_att_b, float)) @ C_b_e.T
+        P[L.vel, L.vel] += (C_b_e * np.asarray(var_vel_b, float)) @ C_b_e.T
 
     # ------------------------------------------------------------------ update
     def gate(self, batch: MeasurementBatch, leave_one_out: bool = False) -> UpdateReport:

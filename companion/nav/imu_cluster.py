@@ -55,7 +55,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
+from .chi2 import chi2_ppf
 
 from ..messages import ImuSample
 
@@ -114,7 +114,7 @@ class ImuCluster:
         self.pending: deque = deque()          # (primary sample, its rate's time tag) waiting for the others
         self.counters: Counter = Counter()
         self.ambiguous = False
-        self._thr = float(chi2.ppf(1.0 - config.false_alarm_prob, 6 * config.window))
+        self._thr = float(chi2_ppf(1.0 - config.false_alarm_prob, 6 * config.window))
         self.events: list[tuple] = []          # (t_gps, imu_id, 'dropped'|'readmitted'|'ambiguous', detail)
 
     # ------------------------------------------------------------------ input

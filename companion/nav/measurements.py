@@ -174,6 +174,19 @@ def velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, cov_e: np.ndarray, le
     return _whitened("velocity", ["vx", "vy", "vz"], v_fix_e - v_ant, H, cov_e)
 
 
+def horizontal_velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, sigma_mps: float, C_n_e_: np.ndarray,
+                                  lever_arm_b: np.ndarray, layout=LAYOUT) -> MeasurementBatch:
+    """Loose coupling: north and east antenna velocity only, for a fix that does not carry a
+    vertical one (GPS_RAW_INT: speed over ground and course).  ``C_n_e_`` is the local NED-to-ECEF
+    rotation; rows are z_ne = C_e_n[0:2] (v_fix - v_ant), each with variance sigma^2."""
+    _, v_ant, _ = antenna_state(ins, lever_arm_b)
+    C_e_ne = C_n_e_.T[0:2]
+    H = np.zeros((2, layout.n))
+    H[:, layout.vel] = C_e_ne
+    return MeasurementBatch("velocity", ["vn", "ve"], C_e_ne @ (np.asarray(v_fix_e, float) - v_ant), H,
+                            np.full(2, sigma_mps ** 2))
+
+
 def _whitened(kind, labels, z, H, cov):
     L = np.linalg.cholesky(cov)
     Li = np.linalg.inv(L)

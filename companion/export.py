@@ -1,0 +1,184 @@
+"""``companion export LOG``: a field log's raw streams and its solutions in the formats other tools read.
+
+* ``--ubx PATH``: the receiver's byte stream as it arrived: ``ubx`` records (a receiver on the
+  companion's own serial port) and the payloads of the autopilot's SERIAL_CONTROL replies (a
+  receiver on the autopilot's GPS port, through the tunnel), in log order -- for RTKLIB's
+  ``convbin`` / ``rnx2rtkp`` or u-center.
+* ``--rtcm PATH``: the correction bytes as received (NTRIP, radio, MQTT, file).
+* ``--kml PATH`` / ``--gpx PATH`` / ``--csv PATH``: the logged solutions (IMU position) as Google
+  Earth track, GPX track or a table with time, position, sigmas, status and whether it was
+  injected.  ``--injected-only`` keeps the solutions that reached the autopilot.
+
+No replay is needed: the solutions are the ones the service computed and logged.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+# numpy, pymavlink and the field log are imported where they are used: `companion --help` and
+# `companion config check` must not pay for them (tests/test_packaging.py)
+SECONDS_PER_WEEK = 604800.0
+
+
+def gps_to_utc_iso(t_gps: float, leap_seconds: int) -> str:
+    """ISO 8601 UTC of a GPS time (``leap_seconds`` = GPS - UTC)."""
+    from datetime import timedelta
+    from .gnss.pos_format import GPS_EPOCH
+    t = GPS_EPOCH + timedelta(seconds=round(t_gps - leap_seconds, 3))
+    return t.strftime("%Y-%m-%dT%H:%M:%S.") + f"{t.microsecond // 1000:03d}Z"
+
+
+def _serial_control_parser():
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink.dialects.v20 import ardupilotmega as m
+    parser = m.MAVLink(None)
+    parser.robust_parsing = True
+    return m, parser
+
+
+def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=None,
+                     injected_only: bool = False, leap_seconds: int = 18) -> dict:
+    """Write the requested outputs; returns counts of what went into each."""
+    from .io.fieldlog import read_field_log
+    from .nav.earth import ecef_to_geodetic
+    from .pipeline import decode_solution
+    counts = {"records": 0, "ubx_bytes": 0, "serial_control_replies": 0, "rtcm_bytes": 0, "solutions": 0,
+              "solutions_skipped": 0}
+    f_ubx = open(ubx, "wb") if ubx else None
+    f_rtcm = open(rtcm, "wb") if rtcm else None
+    m = parser = None
+    sols = []
+    try:
+        for rec in read_field_log(log):
+            counts["records"] += 1
+            if rec.kind == "ubx" and f_ubx:
+                f_ubx.write(rec.payload)
+                counts["ubx_bytes"] += len(rec.payload)
+            elif rec.kind == "rtcm" and f_rtcm:
+                f_rtcm.write(rec.payload)
+                counts["rtcm_bytes"] += len(rec.payload)
+            elif rec.kind == "mavlink" and f_ubx:
+                if parser is None:
+                    m, parser = _serial_control_parser()
+                for msg in parser.parse_buffer(rec.payload) or ():
+                    if msg.get_type() == "SERIAL_CONTROL" and msg.flags & m.SERIAL_CONTROL_FLAG_REPLY \
+                            and msg.count:
+                        data = bytes(msg.data[:msg.count])
+                        f_ubx.write(data)
+                        counts["ubx_bytes"] += len(data)
+                        counts["serial_control_replies"] += 1
+            elif rec.kind == "solution" and (kml or gpx or csv_path):
+                try:
+                    sol = decode_solution(rec.payload)
+                except Exception:
+                    counts["solutions_skipped"] += 1
+                    continue
+                if sol.status == "init" or (injected_only and not sol.extras.get("inject")):
+                    counts["solutions_skipped"] += 1
+                    continue
+                if not all(math.isfinite(float(x)) for x in sol.r_e):
+                    counts["solutions_skipped"] += 1
+                    continue
+                sols.append(sol)
+    finally:
+        for f in (f_ubx, f_rtcm):
+            if f:
+                f.close()
+    counts["solutions"] = len(sols)
+    rows = []
+    for s in sols:
+        lat, lon, h = ecef_to_geodetic(s.r_e)
+        rows.append((s, math.degrees(lat), math.degrees(lon), h))
+    if kml:
+        _write_kml(kml, rows, str(log))
+    if gpx:
+        _write_gpx(gpx, rows, leap_seconds)
+    if csv_path:
+        _write_csv(csv_path, rows, leap_seconds)
+    return counts
+
+
+def _write_kml(path, rows, name: str) -> None:
+    ns = "http://www.opengis.net/kml/2.2"
+    ET.register_namespace("", ns)
+    kml = ET.Element(f"{{{ns}}}kml")
+    doc = ET.SubElement(kml, f"{{{ns}}}Document")
+    ET.SubElement(doc, f"{{{ns}}}name").text = f"companion: {Path(name).name}"
+    pm = ET.SubElement(doc, f"{{{ns}}}Placemark")
+    ET.SubElement(pm, f"{{{ns}}}name").text = "fused track"
+    ls = ET.SubElement(pm, f"{{{ns}}}LineString")
+    ET.SubElement(ls, f"{{{ns}}}altitudeMode").text = "absolute"
+    ET.SubElement(ls, f"{{{ns}}}coordinates").text = " ".join(f"{lon:.9f},{lat:.9f},{h:.3f}" for _, lat, lon, h in rows)
+    ET.ElementTree(kml).write(path, encoding="utf-8", xml_declaration=True)
+
+
+def _write_gpx(path, rows, leap_seconds: int) -> None:
+    ns = "http://www.topografix.com/GPX/1/1"
+    ET.register_namespace("", ns)
+    gpx = ET.Element(f"{{{ns}}}gpx", {"version": "1.1", "creator": "companion"})
+    seg = ET.SubElement(ET.SubElement(gpx, f"{{{ns}}}trk"), f"{{{ns}}}trkseg")
+    for s, lat, lon, h in rows:
+        pt = ET.SubElement(seg, f"{{{ns}}}trkpt", {"lat": f"{lat:.9f}", "lon": f"{lon:.9f}"})
+        ET.SubElement(pt, f"{{{ns}}}ele").text = f"{h:.3f}"          # ellipsoidal: GPX does not say which
+        ET.SubElement(pt, f"{{{ns}}}time").text = gps_to_utc_iso(s.t_gps, leap_seconds)
+    ET.ElementTree(gpx).write(path, encoding="utf-8", xml_declaration=True)
+
+
+def _write_csv(path, rows, leap_seconds: int) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t_gps_s", "gps_week", "tow_s", "utc", "lat_deg", "lon_deg", "h_ellipsoid_m", "sigma_n_m",
+                    "sigma_e_m", "sigma_d_m", "v_e_x_mps", "v_e_y_mps", "v_e_z_mps", "status", "mode", "injected",
+                    "reset_counter"])
+        for s, lat, lon, h in rows:
+            week = int(s.t_gps // SECONDS_PER_WEEK)
+            sig = [float(x) for x in s.sigma_r_n_m]
+            w.writerow([f"{s.t_gps:.4f}", week, f"{s.t_gps - week * SECONDS_PER_WEEK:.4f}",
+                        gps_to_utc_iso(s.t_gps, leap_seconds), f"{lat:.9f}", f"{lon:.9f}", f"{h:.4f}",
+                        *(f"{x:.4f}" for x in sig), *(f"{float(x):.4f}" for x in s.v_e), s.status,
+                        s.extras.get("mode", ""), int(bool(s.extras.get("inject"))), s.reset_counter])
+
+
+def run_export_cli(args) -> int:
+    if not (args.ubx or args.rtcm or args.kml or args.gpx or args.csv):
+        print("companion export: nothing to do: give --ubx, --rtcm, --kml, --gpx and/or --csv", file=sys.stderr)
+        return 2
+    try:
+        counts = export_field_log(args.log, ubx=args.ubx, rtcm=args.rtcm, kml=args.kml, gpx=args.gpx,
+                                  csv_path=args.csv, injected_only=args.injected_only,
+                                  leap_seconds=args.leap_seconds)
+    except (OSError, ValueError) as exc:
+        print(f"companion export: error: {exc}", file=sys.stderr)
+        return 2
+    if counts["records"] == 0:
+        print(f"companion export: error: no field-log records in {args.log} (a field log is a *.cflog file, "
+              "a directory of them or their common stem)", file=sys.stderr)
+        return 2
+    parts = [f"{counts['records']} records"]
+    if args.ubx:
+        parts.append(f"{counts['ubx_bytes']} UBX bytes ({counts['serial_control_replies']} SERIAL_CONTROL replies) "
+                     f"-> {args.ubx}")
+    if args.rtcm:
+        parts.append(f"{counts['rtcm_bytes']} RTCM bytes -> {args.rtcm}")
+    if args.kml or args.gpx or args.csv:
+        parts.append(f"{counts['solutions']} solutions -> " + ", ".join(p for p in (args.kml, args.gpx, args.csv) if p))
+    print("companion export: " + "; ".join(parts))
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("export", help="a field log's raw UBX/RTCM streams and its solutions (KML, GPX, CSV)")
+    p.add_argument("log", help="field log file, rotated-log directory or stem")
+    p.add_argument("--ubx", help="write the receiver's UBX bytes here (for convbin, u-center)")
+    p.add_argument("--rtcm", help="write the correction bytes here (RTCM3)")
+    p.add_argument("--kml", help="write the solutions as a KML track")
+    p.add_argument("--gpx", help="write the solutions as a GPX track")
+    p.add_argument("--csv", help="write the solutions as CSV")
+    p.add_argument("--injected-only", action="store_true", help="only the solutions sent to the autopilot")
+    p.add_argument("--leap-seconds", type=int, default=18, help="GPS - UTC for the UTC times (default 18)")
+    p.set_defaults(func=lambda a: run_export_cli(a))

@@ -1,0 +1,226 @@
+"""Processes of ``python -m sitl ardupilot``: the ArduCopter SITL binary and ``companion run``.
+
+Both are started in their own session, so a Ctrl-C in the terminal reaches only the harness,
+which then stops them in order (SIGTERM, then SIGKILL after a grace period).  SITL also exits by
+itself when its parent dies.
+"""
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+DEFAULT_BIN = REPO.parent / "shared" / "ardupilot" / "arducopter"
+BIN_ENV = "COMPANION_ARDUPILOT_BIN"
+HOME = "-35.363261,149.165230,584,353"     # the launcher's default (Canberra)
+
+
+def find_binary(path: str | None = None) -> Path:
+    """--sitl-bin, else $COMPANION_ARDUPILOT_BIN, else <repo>/../shared/ardupilot/arducopter."""
+    return Path(path or os.environ.get(BIN_ENV) or DEFAULT_BIN).resolve()
+
+
+def binary_problem(binary: Path) -> str | None:
+    """Why ``binary`` cannot run here (missing, not executable, wrong CPU/ABI), or None."""
+    if not binary.is_file():
+        return f"ArduCopter SITL binary not found: {binary} (set --sitl-bin or ${BIN_ENV})"
+    if not os.access(binary, os.X_OK):
+        return f"ArduCopter SITL binary is not executable: {binary}"
+    try:
+        r = subprocess.run([str(binary), "--help"], capture_output=True, timeout=10)
+    except OSError as exc:          # ENOEXEC: another architecture
+        return f"ArduCopter SITL binary cannot run on this machine: {exc}"
+    except subprocess.TimeoutExpired:
+        return f"ArduCopter SITL binary did not answer --help within 10 s: {binary}"
+    if r.returncode < 0:            # SIGILL: built for a newer CPU
+        return f"ArduCopter SITL binary died with signal {-r.returncode} on this CPU: {binary}"
+    if b"--defaults" not in r.stdout + r.stderr:
+        return f"{binary} does not look like an ArduPilot SITL binary (no --defaults in --help)"
+    return None
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("0.0.0.0", port))       # SITL binds all interfaces
+            return True
+        except OSError:
+            return False
+
+
+def free_instance(max_instance: int = 20) -> int:
+    """The first SITL instance whose four TCP ports (5760+10*I .. +3) are free."""
+    for i in range(max_instance):
+        if all(_port_free(5760 + 10 * i + k) for k in range(4)):
+            return i
+    raise RuntimeError("no free SITL instance ports between 5760 and 5960")
+
+
+def stop_process(proc: subprocess.Popen | None, name: str, grace_s: float = 10.0) -> int | None:
+    """SIGTERM ``proc`` (only that pid), SIGKILL it after ``grace_s``; its exit code."""
+    if proc is None:
+        return None
+    if proc.poll() is None:
+        try:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            print(f"  {name} did not stop in {grace_s:.0f} s: killing pid {proc.pid}", flush=True)
+            proc.kill()
+            proc.wait(timeout=5)
+        except ProcessLookupError:
+            pass
+    return proc.returncode
+
+
+class ArduCopterSitl:
+    """One ArduCopter SITL instance with ``parm`` files loaded after the binary's defaults.
+
+    Parameters are wiped at start (``-w``) so the files are authoritative, as with the launcher.
+    Serial ports: SERIAL0 ``tcp:127.0.0.1:5760+10*I`` (SITL waits for a connection there before it
+    starts), SERIAL1 ``+2``, SERIAL2 ``+3``.
+    """
+
+    def __init__(self, binary: Path, parm_files: list[Path], run_dir: Path, instance: int | None = None):
+        self.binary = Path(binary)
+        self.parm_files = [Path(p).resolve() for p in parm_files]
+        self.run_dir = Path(run_dir)
+        self.instance = free_instance() if instance is None else instance
+        self.proc: subprocess.Popen | None = None
+        self._log = None
+
+    def port(self, serial: int) -> int:
+        return 5760 + 10 * self.instance + (0 if serial == 0 else serial + 1)
+
+    @property
+    def log_path(self) -> Path:
+        return self.run_dir / "arducopter.log"
+
+    def start(self, timeout_s: float = 20.0) -> None:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        defaults = [self.binary.parent / "copter-sitl-defaults.parm"]
+        defaults = [p for p in defaults if p.is_file()] + self.parm_files
+        args = [str(self.binary), "--model", "+", "--speedup", "1", "--home", HOME, f"-I{self.instance}",
+                "--defaults", ",".join(str(p) for p in defaults), "--sim-address", "127.0.0.1",
+                "--serial0", "tcp:0", "-w"]
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(args, cwd=str(self.run_dir), stdout=self._log, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, start_new_session=True)
+        want = f"SERIAL0 on TCP port {self.port(0)}".encode()
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"SITL exited early (code {self.proc.returncode}): "
+                                   f"{self.log_path.read_text(errors='replace')[-1500:]}")
+            if want in self.log_path.read_bytes():
+                return
+            time.sleep(0.1)
+        raise RuntimeError(f"SITL did not open SERIAL0 within {timeout_s:.0f} s (log {self.log_path})")
+
+    def stop(self) -> int | None:
+        code = stop_process(self.proc, "SITL", grace_s=5.0)
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        return code
+
+
+# ------------------------------------------------------------------------------------------------
+# companion run
+
+def companion_config(deploy_toml: str, *, connection: str, log_dir: str, gnss_source: str,
+                     output_mode: str, overrides: dict[str, str] | None = None) -> str:
+    """``deploy/companion.toml`` with only the connection, log directory, GNSS source and output
+    mode replaced (line by line, so every other key and comment stays as shipped).
+
+    ``overrides``: {"section.key": TOML value} for experiments (``--set``), e.g.
+    {"filter.zupt_enabled": "true"}; a key the file does not show is added to its section."""
+    section = ""
+    out = []
+    repl = {("mavlink", "connection"): f'"{connection}"', ("log", "dir"): f'"{log_dir}"',
+            ("gnss", "source"): f'"{gnss_source}"', ("output", "mode"): f'"{output_mode}"'}
+    for k, v in (overrides or {}).items():
+        sec, _, key = k.rpartition(".")
+        repl[(sec, key)] = v
+    done = set()
+    for line in deploy_toml.splitlines():
+        m = re.match(r"\s*\[([^\]]+)\]", line)
+        if m:
+            section = m.group(1).strip()
+        m = re.match(r"(\s*)([A-Za-z_]+)(\s*=\s*)", line)
+        if m and (section, m.group(2)) in repl:
+            key = (section, m.group(2))
+            line = f'{m.group(1)}{m.group(2)}{m.group(3)}{repl[key]}'
+            done.add(key)
+        out.append(line)
+    header = re.compile(r"\s*\[([^\]]+)\]")
+    line_of = {header.match(l).group(1).strip(): n for n, l in enumerate(out) if header.match(l)}
+    extra = {tuple(k.rpartition(".")[::2]) for k in overrides or {}}
+    # keys the file does not show (experiments only): inserted under their section header, the
+    # last section first so the line numbers of the others stay valid
+    for sec, key in sorted(set(repl) - done, key=lambda k: -line_of.get(k[0], -1)):
+        if sec not in line_of or (sec, key) not in extra:
+            raise ValueError(f"deploy/companion.toml lacks [{sec}] {key}")
+        out.insert(line_of[sec] + 1, f"{key} = {repl[(sec, key)]}")
+    return "\n".join(out) + "\n"
+
+
+class CompanionProcess:
+    """``python -m companion.run_cli -v run --config PATH`` with its output in ``log_path``."""
+
+    ORIGIN_RE = re.compile(rb"EKF origin (-?\d+\.\d+) (-?\d+\.\d+) (-?\d+\.\d+) m")
+
+    def __init__(self, config_path: Path, log_path: Path):
+        self.config_path = Path(config_path)
+        self.log_path = Path(log_path)
+        self.proc: subprocess.Popen | None = None
+        self._log = None
+
+    def start(self) -> None:
+        self._log = open(self.log_path, "wb")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen([sys.executable, "-m", "companion.run_cli", "-v", "run", "--config",
+                                      str(self.config_path)], stdout=self._log, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, env=env, cwd=str(REPO), start_new_session=True)
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def cpu_s(self) -> float | None:
+        """User + system CPU seconds so far (from /proc)."""
+        if not self.alive():
+            return None
+        try:
+            with open(f"/proc/{self.proc.pid}/stat") as fh:
+                parts = fh.read().rsplit(")", 1)[1].split()
+        except OSError:
+            return None
+        return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
+
+    def origin(self) -> tuple[float, float, float] | None:
+        """The EKF origin the companion announced (lat deg, lon deg, alt m), from its log."""
+        try:
+            m = self.ORIGIN_RE.search(self.log_path.read_bytes())
+        except OSError:
+            return None
+        return None if m is None else tuple(float(x) for x in m.groups())
+
+    def tail(self, n_bytes: int = 2000) -> str:
+        try:
+            return self.log_path.read_bytes()[-n_bytes:].decode(errors="replace")
+        except OSError:
+            return ""
+
+    def stop(self) -> int | None:
+        code = stop_process(self.proc, "companion", grace_s=10.0)
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        return code
