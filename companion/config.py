@@ -82,9 +82,10 @@ class MavlinkConfig:
     imu_gyro_full_scale_radps: float = _f(0.0, min=0.0, max=200.0,
                                           doc="gyro full scale for clip detection; 0 = per message type "
                                           "(2000 deg/s HIGHRES_IMU, 32.767 rad/s int16 mrad/s fields)")
-    autopilot_heading_on_ground: bool = _f(True, doc="on the ground, keep the heading on the autopilot's "
+    autopilot_heading_on_ground: bool = _f(False, doc="on the ground, keep the heading on the autopilot's "
                                            "ATTITUDE yaw (5 deg, 1 Hz): only where that yaw is its compass "
-                                           "(EK3_SRC1_YAW 1), never when it is ours (ExternalNav)")
+                                           "(EK3_SRC1_YAW 1), never when it is ours (ExternalNav); a wrong "
+                                           "compass is then trusted too (deploy/ turns it on for ArduPilot)")
     imu_cluster: tuple[str, ...] = _f((), choices=IMU_CLUSTER_STREAMS,
                                       doc="fuse several IMUs (first = primary, its time grid), dropping a "
                                           "faulty one, e.g. [\"RAW_IMU\", \"SCALED_IMU2\", \"SCALED_IMU3\"] "

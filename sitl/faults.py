@@ -129,7 +129,9 @@ async def _fly_case(case: FaultCase, *, duration_s: float, speedup: float, out_d
     from .fly import fly
     captured = {}
     res = await fly("uav", duration_s, speedup, seed=seed, out_dir=str(out_dir / case.name),
-                    faults=Faults(**case.faults), keep_autopilot=captured, **case.fly)
+                    faults=Faults(**case.faults), keep_autopilot=captured, handle_signals=True, **case.fly)
+    if res["interrupted"]:          # Ctrl-C/SIGTERM: that flight's processes are stopped; stop the matrix
+        raise KeyboardInterrupt
     row = score_fault(captured["ap"], captured["sim"], case, res["duration_s"])
     applied = {k: v for k, v in captured["ap"].counters.items()
                if k in ("imu_samples_overridden", "rover_epochs_faulty", "clock_jumps")}

@@ -44,6 +44,7 @@ def test_vision_parm_uses_mavlink_backend_and_gps_input_is_gps2():
     assert not Path(cfg.log.dir).is_absolute()     # no root needed
     assert cfg.filter.zupt_enabled                 # else the heading runs away at rest (issue 13)
     assert cfg.gnss.gps_raw_latency_s > 0          # GPS_RAW_INT is stamped when the fix arrived
+    assert cfg.mavlink.autopilot_heading_on_ground  # ArduPilot's yaw is its compass: hold ours on it at rest
 
 
 def test_companion_config_changes_only_connection_log_source_and_mode():
