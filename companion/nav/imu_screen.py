@@ -87,8 +87,7 @@ class ImuScreen:
         self._k = 0                     # samples seen
         self._prev = [0.0] * 6          # rates of the previous sample
         self._prev_ok = False           # previous sample passed both tests
-        self._good_w: list | None = None  # last good gyro rates (rad/s), body
-        self._good_f: list | None = None  # last good specific force (m/s^2), body
+        self._good: tuple | None = None   # last good rates: gyro (rad/s), specific force (m/s^2), body
         self.dtheta_b = [0.0, 0.0, 0.0]
         self.dv_b = [0.0, 0.0, 0.0]
         self.var_dtheta_b = [0.0, 0.0, 0.0]
@@ -135,8 +134,7 @@ class ImuScreen:
         self._prev = r
         self._prev_ok = not (bad_w or bad_f)
         if self._prev_ok:
-            self._good_w = [r[0], r[1], r[2]]
-            self._good_f = [r[3], r[4], r[5]]
+            self._good = r                # the tuple itself: nothing allocated per good sample
             return True
         c = self.counters
         if clip_w:
@@ -149,7 +147,7 @@ class ImuScreen:
             c[ImuScreenCounter.ACCEL_IMPLAUSIBLE] += 1
         self.last_reason = ", ".join(n for n, b in (("gyro clipped", clip_w), ("accel clipped", clip_f),
                                                     ("gyro implausible", impl_w), ("accel implausible", impl_f)) if b)
-        if self._good_w is None:
+        if self._good is None:
             self.bridged = False
             c[ImuScreenCounter.DROPPED_NO_GOOD_SAMPLE] += 1
             return False
@@ -163,18 +161,18 @@ class ImuScreen:
         return False
 
     def _bridge(self, r, tau: float, bad_w: bool, bad_f: bool) -> None:
-        gw, gf = self._good_w, self._good_f
+        g = self._good
         for i in range(3):
             if bad_w:
-                self.dtheta_b[i] = gw[i] * tau
-                s = min(abs(r[i] - gw[i]), self.gyro_jump_radps) * tau
+                self.dtheta_b[i] = g[i] * tau
+                s = min(abs(r[i] - g[i]), self.gyro_jump_radps) * tau
                 self.var_dtheta_b[i] = s * s
             else:
                 self.dtheta_b[i] = r[i] * tau
                 self.var_dtheta_b[i] = 0.0
             if bad_f:
-                self.dv_b[i] = gf[i] * tau
-                s = min(abs(r[3 + i] - gf[i]), self.accel_jump_mps2) * tau
+                self.dv_b[i] = g[3 + i] * tau
+                s = min(abs(r[3 + i] - g[3 + i]), self.accel_jump_mps2) * tau
                 self.var_dv_b[i] = s * s
             else:
                 self.dv_b[i] = r[3 + i] * tau
