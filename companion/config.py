@@ -239,7 +239,13 @@ class FilterConfig:
                                   doc="common pseudorange step, in clock sigmas, that re-seeds the clock")
     clock_jump_min_m: float = _f(30.0, min=0.0, max=1e7)
     sigma_phase_elevation_scaling: bool = _f(False, doc="carrier noise x 1/sin(elevation)")
-    pseudorange_correlation_time_s: float = _f(0.0, min=0.0, max=3600.0, doc="multipath correlation time (0 = white)")
+    pseudorange_correlation_time_s: float = _f(
+        5.0, min=0.0, max=3600.0,
+        doc="correlation time of the code noise and multipath (0 = white): seconds on a moving antenna, "
+            "tens of seconds on a static one; the variance is inflated by 1 + 2 tau / T so that averaging "
+            "epochs does not shrink the covariance below what correlated errors allow")
+    slow_error_floor: bool = _f(True, doc="keep the position covariance above one epoch of the slow "
+                                "pseudorange errors alone: a bias is not averaged away (companion.nav.slow_errors)")
     zupt_enabled: bool = _f(True, doc="zero velocity and zero angular rate (ZUPT/ZARU) whenever the IMU shows "
                             "the vehicle at rest: without them the heading is unobservable on the ground and "
                             "runs away within minutes")

@@ -23,6 +23,7 @@ from companion.gnss.ephemeris_store import EphemerisStore
 from companion.gnss.spp import spp_epoch
 from companion.nav.engine import EngineConfig, NavEngine
 from companion.nav.earth import C_n_e, ecef_to_geodetic, rotation_from_rotvec
+from companion.nav.chi2 import chi2_ppf
 from companion.nav.filter import ProcessNoise
 
 MODES = ("ins", "gps", "loose", "tight", "tdcp_dgps")
@@ -237,9 +238,18 @@ def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progre
     out = {"scenario": scenario_name, "runs": runs, "seed": seed, "modes": {}}
     for m in modes:
         out["modes"][m] = summarize([r["curves"][m] for r in results], duration)
+    # run-averaged NEES of the 9 navigation states per INS mode, and its two-sided 95 % band
+    # (runs x NEES ~ chi-square with 9 runs dof when the filter is consistent)
+    lo, hi = chi2_ppf(0.025, 9 * runs) / runs, chi2_ppf(0.975, 9 * runs) / runs
+    for m in modes:
+        if m in ("gps",):
+            continue
+        avg = np.mean(np.array([r["curves"][m]["nees"] for r in results]), axis=0)
+        out["modes"][m]["avg_nees_9dof"] = {
+            "mean": float(np.mean(avg)), "median": float(np.median(avg)), "band_95": [lo, hi],
+            "fraction_inside": float(np.mean((avg >= lo) & (avg <= hi)))}
     if "tdcp_dgps" in modes:
-        avg = np.mean(np.array([r["curves"]["tdcp_dgps"]["nees"] for r in results]), axis=0)
-        out["tdcp_dgps_avg_nees_9dof"] = {"mean": float(np.mean(avg)), "median": float(np.median(avg))}
+        out["tdcp_dgps_avg_nees_9dof"] = out["modes"]["tdcp_dgps"]["avg_nees_9dof"]
         outages = results[0]["outages_s"]
         if outages:
             a, b = outages[0]

@@ -286,3 +286,18 @@ def test_cli_end_to_end(tmp_path):
     r = subprocess.run([sys.executable, "-m", "companion", "gnss", "--mode", "dgps", "--rover", str(ROVER),
                         "--nav", str(NAV_R)], capture_output=True, text=True, cwd=REPO, timeout=60)
     assert r.returncode != 0 and "--base" in r.stderr
+
+
+def test_pseudorange_sigma_tells_its_slow_part_and_the_unmodelled_ionosphere(data):
+    """Standalone without an ionosphere model the variance carries the whole delay budget; with
+    Klobuchar only its residual.  The slow part (everything but code noise) is reported apart, for
+    the filter's covariance floor (companion.nav.slow_errors)."""
+    from companion.gnss.prepare import IONO_NO_MODEL_SIGMA_M
+    ep, store, truth = data["rover"][0], data["store"], data["truth"]
+    with_model = prepare_epoch(ep, store, truth, klobuchar=data["klob"])
+    without = prepare_epoch(ep, store, truth, klobuchar=None)
+    assert with_model.sats == without.sats and with_model.n >= 4
+    assert np.all(without.sigma_pseudorange_slow_m >= IONO_NO_MODEL_SIGMA_M)
+    assert np.all(with_model.sigma_pseudorange_slow_m < without.sigma_pseudorange_slow_m)
+    for p in (with_model, without):
+        assert np.all(p.sigma_pseudorange_slow_m > 0) and np.all(p.sigma_pseudorange_slow_m < p.sigma_pseudorange_m)

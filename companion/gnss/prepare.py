@@ -23,8 +23,11 @@ pseudorange model is exactly::
 
 Sigma model (variances add):
   code noise (a^2 + b^2/sin^2 E) with a = b = ``CODE_SIGMA_A_M``/``CODE_SIGMA_B_M`` (x3 for IF);
-  standalone adds URA^2, (``IONO_MODEL_ERROR_FRAC`` x Klobuchar)^2, (``TROPO_ZENITH_ERROR_M`` x mapping)^2;
+  standalone adds URA^2, (``IONO_MODEL_ERROR_FRAC`` x Klobuchar)^2 (``IONO_NO_MODEL_SIGMA_M``^2
+  without a model), (``TROPO_ZENITH_ERROR_M`` x mapping)^2;
   DGPS uses 2 x code noise (base + rover) + ``DGPS_SIGMA_M``^2 + (``DGPS_AGE_SIGMA_MPS`` x age)^2.
+  Everything but the code noise is slow (minutes to hours: ``sigma_pseudorange_slow_m``); a filter
+  that averages epochs must not treat it as white (``companion.nav.engine``).
 """
 from __future__ import annotations
 
@@ -48,6 +51,7 @@ CODE_SIGMA_A_M = 0.3          # code noise, elevation-independent part, m (RTKLI
 CODE_SIGMA_B_M = 0.3          # code noise, scaled by 1/sin(E), m
 IF_NOISE_FACTOR = 2.98        # noise amplification of the L1/L2 iono-free combination
 IONO_MODEL_ERROR_FRAC = 0.5   # Klobuchar removes ~50 % rms of the delay
+IONO_NO_MODEL_SIGMA_M = 5.0   # no model at all: the whole delay is error (RTKLIB ERR_ION), m
 TROPO_ZENITH_ERROR_M = 0.1    # Saastamoinen + standard atmosphere zenith error, m
 DGPS_SIGMA_M = 0.2            # spatial/temporal decorrelation of a short-baseline PRC, m
 DGPS_AGE_SIGMA_MPS = 0.01     # growth of the correction error with age, m/s
@@ -84,6 +88,9 @@ class PreparedEpoch:
     iono_m: np.ndarray            # ionospheric delay removed (m, 0 if none)
     tropo_m: np.ndarray           # tropospheric delay removed (m, 0 if none)
     rejected: dict[str, str] = field(default_factory=dict)
+    # the part of sigma_pseudorange_m from slowly varying errors (orbit and clock, atmosphere
+    # model, DGPS decorrelation: minutes to hours), which averaging over epochs does not reduce
+    sigma_pseudorange_slow_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def n(self) -> int:
@@ -248,12 +255,14 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
             sin_el = 1.0
         iono = tro = 0.0
         var = a2 + b2 / (sin_el * sin_el)
+        var_slow = 0.0
         pr = nan
         if has_p:
             pr = p + C * dts
             if dgps is not None:
                 pr += prc
-                var = 2.0 * var + DGPS_SIGMA_M ** 2 + (DGPS_AGE_SIGMA_MPS * age) ** 2
+                var_slow = DGPS_SIGMA_M ** 2 + (DGPS_AGE_SIGMA_MPS * age) ** 2
+                var = 2.0 * var + var_slow
             elif apply_models:
                 pr -= C * eph.tgd_s * tgd_fac
                 if use_iono and iono_fac:
@@ -262,9 +271,12 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
                 if ztd and known:
                     tro = ztd * tropo_mapping(el)
                     pr -= tro
-                var += eph.ura_m ** 2 + (IONO_MODEL_ERROR_FRAC * iono) ** 2
+                var_slow = eph.ura_m ** 2 + (IONO_MODEL_ERROR_FRAC * iono) ** 2
+                if not use_iono and iono_fac:
+                    var_slow += IONO_NO_MODEL_SIGMA_M ** 2
                 if known:
-                    var += (TROPO_ZENITH_ERROR_M * tropo_mapping(el)) ** 2
+                    var_slow += (TROPO_ZENITH_ERROR_M * tropo_mapping(el)) ** 2
+                var += var_slow
             if not math.isfinite(pr):
                 rejected[sat] = "non-finite"
                 continue
@@ -273,7 +285,7 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
             continue
         rows.append((sat, rr, vv, pr, math.sqrt(var), C * dts, C * ddts, o.carrier_cycles, o.wavelength_m,
                      o.doppler_hz, o.cn0_dbhz, o.lock_time_s, o.half_cycle_ambiguous, o.loss_of_lock,
-                     el, az, eph.iode, age, iono, tro))
+                     el, az, eph.iode, age, iono, tro, math.sqrt(var_slow)))
     n = len(rows)
     if n:
         cols = list(zip(*rows))
@@ -286,7 +298,7 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
             cn0_dbhz=arr(10), lock_time_s=arr(11), half_cycle=np.array(cols[12], dtype=bool),
             loss_of_lock=np.array(cols[13], dtype=bool), elevation_rad=arr(14), azimuth_rad=arr(15),
             iode=np.array(cols[16], dtype=int), dgps_age_s=arr(17), iono_m=arr(18), tropo_m=arr(19),
-            rejected=rejected)
+            rejected=rejected, sigma_pseudorange_slow_m=arr(20))
     z = np.zeros(0)
     return PreparedEpoch(
         t_gps=t_rx, signal=signal, r_approx_e=r0.copy(), sats=[], r_sat_e=np.zeros((0, 3)),

@@ -29,6 +29,7 @@ from ..gnss.prepare import prepare_epoch
 from ..messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
                         ImuSample, NavSolution)
 from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
+from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
 from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, baseline_batch, doppler_batch,
@@ -77,6 +78,7 @@ class EngineConfig:
     # (1 + 2 tau / T) epochs, the Gauss-Markov effective-sample rule, so P does not shrink below
     # what averaging correlated errors can deliver
     pseudorange_correlation_time_s: float = 0.0
+    slow_error_floor: bool = True            # P_pos >= one epoch of the slow errors alone
     # zero-velocity / zero-rate updates while the IMU shows the vehicle at rest (ground phases)
     zupt_enabled: bool = False
     zupt_window_s: float = 0.5
@@ -560,6 +562,8 @@ class NavEngine:
         dx = self.kf.update(batches, self._held_back(reports))
         if any(r.n_accepted for r in reports):
             self._feedback(dx)
+            if any(r.n_accepted for r in reports if r.kind in ("pseudorange", "position")):
+                self._floor_position_covariance(prep)
             rep.applied = True
             rep.dx = dx
             self.last_gnss_update_t = epoch.t_gps
@@ -579,6 +583,20 @@ class NavEngine:
         T = t_gps - self._last_epoch_t
         T = T if 0.0 < T < 30.0 else 1.0
         return 1.0 + 2.0 * tau / T
+
+    def _floor_position_covariance(self, prep) -> None:
+        """Keep the position covariance above what the slow pseudorange errors allow
+        (companion.nav.slow_errors)."""
+        if not self.cfg.slow_error_floor or len(prep.sigma_pseudorange_slow_m) != len(prep.sats):
+            return
+        r_ant = self.r_e + self.C_b_e @ self.lever_arm_b
+        ok = np.isfinite(prep.pseudorange_m)
+        slow = prep.sigma_pseudorange_slow_m[ok]
+        white_var = prep.sigma_pseudorange_m[ok] ** 2 - slow ** 2
+        slow = np.sqrt(np.maximum(slow ** 2, self.cfg.sigma_pseudorange_floor_m ** 2 - white_var))
+        floor = slow_error_position_floor(r_ant, prep.r_sat_e[ok], slow)
+        if floor is not None and raise_to_floor(self.kf.P, LAYOUT.pos, floor):
+            self.counters["position covariance raised to the slow-error floor"] += 1
 
     def _check_clock(self, ins: InsPoint, pr: MeasurementBatch) -> None:
         """First epoch: take the clock from the data.  Later: a jump common to all pseudorange
