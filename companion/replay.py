@@ -524,7 +524,7 @@ def plot_aid_status(res: ReplayResult, path: str) -> None:
     series = aid_status_series(res.aid_status)
     names = sorted(series, key=lambda k: -len(series[k]))[:MAX_PLOTTED_SOURCES]
     t0 = sols[0].t_gps if sols else 0.0
-    fig, axes = plt.subplots(len(names) + 1, 2, figsize=(12, 2.4 * (len(names) + 1)), squeeze=False)
+    fig, axes = plt.subplots(len(names) + 1, 2, figsize=(12, 2.4 * (len(names) + 1)), squeeze=False, sharex=True)
     for row, name in enumerate(names):
         a = series[name]
         acc = a[:, 3] > 0.5
