@@ -87,5 +87,11 @@ class AidStatusPacer:
         return out
 
 
-__all__ = ["AID_STATUS_RECORD_VERSION", "KIND", "aid_status_dict", "encode_aid_status", "decode_aid_status",
-           "AidStatusPacer"]
+__all__ = [
+    "AID_STATUS_RECORD_VERSION",
+    "KIND",
+    "AidStatusPacer",
+    "aid_status_dict",
+    "decode_aid_status",
+    "encode_aid_status",
+]

@@ -5,8 +5,13 @@ Field logs (``*.cflog``, a file, a rotated directory or a stem): the configurati
 log's ``event`` record (``--config`` overrides it, and then equality is not expected).  Every
 ``mavlink``/``ubx``/``rtcm`` record is fed in order; the solutions produced are compared, in
 order, with the logged ``solution`` records by their binary encoding (every float64 bit, status,
-injection flag, reset counter, IMU time stamp): the report counts identical and differing
-solutions and names the first difference.
+injection flag, reset counter, IMU time stamp, protection level; a version-1 record of an older
+log on the fields it has): the report counts identical and differing solutions and names the
+first difference.  The per aid source status records (kind ``aid_status``, outputs like the
+solutions) are recomputed at the logged configuration's rate and compared with the logged ones
+when the log has them; ``--plot PATH`` writes a second figure ``<stem>.aid<suffix>`` from the
+recomputed ones (innovations and test ratios per source, the HPL against sigma_h), so an old log
+without the records gets it too.
 
 MAVLink telemetry logs (``.tlog``: 8-byte big-endian UNIX-microsecond time + one MAVLink frame,
 as written by MAVProxy / Mission Planner / QGroundControl): every frame is fed as a ``mavlink``
@@ -39,7 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .aid_status_record import KIND as AID_KIND, AidStatusPacer
+from .aid_status_record import KIND as AID_KIND
+from .aid_status_record import AidStatusPacer
 from .pipeline import NavPipeline, encode_solution, solution_records_equal
 
 log = logging.getLogger(__name__)
@@ -438,6 +444,7 @@ def _sol_json(sol) -> dict:
         return [float(x) if math.isfinite(float(x)) else None for x in np.asarray(a, float)]
     return {"t_gps": sol.t_gps, "r_e": f(sol.r_e), "status": sol.status, "sigma_r_ned_m": f(sol.sigma_r_n_m),
             "sigma_v_ned_mps": f(sol.sigma_v_n_mps), "inject": sol.extras.get("inject"),
+            "hpl_m": f([sol.extras.get("hpl_m", math.nan)])[0],
             "reset_counter": sol.reset_counter}
 
 
@@ -642,4 +649,5 @@ def run_replay_cli(args) -> int:
 
 
 __all__ = ["replay", "replay_field_log", "replay_tlog", "replay_dataflash", "dataflash_config", "imu_rate_check",
-           "why_no_solution", "ReplayResult", "plot_replay", "plot_aid_status", "aid_status_series", "run_replay_cli", "IMU_RATE_NEEDED_HZ", "EXIT_NO_SOLUTION"]
+           "why_no_solution", "ReplayResult", "plot_replay", "plot_aid_status", "aid_status_series", "run_replay_cli",
+           "IMU_RATE_NEEDED_HZ", "EXIT_NO_SOLUTION"]

@@ -9,11 +9,22 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from companion.aid_status_record import AidStatusPacer, aid_status_dict, decode_aid_status, encode_aid_status
+from companion.aid_status_record import (
+    AidStatusPacer,
+    aid_status_dict,
+    decode_aid_status,
+    encode_aid_status,
+)
 from companion.config import config_from_dict
 from companion.messages import NavSolution
-from companion.pipeline import (_SOL_V1, SOLUTION_RECORD_VERSION, NavPipeline, decode_solution, encode_solution,
-                                solution_records_equal)
+from companion.pipeline import (
+    _SOL_V1,
+    SOLUTION_RECORD_VERSION,
+    NavPipeline,
+    decode_solution,
+    encode_solution,
+    solution_records_equal,
+)
 
 R_E = np.array([-3976219.5, 3382372.6, 3652513.0])
 
@@ -93,13 +104,13 @@ def test_aid_status_record_is_compact_versioned_and_paced():
 
 def test_fault_matrix_scores_against_the_last_hpl_received_before_the_estimate():
     from sitl.faults import _hpl_for, _named_value_series
-    nv = lambda t, name, v: SimpleNamespace(t_mono_ns=t, msg_type="NAMED_VALUE_FLOAT",  # noqa: E731
+    nv = lambda t, name, v: SimpleNamespace(t_mono_ns=t, msg_type="NAMED_VALUE_FLOAT",
                                             msg=SimpleNamespace(name=name, value=v))
     ap = SimpleNamespace(received=[nv(1_000_000_000, "CC_SIGH", 0.5), nv(1_000_000_100, "CC_HPL", 2.0),
                                    nv(1_100_000_100, "CC_HPL", 3.0), nv(1_200_000_100, "CC_HPL", -1.0)])
     t, v = _named_value_series(ap, "CC_HPL")
     assert t == [1_000_000_100, 1_100_000_100, 1_200_000_100] and v[:2] == [2.0, 3.0] and math.isnan(v[2])
-    est = lambda t: SimpleNamespace(t_mono_ns=t)                                          # noqa: E731
+    est = lambda t: SimpleNamespace(t_mono_ns=t)
     assert math.isnan(_hpl_for(est(999_000_000), t, v))            # before any CC_HPL: 3 sigma is used
     assert _hpl_for(est(1_100_000_000), t, v) == 2.0               # not the later (larger) one
     assert _hpl_for(est(1_150_000_000), t, v) == 3.0

@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from companion.nav.chi2 import chi2_ppf
-from companion.nav.protection import ProtectionLevel, k_factor_h, sigma_major_m, solution_separation
+from companion.nav.protection import (
+    ProtectionLevel,
+    k_factor_h,
+    sigma_major_m,
+    solution_separation,
+)
 
 
 def _random_cov(rng, sig_lo=0.2, sig_hi=3.0):
@@ -141,3 +146,58 @@ def test_protection_level_covers_an_undetected_bias_and_grows_while_coasting():
     assert lv2.hpl_m == max(lv2.hpl_cov_m, lv2.hpl_ss_m) > 2.0 * lv.hpl_m
     pl.reset()
     assert math.isnan(pl.levels(grown).hpl_ss_m)
+
+
+def test_engine_hpl_follows_the_covariance_while_coasting_and_uses_only_fused_pseudoranges():
+    """In the engine: no GNSS -> the HPL is the covariance part and grows with the propagated
+    covariance; a pseudorange epoch's separation terms are built from the rows it fused (a
+    rejected row is left out) and cleared by a re-initialisation."""
+    from companion.messages import ImuSample
+    from companion.nav.earth import C_n_e, geodetic_to_ecef
+    from companion.nav.engine import EngineConfig, NavEngine
+    from companion.nav.filter import LAYOUT, MeasurementBatch, ProcessNoise, UpdateReport
+    from companion.nav.measurements import InsPoint
+    from companion.nav.strapdown import invert_step
+    lat, lon = math.radians(35.0), math.radians(139.0)
+    r0 = geodetic_to_ecef(lat, lon, 100.0)
+    C = C_n_e(lat, lon)
+    v = C @ np.array([10.0, 0.0, 0.0])
+    eng = NavEngine(EngineConfig(noise=ProcessNoise(3e-4, 2e-3, 1e-5, 1e-4)))
+    t0 = 1.4e9
+    eng.initialize(t0, r0, v, C, dict(tilt_rad=1e-2, heading_rad=2e-2, pos_m=0.5, vel_mps=0.1, ba_mps2=0.05,
+                                      bg_radps=1e-3))
+    s0 = eng.solution()
+    hpl0 = s0.extras["hpl_m"]
+    assert hpl0 == s0.extras["hpl_cov_m"] == pytest.approx(k_factor_h(1e-5) * 0.5, rel=1e-6)
+    assert math.isnan(s0.extras["hpl_ss_m"])
+    r, tau = r0, 0.005
+    for k in range(2000):                                   # 10 s of inertial-only navigation
+        dth, dv = invert_step(r, v, C, v, C, tau)
+        eng.process_imu(ImuSample(t0 + (k + 1) * tau, tau, dth, dv))
+        r = r + v * tau
+    s1 = eng.solution()
+    Ch = C.T[0:2]
+    P_h = Ch @ eng.kf.P[LAYOUT.pos, LAYOUT.pos] @ Ch.T
+    assert s1.extras["hpl_m"] == pytest.approx(k_factor_h(1e-5) * sigma_major_m(P_h), rel=1e-9)
+    assert s1.extras["hpl_m"] > 1.5 * hpl0
+    # a pseudorange epoch with one rejected row: the separation covers the fused rows only
+    rng = np.random.default_rng(7)
+    m = 7
+    H = np.zeros((m, LAYOUT.n))
+    los = rng.standard_normal((m, 3))
+    los /= np.linalg.norm(los, axis=1)[:, None]
+    H[:, LAYOUT.pos] = -los
+    H[:, LAYOUT.clk] = 1.0
+    b = MeasurementBatch("pseudorange", [f"G{i:02d}" for i in range(m)], rng.standard_normal(m), H, np.ones(m))
+    acc = np.ones(m, bool)
+    acc[3] = False
+    rep = UpdateReport("pseudorange", b.labels, b.z, np.ones(m), np.zeros(m), acc)
+    ins = InsPoint(eng.t_gps, eng.r_e, eng.v_e, eng.C_b_e, np.zeros(3), 0.0, 0.0)
+    eng._separation(ins, [b], [rep], eng.t_gps)
+    assert eng.protection.last.labels == [lab for i, lab in enumerate(b.labels) if i != 3]
+    s2 = eng.solution()
+    assert s2.extras["hpl_m"] == max(s2.extras["hpl_cov_m"], s2.extras["hpl_ss_m"])
+    assert s2.extras["hpl_ss_m"] > 0
+    eng.initialize(eng.t_gps, eng.r_e, eng.v_e, eng.C_b_e, dict(att_rad=1e-2, pos_m=0.5, vel_mps=0.1, ba_mps2=0.05,
+                                                                 bg_radps=1e-3))
+    assert math.isnan(eng.solution().extras["hpl_ss_m"])

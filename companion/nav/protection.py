@@ -164,5 +164,11 @@ class ProtectionLevel:
                                 float(np.max(ss.test_ratio)))
 
 
-__all__ = ["k_factor_h", "sigma_major_m", "solution_separation", "SolutionSeparation", "ProtectionLevel",
-           "ProtectionLevels"]
+__all__ = [
+    "ProtectionLevel",
+    "ProtectionLevels",
+    "SolutionSeparation",
+    "k_factor_h",
+    "sigma_major_m",
+    "solution_separation",
+]
