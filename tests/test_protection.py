@@ -155,7 +155,12 @@ def test_engine_hpl_follows_the_covariance_while_coasting_and_uses_only_fused_ps
     from companion.messages import ImuSample
     from companion.nav.earth import C_n_e, geodetic_to_ecef
     from companion.nav.engine import EngineConfig, NavEngine
-    from companion.nav.filter import LAYOUT, MeasurementBatch, ProcessNoise, UpdateReport
+    from companion.nav.filter import (
+        LAYOUT,
+        MeasurementBatch,
+        ProcessNoise,
+        UpdateReport,
+    )
     from companion.nav.measurements import InsPoint
     from companion.nav.strapdown import invert_step
     lat, lon = math.radians(35.0), math.radians(139.0)
@@ -164,8 +169,8 @@ def test_engine_hpl_follows_the_covariance_while_coasting_and_uses_only_fused_ps
     v = C @ np.array([10.0, 0.0, 0.0])
     eng = NavEngine(EngineConfig(noise=ProcessNoise(3e-4, 2e-3, 1e-5, 1e-4)))
     t0 = 1.4e9
-    eng.initialize(t0, r0, v, C, dict(tilt_rad=1e-2, heading_rad=2e-2, pos_m=0.5, vel_mps=0.1, ba_mps2=0.05,
-                                      bg_radps=1e-3))
+    eng.initialize(t0, r0, v, C, {"tilt_rad": 1e-2, "heading_rad": 2e-2, "pos_m": 0.5, "vel_mps": 0.1, "ba_mps2": 0.05,
+                                      "bg_radps": 1e-3})
     s0 = eng.solution()
     hpl0 = s0.extras["hpl_m"]
     assert hpl0 == s0.extras["hpl_cov_m"] == pytest.approx(k_factor_h(1e-5) * 0.5, rel=1e-6)
@@ -198,6 +203,6 @@ def test_engine_hpl_follows_the_covariance_while_coasting_and_uses_only_fused_ps
     s2 = eng.solution()
     assert s2.extras["hpl_m"] == max(s2.extras["hpl_cov_m"], s2.extras["hpl_ss_m"])
     assert s2.extras["hpl_ss_m"] > 0
-    eng.initialize(eng.t_gps, eng.r_e, eng.v_e, eng.C_b_e, dict(att_rad=1e-2, pos_m=0.5, vel_mps=0.1, ba_mps2=0.05,
-                                                                 bg_radps=1e-3))
+    eng.initialize(eng.t_gps, eng.r_e, eng.v_e, eng.C_b_e, {"att_rad": 1e-2, "pos_m": 0.5, "vel_mps": 0.1, "ba_mps2": 0.05,
+                                                                 "bg_radps": 1e-3})
     assert math.isnan(eng.solution().extras["hpl_ss_m"])
