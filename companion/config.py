@@ -205,6 +205,15 @@ class OutputConfig:
     gps_input_id: int = _f(0, min=0, max=1)
     named_value_rate_hz: float = _f(1.0, min=0.0, max=10.0,
                                     doc="NAMED_VALUE_FLOAT CC_* to the ground station (status, sigmas); 0 = off")
+    max_hpl_m: float = _f(5.0, min=0.0, max=1000.0, min_exclusive=True,
+                          doc="do not inject when the horizontal protection level (companion.nav.protection, "
+                          "filter.hpl_integrity_risk) exceeds this. 5 m passes DGPS-grade output (sigma_h "
+                          "0.3-0.7 m gives an HPL of 1-3.5 m) and blocks what the autopilot's own GPS would "
+                          "give (a standalone fix of 1.5-2.5 m sigma: an HPL of 7-12 m); in the simulated "
+                          "GNSS outages it stops injection before the true error reaches 2 m")
+    resume_hpl_fraction: float = _f(0.8, min=0.1, max=1.0,
+                                    doc="after a stop on the protection level, inject again only below this "
+                                    "fraction of max_hpl_m (no flapping at the threshold)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -286,6 +295,13 @@ class FilterConfig:
                                        doc="mean NIS of the fused rows of a window above which the filter "
                                        "is inconsistent (1 expected)")
     integrity_probation_max_rejected_fraction: float = _f(0.2, min=0.0, max=1.0)
+    hpl_integrity_risk: float = _f(1e-5, min=1e-12, max=0.1,
+                                   doc="probability that the true horizontal error exceeds the protection "
+                                   "level's fault-free bound (K = sqrt(chi2_ppf(1 - p, 2)): 1e-5 gives 4.8 x "
+                                   "the error ellipse's major axis)")
+    hpl_missed_detection: float = _f(1e-3, min=1e-12, max=0.5,
+                                     doc="missed-detection probability of the solution-separation (one faulty "
+                                     "satellite) part of the protection level")
     gravity_gradient_refresh_m: float = _f(200.0, min=0.0, max=1e6, min_exclusive=True)
 
     def process_noise(self):
@@ -328,6 +344,10 @@ class LogConfig:
                                 doc="flush to the card this often: at most this much is lost at a power cut")
     max_total_bytes: int = _f(1 << 30, min=16384, max=2 ** 40,
                               doc="the log directory's total size; the oldest files are deleted first")
+    aid_status_rate_hz: float = _f(2.0, min=0.0, max=10.0,
+                                   doc="per aid source status records (kind 'aid_status': innovations, test "
+                                   "ratios, protection level) in the field log and on MQTT <prefix>/aid_status; "
+                                   "0 = off")
 
 
 @dataclass(frozen=True, slots=True)

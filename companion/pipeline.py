@@ -52,7 +52,9 @@ one consistent window has passed.
 
 Injection rule (``solution.extras['inject']``): status ``nav`` or ``coasting`` (so not
 ``suspect``: the last epoch was inconsistent; nor ``diverged``/``converging``) and horizontal
-1-sigma <= ``output.max_sigma_h_m`` and vertical <= ``output.max_sigma_v_m``, everything finite.
+1-sigma <= ``output.max_sigma_h_m`` and vertical <= ``output.max_sigma_v_m``, everything finite,
+and the horizontal protection level (``extras['hpl_m']``, companion.nav.protection) <=
+``output.max_hpl_m`` (after a stop on it, below ``output.resume_hpl_fraction`` of it).
 After a stop on sigma, injection resumes below ``output.resume_sigma_fraction`` (0.8) of the
 thresholds, so a sigma hovering at a threshold does not switch it (and announce it) every second.
 IMU samples are screened before integration (companion.nav.imu_screen) with the full scale of
@@ -123,9 +125,11 @@ MODE_CODES = {"none": 0, "tight": 1, "loose": 2}
 MODE_NAMES = {v: k for k, v in MODE_CODES.items()}
 
 # solution record: version, status, inject, mode, reset_counter, imu_count, t_boot_us, t_gps,
-# r_e(3) v_e(3) C_b_e(9) sigma_r(3) sigma_v(3) sigma_att(3), last_gnss_update_t_gps
-_SOL = struct.Struct("<BBBBIQq d 3d 3d 9d 3d 3d 3d d".replace(" ", ""))
-SOLUTION_RECORD_VERSION = 1
+# r_e(3) v_e(3) C_b_e(9) sigma_r(3) sigma_v(3) sigma_att(3), last_gnss_update_t_gps;
+# version 2 appends hpl_m (the horizontal protection level, NaN when there is none)
+_SOL_V1 = struct.Struct("<BBBBIQq d 3d 3d 9d 3d 3d 3d d".replace(" ", ""))
+_SOL = struct.Struct("<BBBBIQq d 3d 3d 9d 3d 3d 3d d d".replace(" ", ""))
+SOLUTION_RECORD_VERSION = 2
 
 
 def encode_solution(sol: NavSolution) -> bytes:
@@ -137,17 +141,28 @@ def encode_solution(sol: NavSolution) -> bytes:
                      *np.asarray(sol.r_e, float).tolist(), *np.asarray(sol.v_e, float).tolist(),
                      *np.asarray(sol.C_b_e, float).reshape(9).tolist(),
                      *np.asarray(sol.sigma_r_n_m, float).tolist(), *np.asarray(sol.sigma_v_n_mps, float).tolist(),
-                     *np.asarray(sol.sigma_att_rad, float).tolist(), float(sol.last_gnss_update_t_gps))
+                     *np.asarray(sol.sigma_att_rad, float).tolist(), float(sol.last_gnss_update_t_gps),
+                     float(x.get("hpl_m", math.nan)))
 
 
 def decode_solution(data: bytes) -> NavSolution:
-    v = _SOL.unpack(data)
+    """Either record version (1: old field logs, without the protection level)."""
+    v = (_SOL_V1 if data[:1] == b"\x01" else _SOL).unpack(data)
     _ver, st, inj, mode, rc, n, tb, t = v[:8]
     f = np.array(v[8:], float)
+    extras = {"inject": bool(inj), "mode": MODE_NAMES.get(mode, "none"), "imu_count": n, "t_boot_us": tb}
+    if len(f) > 25:
+        extras["hpl_m"] = float(f[25])
     return NavSolution(t, f[0:3], f[3:6], f[6:15].reshape(3, 3), f[15:18], f[18:21], f[21:24],
-                       STATUS_NAMES.get(st, "untrusted"), float(f[24]), rc,
-                       {"inject": bool(inj), "mode": MODE_NAMES.get(mode, "none"), "imu_count": n,
-                        "t_boot_us": tb})
+                       STATUS_NAMES.get(st, "untrusted"), float(f[24]), rc, extras)
+
+
+def solution_records_equal(logged: bytes, produced: bytes) -> bool:
+    """A logged solution record against one this version produced: a version-1 record (an old
+    field log) is compared on the fields it has."""
+    if logged[:1] == b"\x01" and produced[:1] == bytes([SOLUTION_RECORD_VERSION]) and len(logged) == _SOL_V1.size:
+        return logged[1:] == produced[1:_SOL_V1.size]
+    return logged == produced
 
 
 def config_event(config) -> bytes:
@@ -211,11 +226,14 @@ class NavPipeline:
         self._position_hold = False               # the engine holds the GNSS position back
         self._keep_biases_next = False            # ... follows a re-init of the same IMU in flight
         self._sigma_hold = False                  # injection stopped on sigma: resume below the hysteresis
+        self._hpl_hold = False                    # ... on the protection level (its own hysteresis)
         self._imu_full_scale_for: str | None = None
         # GPS_RAW_INT time_usec is when the autopilot got the fix: the receiver's output latency later
         self.gps_raw_latency_s = float(getattr(config.gnss, "gps_raw_latency_s", 0.0))
         # injection resumes after a sigma stop only below this fraction of the thresholds (no flapping)
         self.resume_sigma_fraction = float(getattr(config.output, "resume_sigma_fraction", 0.8))
+        self.max_hpl_m = float(getattr(config.output, "max_hpl_m", math.inf))
+        self.resume_hpl_fraction = float(getattr(config.output, "resume_hpl_fraction", 0.8))
         if self.cluster_streams:
             self._set_imu_full_scale(tuple(t for t, _, _ in self.cluster_streams))
 
@@ -571,6 +589,13 @@ class NavPipeline:
             self._sigma_hold = True       # stopped on sigma (not the first convergence after an init)
         elif inject:
             self._sigma_hold = False
+        # protection level gate (companion.nav.protection, output.max_hpl_m), own hysteresis
+        hpl_ok = self._hpl_ok(sol)
+        if good and not hpl_ok and self.output_state == "injecting":
+            self._hpl_hold = True
+        inject = inject and hpl_ok
+        if inject:
+            self._hpl_hold = False
         sol.extras.update({"inject": inject, "mode": self.mode, "imu_count": self.imu_count,
                            "t_boot_us": self.last_imu_boot_us})
         state = "injecting" if inject else f"not injecting ({sol.status})"
@@ -581,12 +606,23 @@ class NavPipeline:
                 self._event(m.MAV_SEVERITY_INFO, f"nav OK {self.mode}: sigma_h {sig_h:.2f} m")
             elif sol.status not in ("diverged", "converging") and (
                     self.output_state in ("init", "injecting")):     # not every change of the reason
-                self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {sol.status} sigma_h {sig_h:.1f} m")
+                self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {sol.status} sigma_h {sig_h:.1f} m"
+                            + ("" if hpl_ok else f" HPL {float(sol.extras.get('hpl_m', math.nan)):.1f} m"))
             self.output_state = state
         self.counters["solutions"] += 1
         self.counters["solutions injectable" if inject else "solutions withheld"] += 1
         self.last_solution = sol
         return sol
+
+    def _hpl_ok(self, sol: NavSolution) -> bool:
+        """HPL within output.max_hpl_m (below resume_hpl_fraction of it after a stop on it).  The
+        engine's solutions always carry one (NaN = not computable: not injected); a solution
+        without the key (not from the engine) is not gated on it."""
+        if "hpl_m" not in sol.extras:
+            return True
+        hpl = float(sol.extras["hpl_m"])
+        k = self.resume_hpl_fraction if self._hpl_hold else 1.0
+        return math.isfinite(hpl) and hpl <= k * self.max_hpl_m
 
     # ------------------------------------------------------------------ GNSS
     def _rover_epoch(self, epoch: GnssEpoch) -> None:
@@ -759,6 +795,7 @@ class NavPipeline:
         self.last_init_reason = how
         self.output_state = "init"
         self._sigma_hold = False
+        self._hpl_hold = False
         self._event(m.MAV_SEVERITY_INFO, f"nav init #{self.engine.reset_counter}: {how}"
                     + ("; not injected until consistent" if probation else ""))
 
@@ -789,7 +826,9 @@ class NavPipeline:
             filt.update({"status": sol.status, "t_gps": sol.t_gps,
                          "sigma_r_ned_m": [round(float(x), 3) for x in sol.sigma_r_n_m],
                          "sigma_v_ned_mps": [round(float(x), 3) for x in sol.sigma_v_n_mps],
-                         "inject": sol.extras.get("inject")})
+                         "inject": sol.extras.get("inject"),
+                         "protection_level": {k: _round_or_none(sol.extras.get(k)) for k in
+                                              ("hpl_m", "hpl_cov_m", "hpl_ss_m")}})
         return {"filter": filt, "pipeline": dict(self.counters), "engine": dict(self.engine.counters),
                 "aid_sources": self.engine.aid.snapshot(),
                 "imu": dict(self.imu_dec.counters), "time_map": dict(self.time_map.counters),
@@ -806,5 +845,9 @@ class NavPipeline:
                 "decoders": {names[u]: dict(d.counters) for u, (_, _, d) in enumerate(self.cluster_streams)}}
 
 
-__all__ = ["NavPipeline", "InitSigmas", "encode_solution", "decode_solution", "config_event",
+def _round_or_none(x, nd: int = 3):
+    return round(float(x), nd) if x is not None and math.isfinite(float(x)) else None
+
+
+__all__ = ["NavPipeline", "solution_records_equal", "InitSigmas", "encode_solution", "decode_solution", "config_event",
            "STATUS_CODES", "REINIT_GAP_S", "RAW_TIMEOUT_S"]

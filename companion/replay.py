@@ -5,8 +5,13 @@ Field logs (``*.cflog``, a file, a rotated directory or a stem): the configurati
 log's ``event`` record (``--config`` overrides it, and then equality is not expected).  Every
 ``mavlink``/``ubx``/``rtcm`` record is fed in order; the solutions produced are compared, in
 order, with the logged ``solution`` records by their binary encoding (every float64 bit, status,
-injection flag, reset counter, IMU time stamp): the report counts identical and differing
-solutions and names the first difference.
+injection flag, reset counter, IMU time stamp, protection level; a version-1 record of an older
+log on the fields it has): the report counts identical and differing solutions and names the
+first difference.  The per aid source status records (kind ``aid_status``, outputs like the
+solutions) are recomputed at the logged configuration's rate and compared with the logged ones
+when the log has them; ``--plot PATH`` writes a second figure ``<stem>.aid<suffix>`` from the
+recomputed ones (innovations and test ratios per source, the HPL against sigma_h), so an old log
+without the records gets it too.
 
 MAVLink telemetry logs (``.tlog``: 8-byte big-endian UNIX-microsecond time + one MAVLink frame,
 as written by MAVProxy / Mission Planner / QGroundControl): every frame is fed as a ``mavlink``
@@ -39,7 +44,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .pipeline import NavPipeline, encode_solution
+from .aid_status_record import KIND as AID_KIND
+from .aid_status_record import AidStatusPacer
+from .pipeline import NavPipeline, encode_solution, solution_records_equal
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +76,26 @@ class ReplayResult:
     truth_score: dict = field(default_factory=dict)  # against the log's truth (SIM), if any
     time_base: dict = field(default_factory=dict)   # DataFlash: boot -> GPS time
     tracks: dict = field(default_factory=dict)      # name -> (N, 3) lat deg, lon deg, alt m (plot)
+    # per aid source status (companion.aid_status_record): recomputed by the replay (objects) and
+    # as logged (payload bytes; none in a log older than the record kind)
+    aid_status: list = field(default_factory=list)
+    aid_status_produced: list = field(default_factory=list)
+    aid_status_logged: list = field(default_factory=list)
 
     def comparison(self) -> dict:
         n = min(len(self.logged), len(self.produced))
-        same = sum(1 for a, b in zip(self.logged, self.produced) if a == b)
-        first = next((i for i, (a, b) in enumerate(zip(self.logged, self.produced)) if a != b), None)
-        return {"logged_solutions": len(self.logged), "replayed_solutions": len(self.produced),
-                "identical": same, "differing": n - same + abs(len(self.logged) - len(self.produced)),
-                "first_difference_index": first,
-                "bit_for_bit": bool(self.logged) and same == len(self.logged) == len(self.produced)}
+        eq = [solution_records_equal(a, b) for a, b in zip(self.logged, self.produced)]
+        same = sum(eq)
+        first = next((i for i, e in enumerate(eq) if not e), None)
+        out = {"logged_solutions": len(self.logged), "replayed_solutions": len(self.produced),
+               "identical": same, "differing": n - same + abs(len(self.logged) - len(self.produced)),
+               "first_difference_index": first,
+               "bit_for_bit": bool(self.logged) and same == len(self.logged) == len(self.produced)}
+        if self.aid_status_logged:
+            la, pa = self.aid_status_logged, self.aid_status_produced
+            out["aid_status"] = {"logged": len(la), "replayed": len(pa),
+                                 "identical": sum(1 for a, b in zip(la, pa) if a == b)}
+        return out
 
 
 class _Progress:
@@ -116,6 +134,7 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
     total = sum(f.stat().st_size for f in reader.files)
     res = ReplayResult(config_from="--config" if config is not None else "")
     pipe = NavPipeline(config) if config is not None else None
+    pacer = None
     prog = _Progress(total, progress)
     done_files = 0
     cur_file = None
@@ -131,6 +150,9 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
         if k == "solution":
             res.logged.append(bytes(rec.payload))
             continue
+        if k == AID_KIND:                   # an output of the service, like 'solution'
+            res.aid_status_logged.append(bytes(rec.payload))
+            continue
         if k == "event":
             if pipe is None:
                 try:
@@ -145,9 +167,16 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
             continue
         if pipe is None:
             continue
-        for sol in pipe.feed(k, rec.t_mono_ns, rec.payload):
+        if pacer is None:
+            pacer = AidStatusPacer(getattr(pipe.cfg.log, "aid_status_rate_hz", 0.0))
+        sols = pipe.feed(k, rec.t_mono_ns, rec.payload)
+        for sol in sols:
             res.solutions.append(sol)
             res.produced.append(encode_solution(sol))
+        if sols:                            # as the service: right after the feed that produced them
+            for obj, payload in pacer.records(pipe, sols):
+                res.aid_status.append(obj)
+                res.aid_status_produced.append(payload)
     prog.update(total, final=True)
     res.elapsed_s = time.perf_counter() - t0
     st = reader.stats
@@ -230,13 +259,16 @@ def replay_tlog(path, config=None, progress: bool = False, needed_imu_hz: float 
         res.elapsed_s = time.perf_counter() - t0
         return res
     pipe = NavPipeline(cfg)
+    pacer = AidStatusPacer(cfg.log.aid_status_rate_hz)
     prog = _Progress(len(msgs), progress)
     for k, (t_ns, msg) in enumerate(msgs):
         res.records += 1
         prog.update(k)
-        for sol in pipe.feed("mavlink", t_ns, bytes(msg.get_msgbuf())):
+        sols = pipe.feed("mavlink", t_ns, bytes(msg.get_msgbuf()))
+        for sol in sols:
             res.solutions.append(sol)
             res.produced.append(encode_solution(sol))
+        res.aid_status += [obj for obj, _ in pacer.records(pipe, sols)] if sols else []
     prog.update(len(msgs), final=True)
     res.elapsed_s = time.perf_counter() - t0
     res.pipeline_health = pipe.health()
@@ -332,14 +364,17 @@ def replay_dataflash(path, config=None, progress: bool = False, t_start_s: float
     if earth:
         res.notes.append("SITL gyros do not sense the Earth's rotation: added from ATT")
     pipe = NavPipeline(cfg)
+    pacer = AidStatusPacer(cfg.log.aid_status_rate_hz)
     prog = _Progress(len(imu), progress)          # about one message per IMU sample
     for t_us, msg in iter_mavlink_messages(dlog, dataclasses.replace(opts, earth_rate=earth), tb):
         res.records += 1
         if not res.records & 1023:
             prog.update(res.records)
-        for sol in pipe.feed_mavlink_record(t_us * 1000, msg):
+        sols = pipe.feed_mavlink_record(t_us * 1000, msg)
+        for sol in sols:
             res.solutions.append(sol)
             res.produced.append(encode_solution(sol))
+        res.aid_status += [obj for obj, _ in pacer.records(pipe, sols)] if sols else []
     prog.update(len(imu), final=True)
     res.pipeline_health = pipe.health()
     sols = [s for s in res.solutions if np.all(np.isfinite(s.r_e))]
@@ -409,6 +444,7 @@ def _sol_json(sol) -> dict:
         return [float(x) if math.isfinite(float(x)) else None for x in np.asarray(a, float)]
     return {"t_gps": sol.t_gps, "r_e": f(sol.r_e), "status": sol.status, "sigma_r_ned_m": f(sol.sigma_r_n_m),
             "sigma_v_ned_mps": f(sol.sigma_v_n_mps), "inject": sol.extras.get("inject"),
+            "hpl_m": f([sol.extras.get("hpl_m", math.nan)])[0],
             "reset_counter": sol.reset_counter}
 
 
@@ -454,6 +490,84 @@ def plot_replay(res: ReplayResult, path: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    if sols:
+        plot_aid_status(res, aid_status_plot_path(path))
+
+
+def aid_status_plot_path(path: str) -> str:
+    """The second figure of ``--plot PATH``: ``<stem>.aid<suffix>`` beside it."""
+    p = Path(path)
+    return str(p.with_name(p.stem + ".aid" + (p.suffix or ".png")))
+
+
+MAX_PLOTTED_SOURCES = 6
+
+
+def aid_status_series(records: list) -> dict:
+    """Per source: (t_gps, row test ratio, row innovation, accepted) of every row of every distinct
+    update in the aid-status records (a source repeated unchanged between records counted once)."""
+    out: dict[str, list] = {}
+    seen: dict[str, float] = {}
+    for rec in records:
+        for name, st in rec.get("sources", {}).items():
+            t = st.get("t_gps")
+            if t is None or seen.get(name) == t:
+                continue
+            seen[name] = t
+            rows = out.setdefault(name, [])
+            for ratio, innov, acc in zip(st.get("test_ratio", []), st.get("innovation", []), st.get("accepted", [])):
+                rows.append((t, np.nan if ratio is None else ratio, np.nan if innov is None else innov, bool(acc)))
+    return {k: np.array(v, float).reshape(-1, 4) for k, v in out.items() if v}
+
+
+def plot_aid_status(res: ReplayResult, path: str) -> None:
+    """Innovations and test ratios per aid source over time, and the HPL against sigma_h.  The
+    aid-source series come from the replay's own records (recomputed, companion.aid_status_record:
+    the same as the logged ones when the replay is bit for bit, and available for old logs and
+    tlog/DataFlash replays too); HPL and sigma_h from the replayed solutions."""
+    from .extras import pyplot
+    plt = pyplot("companion replay --plot")
+    sols = [s for s in res.solutions if np.all(np.isfinite(s.r_e))]
+    series = aid_status_series(res.aid_status)
+    names = sorted(series, key=lambda k: -len(series[k]))[:MAX_PLOTTED_SOURCES]
+    t0 = sols[0].t_gps if sols else 0.0
+    fig, axes = plt.subplots(len(names) + 1, 2, figsize=(12, 2.4 * (len(names) + 1)), squeeze=False, sharex=True)
+    for row, name in enumerate(names):
+        a = series[name]
+        acc = a[:, 3] > 0.5
+        ai, ar = axes[row]
+        ai.plot(a[acc, 0] - t0, a[acc, 2], ".", ms=2, label="fused")
+        ai.plot(a[~acc, 0] - t0, a[~acc, 2], "x", ms=3, color="tab:red", label="rejected")
+        ai.set_ylabel(f"{name}\ninnovation")
+        ar.semilogy(a[acc, 0] - t0, np.maximum(a[acc, 1], 1e-6), ".", ms=2, label="fused")
+        ar.semilogy(a[~acc, 0] - t0, np.maximum(a[~acc, 1], 1e-6), "x", ms=3, color="tab:red", label="rejected")
+        ar.axhline(1.0, color="k", lw=0.6)
+        ar.set_ylabel("test ratio")
+        if row == 0:
+            ai.set_title("innovation per row (m, m/s or rad)")
+            ar.set_title("test ratio per row (> 1 rejected by the gate)")
+            ar.legend(loc="upper right", fontsize=7)
+    ah, ax2 = axes[-1]
+    if sols:
+        t = np.array([s.t_gps for s in sols]) - t0
+        sig_h = np.array([math.hypot(float(s.sigma_r_n_m[0]), float(s.sigma_r_n_m[1])) for s in sols])
+        hpl = np.array([float(s.extras.get("hpl_m", np.nan)) for s in sols])
+        inj = np.array([bool(s.extras.get("inject")) for s in sols])
+        ah.semilogy(t, hpl, "-", lw=0.9, label="HPL")
+        ah.semilogy(t, sig_h, "-", lw=0.9, label="sigma_h")
+        ah.set_ylabel("[m]")
+        ah.set_xlabel("time [s]")
+        ah.legend(fontsize=7)
+        ah.set_title("protection level against sigma_h (replayed solutions)")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ax2.plot(t, hpl / sig_h, "-", lw=0.9, label="HPL / sigma_h")
+        ax2.plot(t, inj.astype(float), "-", lw=0.6, color="0.5", label="injected (1/0)")
+        ax2.set_xlabel("time [s]")
+        ax2.legend(fontsize=7)
+    fig.suptitle(f"aid sources (recomputed by the replay: {len(res.aid_status)} records)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def _print_summary(res: ReplayResult, c: dict) -> None:
@@ -477,6 +591,9 @@ def _print_summary(res: ReplayResult, c: dict) -> None:
               f"identical {c['identical']}, differing {c['differing']}"
               + (f", first difference at #{c['first_difference_index']}" if c["first_difference_index"] is not None else "")
               + ("  -> BIT FOR BIT" if c["bit_for_bit"] else ""))
+        if "aid_status" in c:
+            a = c["aid_status"]
+            print(f"aid status records: {a['replayed']} replayed, {a['logged']} logged; identical {a['identical']}")
     else:
         modes = sorted({str(s.extras.get("mode")) for s in res.solutions})
         print(f"solutions: {len(res.solutions)} (mode {', '.join(modes) or 'none'}; forward filter only)")
@@ -511,7 +628,7 @@ def run_replay_cli(args) -> int:
         print(f"wrote {args.json}")
     if args.plot and res.solutions:
         plot_replay(res, args.plot)
-        print(f"wrote {args.plot}")
+        print(f"wrote {args.plot} and {aid_status_plot_path(args.plot)}")
     if res.refusal:
         print(f"error: {args.log}: {res.refusal}", file=sys.stderr)
         return EXIT_NO_SOLUTION
@@ -532,4 +649,5 @@ def run_replay_cli(args) -> int:
 
 
 __all__ = ["replay", "replay_field_log", "replay_tlog", "replay_dataflash", "dataflash_config", "imu_rate_check",
-           "why_no_solution", "ReplayResult", "plot_replay", "run_replay_cli", "IMU_RATE_NEEDED_HZ", "EXIT_NO_SOLUTION"]
+           "why_no_solution", "ReplayResult", "plot_replay", "plot_aid_status", "aid_status_series", "run_replay_cli",
+           "IMU_RATE_NEEDED_HZ", "EXIT_NO_SOLUTION"]

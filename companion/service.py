@@ -14,7 +14,9 @@
   produces solutions by decimating the IMU stream, so ``companion replay`` of the log reproduces
   every ``solution`` record bit for bit.  Frames that fail the MAVLink CRC are counted by the link
   and never reach the log or the pipeline (they carry nothing usable).
-* **Outputs**: each solution is logged (kind ``solution``, :func:`~companion.pipeline.encode_solution`)
+* **Outputs**: each solution is logged (kind ``solution``, :func:`~companion.pipeline.encode_solution`;
+  the per aid source status at ``log.aid_status_rate_hz`` as kind ``aid_status``,
+  :mod:`companion.aid_status_record`, also on MQTT ``<prefix>/aid_status``)
   and, when the pipeline marks it injectable (status nav/coasting within the configured sigmas),
   sent at once -- no timer, no queue: VISION_POSITION_ESTIMATE (default, ``reset_counter`` =
   number of filter (re)initialisations, time stamp = boot time of the IMU sample the estimate is
@@ -107,6 +109,8 @@ class Service:
         self.nmea = None                        # NmeaSink when [nmea] is enabled
         self._nmea_slot = None
         self._named_value_slot = None
+        from .aid_status_record import AidStatusPacer
+        self._aid_status = AidStatusPacer(getattr(config.log, "aid_status_rate_hz", 0.0))
         self._last_rtcm_mono_ns = None
         self._fragmenter = None
         from .sdnotify import SystemdNotifier
@@ -297,6 +301,7 @@ class Service:
                 self._send_estimate(sol)
             else:
                 self.counters["estimates withheld"] += 1
+        self._aid_status_records(sols)
         tc = self.cfg.telemetry
         if self.telemetry is not None and sols:
             now = time.monotonic()
@@ -307,6 +312,14 @@ class Service:
             self._send_nmea(sols[-1])
         if self.cfg.output.named_value_rate_hz > 0 and sols:
             self._send_named_values(sols[-1])
+
+    def _aid_status_records(self, sols) -> None:
+        """Per aid source status (companion.aid_status_record) at log.aid_status_rate_hz of GPS
+        time: a field log record of its own, and MQTT <prefix>/aid_status."""
+        for obj, payload in self._aid_status.records(self.pipeline, sols):
+            self._record("aid_status", time.monotonic_ns(), payload)
+            if self.telemetry is not None:
+                self.telemetry.publish_aid_status(obj)
 
     def _send_named_values(self, sol) -> None:
         """The companion's state for the ground station (companion.io.gcs_values), paced by GPS time."""
@@ -536,7 +549,7 @@ class Service:
         return (f"health: mavlink {r.get('mavlink', 0):.0f}/s rtcm {r.get('rtcm', 0):.1f}/s ubx {r.get('ubx', 0):.1f}/s; "
                 f"rover epochs {h['pipeline'].get('rover epochs', 0)} base {h['engine'].get('base epochs', 0)}; "
                 f"filter {f.get('status', 'init')} mode {f.get('mode')} init#{f.get('reset_counter')} "
-                f"sigma NED {sig}; out {sum(v for k, v in h['outputs'].items() if k.startswith('sent ') and 'STATUS' not in k)} "
+                f"sigma NED {sig} HPL {f.get('protection_level', {}).get('hpl_m')}; out {sum(v for k, v in h['outputs'].items() if k.startswith('sent ') and 'STATUS' not in k)} "
                 f"withheld {h['outputs'].get('estimates withheld', 0)}; rejected {rej}; "
                 f"link {'up' if link.get('connected') else 'down'} bad {link.get('bad_data', 0)} "
                 f"reboots {h['pipeline'].get('autopilot reboots', 0)} restarts {sum(h['task_restarts'].values())}"

@@ -5,9 +5,15 @@ The simulated flight (``sitl.fly``: the emulated autopilot, the base station beh
 what the emulated autopilot *received* is scored:
 
 * ``estimates_received``;
-* ``hmi_fraction``: share of received estimates whose true horizontal error exceeds 3 x the
-  horizontal sigma they carried (``sqrt(var_x + var_y)`` of VISION_POSITION_ESTIMATE's covariance,
-  the service's own sigma_h) -- hazardously misleading information;
+* ``hmi_fraction``: share of received estimates whose true horizontal error exceeds the
+  horizontal protection level sent with them -- hazardously misleading information.  The
+  injected messages have no field for it: the companion's NAMED_VALUE_FLOAT ``CC_HPL`` (sent at
+  ``HPL_NAMED_VALUE_RATE_HZ`` in these flights) is matched by receive time, the last one received
+  at or before the estimate (it comes right after the estimate of its own solution, so an
+  estimate is scored against the previous solution's HPL: never a later, larger one).  Without
+  a CC_HPL (none received yet, or older than ``HPL_MAX_AGE_S``) the bound is 3 x the horizontal
+  sigma the estimate carried (``sqrt(var_x + var_y)`` of VISION_POSITION_ESTIMATE's covariance,
+  the service's own sigma_h); ``hmi_reference`` counts which bound each estimate was scored on;
 * ``max_injected_error_h_m``;
 * ``injection_gap_s``: the longest time without an estimate after the first one (to the end of the
   flight);
@@ -36,6 +42,8 @@ WHOLE_FLIGHT_END_S = 30.0
 RECOVERY_WINDOW_S = 20.0
 RECOVERED_ERROR_H_M = 1.0
 HMI_SIGMA_FACTOR = 3.0
+HPL_NAMED_VALUE_RATE_HZ = 10.0      # the companion's NAMED_VALUE_FLOAT rate in these flights (its maximum)
+HPL_MAX_AGE_S = 0.5                 # a CC_HPL older than this (receive time) is not matched to an estimate
 #: RAW_IMU's int16 full scale in mG, as m/s^2 (what a clipped ArduPilot accelerometer reports)
 RAW_IMU_FULL_SCALE_MPS2 = 32.767 * G_MPS2
 
@@ -90,19 +98,48 @@ def _sigma_h_m(r) -> float:
     return math.sqrt(max(cov[0], 0.0) + max(cov[6], 0.0))
 
 
+def _named_value_series(ap, name: str) -> tuple[list, list]:
+    """(receive times ns, values) of the NAMED_VALUE_FLOAT ``name`` the autopilot received, in order
+    (-1 is what the companion sends for a non-finite value: kept as NaN)."""
+    t, v = [], []
+    for r in ap.received:
+        if r.msg_type != "NAMED_VALUE_FLOAT":
+            continue
+        nm = r.msg.name
+        nm = (nm.decode("ascii", "replace") if isinstance(nm, bytes) else str(nm)).rstrip("\x00")
+        if nm == name:
+            t.append(r.t_mono_ns)
+            x = float(r.msg.value)
+            v.append(x if x >= 0.0 else math.nan)
+    return t, v
+
+
+def _hpl_for(r, hpl_t: list, hpl_v: list) -> float:
+    """The CC_HPL received last at or before estimate ``r`` (NaN: none recent enough)."""
+    import bisect
+    k = bisect.bisect_right(hpl_t, r.t_mono_ns) - 1
+    if k < 0 or r.t_mono_ns - hpl_t[k] > HPL_MAX_AGE_S * 1e9:
+        return math.nan
+    return hpl_v[k]
+
+
 def score_fault(ap, sim, case: FaultCase, duration_s: float) -> dict:
     """The matrix's figures for one flight, from the estimates the emulated autopilot received."""
     from .fly import scored_estimates
-    t_rel, err_h, sig_h = [], [], []
+    hpl_t, hpl_v = _named_value_series(ap, "CC_HPL")
+    t_rel, err_h, sig_h, hpl = [], [], [], []
     for r, e in scored_estimates(ap, sim):
         if e is None:
             continue
         t_rel.append(e[1] - ap.t0)
         err_h.append(e[3])
         sig_h.append(_sigma_h_m(r))
-    t, eh, sh = np.array(t_rel), np.array(err_h), np.array(sig_h)
+        hpl.append(_hpl_for(r, hpl_t, hpl_v))
+    t, eh, sh, hp = np.array(t_rel), np.array(err_h), np.array(sig_h), np.array(hpl)
     n = len(t)
-    hmi = int(np.sum(~(eh <= HMI_SIGMA_FACTOR * sh))) if n else 0      # NaN sigma counts as misleading
+    on_hpl = np.isfinite(hp)
+    bound = np.where(on_hpl, hp, HMI_SIGMA_FACTOR * sh)
+    hmi = int(np.sum(~(eh <= bound))) if n else 0      # a NaN bound counts as misleading
     order = np.sort(t)
     gaps = np.diff(np.concatenate([order, [duration_s]])) if n else np.array([duration_s])
     end = case.window_s[1]
@@ -114,6 +151,10 @@ def score_fault(ap, sim, case: FaultCase, duration_s: float) -> dict:
         "estimates_received": n,
         "hmi_fraction": round(hmi / n, 5) if n else 0.0,
         "hmi_estimates": hmi,
+        "hmi_reference": {"hpl": int(np.sum(on_hpl)), "3_sigma_h": int(n - np.sum(on_hpl))},
+        "max_hpl_m": round(float(hp[on_hpl].max()), 3) if on_hpl.any() else None,
+        "min_hpl_over_error": round(float(np.min(hp[on_hpl] / np.maximum(eh[on_hpl], 1e-9))), 3)
+        if on_hpl.any() else None,
         "max_injected_error_h_m": round(float(eh.max()), 3) if n else None,
         "rms_h_m": round(float(np.sqrt(np.mean(eh ** 2))), 4) if n else None,
         "rms_h_after_recovery_m": (round(float(np.sqrt(np.mean(eh[after & (t >= end + (recovery or 0))] ** 2))), 4)
@@ -129,7 +170,8 @@ async def _fly_case(case: FaultCase, *, duration_s: float, speedup: float, out_d
     from .fly import fly
     captured = {}
     res = await fly("uav", duration_s, speedup, seed=seed, out_dir=str(out_dir / case.name),
-                    faults=Faults(**case.faults), keep_autopilot=captured, handle_signals=True, **case.fly)
+                    faults=Faults(**case.faults), keep_autopilot=captured, handle_signals=True,
+                    named_value_rate_hz=HPL_NAMED_VALUE_RATE_HZ, **case.fly)
     if res["interrupted"]:          # Ctrl-C/SIGTERM: that flight's processes are stopped; stop the matrix
         raise KeyboardInterrupt
     row = score_fault(captured["ap"], captured["sim"], case, res["duration_s"])
@@ -155,15 +197,19 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def format_rows(rows: list[dict], summary: dict) -> str:
-    head = f"{'fault':26s} {'est':>5s} {'HMI':>8s} {'max err h':>10s} {'gap':>7s} {'recovered':>10s}"
+    head = (f"{'fault':26s} {'est':>5s} {'HMI':>8s} {'on HPL':>6s} {'max err h':>10s} {'max HPL':>8s} "
+            f"{'HPL/err':>7s} {'gap':>7s} {'recovered':>10s}")
     lines = [head, "-" * len(head)]
     for r in rows:
         rec = "n/a" if r["fault"] == "control" else ("yes" if r["recovered"] else "NO")
         if r["recovered"] and r["fault"] != "control":
             rec += f" {r['recovery_s']:.1f}s"
         mx = "n/a" if r["max_injected_error_h_m"] is None else f"{r['max_injected_error_h_m']:.2f} m"
-        lines.append(f"{r['fault']:26s} {r['estimates_received']:5d} {r['hmi_fraction']:8.4f} {mx:>10s} "
-                     f"{r['injection_gap_s']:6.1f}s {rec:>10s}")
+        on_hpl = r.get("hmi_reference", {}).get("hpl", 0)
+        mh = "n/a" if r.get("max_hpl_m") is None else f"{r['max_hpl_m']:.2f} m"
+        ratio = "n/a" if r.get("min_hpl_over_error") is None else f"{r['min_hpl_over_error']:.2f}"
+        lines.append(f"{r['fault']:26s} {r['estimates_received']:5d} {r['hmi_fraction']:8.4f} {on_hpl:6d} {mx:>10s} "
+                     f"{mh:>8s} {ratio:>7s} {r['injection_gap_s']:6.1f}s {rec:>10s}")
     lines.append(f"overall: all recovered {summary['all_recovered']}, HMI fraction {summary['hmi_fraction']:.4f}, "
                  f"max injected error {summary['max_injected_error_h_m']} m; control RMS h "
                  f"{summary['control_rms_h_m']} m, control HMI {summary['control_hmi_fraction']}")

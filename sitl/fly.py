@@ -73,7 +73,8 @@ def free_udp_port() -> int:
 def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: float, output_mode: str,
                           max_sigma_h_m: float, max_sigma_v_m: float, leap_seconds: int, imu_message: str,
                           gnss_source: str = "mavlink_serial_control", imu_units: int = 1,
-                          moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None) -> str:
+                          moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None,
+                          named_value_rate_hz: float | None = None, max_hpl_m: float | None = None) -> str:
     from .tuning import tuning_for
     t = tuning_for(sim.scenario)
     n = t.noise
@@ -100,7 +101,9 @@ def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: 
                   "version = 1", "timeout_s = 10.0", ""]
     lines += [
         "[output]", f'mode = "{output_mode}"', f"rate_hz = {float(rate_hz)}", "set_ekf_origin = true",
-        f"max_sigma_h_m = {float(max_sigma_h_m)}", f"max_sigma_v_m = {float(max_sigma_v_m)}", "",
+        f"max_sigma_h_m = {float(max_sigma_h_m)}", f"max_sigma_v_m = {float(max_sigma_v_m)}",
+        *([f"named_value_rate_hz = {float(named_value_rate_hz)!r}"] if named_value_rate_hz is not None else []),
+        *([f"max_hpl_m = {float(max_hpl_m)!r}"] if max_hpl_m is not None else []), "",
         "[filter]",
         f"gyro_arw_rad_per_sqrt_s = {n.gyro_arw_rad_per_sqrt_s!r}",
         f"accel_vrw_mps_per_sqrt_s = {n.accel_vrw_mps_per_sqrt_s!r}",
@@ -321,13 +324,17 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               moving_baseline_b_m=None, gps_yaw_sigma_deg: float | None = None,
               system_time_late_s: float = 0.0, progress: bool = False, handle_signals: bool = False,
               base_outage_s: tuple[float, float] | None = None, keep_autopilot: dict | None = None,
-              extra_config: str = "") -> dict:
+              extra_config: str = "", named_value_rate_hz: float | None = None,
+              max_hpl_m: float | None = None) -> dict:
     """Fly once; ``progress`` prints set-up steps and status lines to stderr, ``handle_signals`` makes
     the first SIGINT/SIGTERM a clean stop (the result then has ``interrupted`` True and the figures
     of the part that was flown).  ``base_outage_s`` (start, end from the start of the flight): the
     base station sends nothing then.  ``keep_autopilot`` (a dict) receives the emulated autopilot
     and the simulation ('ap', 'sim') for scoring of one's own.  ``extra_config``: TOML sections
-    appended to the companion's configuration (e.g. an ``[nmea]`` output)."""
+    appended to the companion's configuration (e.g. an ``[nmea]`` output).  ``named_value_rate_hz``:
+    the companion's NAMED_VALUE_FLOAT rate (default: its configuration's), e.g. to score against
+    the protection level it sends (CC_HPL); ``max_hpl_m``: its protection-level injection gate
+    (default: its configuration's, ``output.max_hpl_m``)."""
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     prog = _Progress(progress)
@@ -371,7 +378,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                                          max_sigma_v_m=max_sigma_v_m, leap_seconds=leap_seconds,
                                          imu_message=imu_message, gnss_source=gnss_source, imu_units=imu_units,
                                          moving_baseline_b_m=moving_baseline_b_m,
-                                         gps_yaw_sigma_deg=gps_yaw_sigma_deg)
+                                         gps_yaw_sigma_deg=gps_yaw_sigma_deg,
+                                         named_value_rate_hz=named_value_rate_hz, max_hpl_m=max_hpl_m)
         cfg_path = out / "companion.toml"
         cfg_path.write_text(cfg_text + ("\n" + extra_config if extra_config else ""))
         ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,

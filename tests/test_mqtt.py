@@ -92,6 +92,7 @@ def test_solution_json_is_plain_and_in_degrees():
     assert d["lat_deg"] == pytest.approx(34.4) and d["height_m"] == pytest.approx(50.0, abs=1e-6)
     assert d["yaw_deg"] == pytest.approx(45.0) and d["v_n_mps"] == pytest.approx([1.0, 2.0, 0.5])
     assert d["last_gnss_update_t_gps"] is None and d["status"] == "nav"
+    assert d["hpl_m"] is None and d["inject"] is False          # no protection level in this solution
 
 
 @needs_mosquitto
@@ -145,7 +146,7 @@ def test_telemetry_publisher_topics_and_reconnect(broker):
         pub = MqttTelemetryPublisher("127.0.0.1", broker.port, "uav7", rate_hz=20, reconnect_initial_s=0.1,
                                      reconnect_max_s=0.3)
         runner = asyncio.create_task(pub.run())
-        got: dict[str, list] = {"uav7/solution": [], "uav7/health": []}
+        got: dict[str, list] = {"uav7/solution": [], "uav7/health": [], "uav7/aid_status": []}
 
         async def listen():
             while True:
@@ -160,8 +161,9 @@ def test_telemetry_publisher_topics_and_reconnect(broker):
         assert await _wait(lambda: pub.connected)
         await asyncio.sleep(0.3)
         pub.publish_health({"link": "up", "imu_samples": 10})
+        pub.publish_aid_status({"v": 1, "hpl_m": 1.5, "sources": {}})
         pub.publish_solution(_solution())
-        assert await _wait(lambda: got["uav7/solution"] and got["uav7/health"])
+        assert await _wait(lambda: got["uav7/solution"] and got["uav7/health"] and got["uav7/aid_status"])
         await asyncio.to_thread(broker.stop)
         assert await _wait(lambda: not pub.connected)
         pub.publish_health({"link": "up", "imu_samples": 20})     # pending while the broker is down
@@ -186,5 +188,6 @@ def test_telemetry_publisher_topics_and_reconnect(broker):
     got, health, pub = asyncio.run(asyncio.wait_for(main(), 25))
     assert got["uav7/solution"][0]["lat_deg"] == pytest.approx(34.4)
     assert got["uav7/health"][0] == {"link": "up", "imu_samples": 10}
+    assert got["uav7/aid_status"][0] == {"v": 1, "hpl_m": 1.5, "sources": {}}
     assert health == {"link": "up", "imu_samples": 20}
     assert pub.counters["disconnects"] == 1

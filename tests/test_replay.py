@@ -1,5 +1,6 @@
 """`companion replay`: a short run's field log replays bit for bit; a .tlog replays (loose)."""
 import json
+import math
 import struct
 import subprocess
 import sys
@@ -21,6 +22,27 @@ def test_replay_bit_for_bit_and_tlog(tmp_path):
     assert c["logged_solutions"] > 100
     assert c["bit_for_bit"], c
     assert c["identical"] == c["logged_solutions"] == c["replayed_solutions"]
+    # the per aid source status records: logged by the service, recomputed identically by the replay
+    assert c["aid_status"]["logged"] > 10 and c["aid_status"]["identical"] == c["aid_status"]["logged"]
+    assert all(math.isfinite(s.extras["hpl_m"]) for s in res.solutions if s.extras["inject"])
+
+    # an old field log (solution records version 1, no aid_status records) still replays bit for bit
+    from companion.io.fieldlog import FieldLogWriter
+    from companion.pipeline import _SOL_V1
+    old = tmp_path / "old_log"
+    w = FieldLogWriter(old)
+    for rec in read_field_log(logdir):
+        if rec.kind == "aid_status":
+            continue
+        payload = rec.payload
+        if rec.kind == "solution":
+            payload = _SOL_V1.pack(1, *_SOL_V1.unpack(payload[:_SOL_V1.size])[1:])
+        w.write(rec.kind, payload, rec.t_mono_ns, rec.t_wall_ns)
+    w.close()
+    res_old = replay(old)
+    c_old = res_old.comparison()
+    assert c_old["bit_for_bit"] and c_old["logged_solutions"] == c["logged_solutions"], c_old
+    assert "aid_status" not in c_old and len(res_old.aid_status) == len(res.aid_status)   # recomputed
 
     # the CLI says so too, and writes JSON and a plot
     js, png = tmp_path / "replay.json", tmp_path / "replay.png"
@@ -31,6 +53,7 @@ def test_replay_bit_for_bit_and_tlog(tmp_path):
     obj = json.loads(js.read_text())
     assert obj["comparison"]["bit_for_bit"] and obj["solutions"][0]["status"] in ("nav", "coasting")
     assert png.stat().st_size > 1000
+    assert (tmp_path / "replay.aid.png").stat().st_size > 1000      # innovations, test ratios, HPL
 
     # the MAVLink part of the field log as a .tlog (8-byte big-endian UNIX us + frame)
     tlog = tmp_path / "flight.tlog"

@@ -18,7 +18,8 @@ followed by records::
     t_mono_ns  i64      receive time, CLOCK_MONOTONIC ns (orders records, measures latency)
     t_wall_ns  i64      receive time, wall clock, ns since the Unix epoch
     kind_len   u8
-    kind       kind_len bytes, ASCII: stream id/kind, e.g. 'mavlink', 'ubx', 'rtcm', 'solution', 'event'
+    kind       kind_len bytes, ASCII: stream id/kind, e.g. 'mavlink', 'ubx', 'rtcm', 'solution', 'event',
+               'aid_status' (companion.aid_status_record: per aid source status, versioned JSON)
     payload    length bytes, raw as received
     crc32      u32      zlib.crc32 of everything from ``length`` through ``payload``
 

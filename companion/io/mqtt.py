@@ -5,8 +5,12 @@ Topics published by :class:`MqttTelemetryPublisher` (``<prefix>`` = ``telemetry.
 * ``<prefix>/solution`` -- JSON of the latest :class:`~companion.messages.NavSolution`
   (:func:`solution_to_json`): ``t_gps``, ``status``, ``lat_deg``, ``lon_deg``, ``height_m``
   (ellipsoidal), ``v_n_mps`` [N, E, D], ``roll_deg``/``pitch_deg``/``yaw_deg``, ``sigma_r_n_m``,
-  ``sigma_v_n_mps``, ``reset_counter``, ``last_gnss_update_t_gps``.  QoS 0, not retained,
-  at most ``rate_hz`` (newer solutions replace older unsent ones).
+  ``sigma_v_n_mps``, ``reset_counter``, ``last_gnss_update_t_gps``, ``hpl_m`` (horizontal
+  protection level, companion.nav.protection; null when there is none), ``inject``.  QoS 0, not
+  retained, at most ``rate_hz`` (newer solutions replace older unsent ones).
+* ``<prefix>/aid_status`` -- the per aid source status record (companion.aid_status_record:
+  innovations, variances, test ratios of each source's last update, the protection level).  QoS 0,
+  not retained, sent with the solution (the newest replaces an unsent one).
 * ``<prefix>/health`` -- JSON dict supplied by the service (counters, link state).  QoS 1,
   **retained**, so a dashboard that subscribes later sees the last health at once.
 
@@ -58,6 +62,8 @@ def solution_to_json(sol: NavSolution) -> dict:
         "sigma_v_n_mps": [float(x) for x in sol.sigma_v_n_mps],
         "reset_counter": int(sol.reset_counter),
         "last_gnss_update_t_gps": _finite_or_none(sol.last_gnss_update_t_gps),
+        "hpl_m": _finite_or_none(float(sol.extras.get("hpl_m", math.nan))),
+        "inject": bool(sol.extras.get("inject")),
     }
 
 
@@ -154,11 +160,13 @@ class MqttTelemetryPublisher:
         self.prefix = topic_prefix.rstrip("/")
         self.solution_topic = f"{self.prefix}/solution"
         self.health_topic = f"{self.prefix}/health"
+        self.aid_status_topic = f"{self.prefix}/aid_status"
         self.min_interval_s = 1.0 / rate_hz
         self.identifier = identifier
         self._backoff = _Backoff(reconnect_initial_s, reconnect_max_s)
         self._solution: dict | None = None
         self._health: dict | None = None
+        self._aid_status: dict | None = None
         self._event = asyncio.Event()
         self.counters: dict[str, int] = {"connects": 0, "disconnects": 0, "errors": 0, "published": 0,
                                          "replaced": 0}
@@ -169,6 +177,11 @@ class MqttTelemetryPublisher:
         if self._solution is not None:
             self.counters["replaced"] += 1
         self._solution = sol if isinstance(sol, dict) else solution_to_json(sol)
+        self._event.set()
+
+    def publish_aid_status(self, obj: dict) -> None:
+        """The per aid source status (sent with the next solution; a newer one replaces it)."""
+        self._aid_status = obj
         self._event.set()
 
     def publish_health(self, health: dict) -> None:
@@ -189,6 +202,14 @@ class MqttTelemetryPublisher:
                 await client.publish(self.health_topic, json.dumps(h, default=str), qos=1, retain=True)
             except aiomqtt.MqttError:
                 self._health = self._health or h
+                raise
+            self.counters["published"] += 1
+        if self._aid_status is not None:
+            a, self._aid_status = self._aid_status, None
+            try:
+                await client.publish(self.aid_status_topic, json.dumps(a, separators=(",", ":")), qos=0)
+            except aiomqtt.MqttError:
+                self._aid_status = self._aid_status or a
                 raise
             self.counters["published"] += 1
         if self._solution is not None:

@@ -39,6 +39,8 @@ from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch,
 from .aid_status import AidSourceBook
 from .imu_screen import ImuScreen
 from .integrity import POSITION_SOURCES, IntegrityLimits, IntegrityMonitor, IntegrityState
+from .chi2 import chi2_ppf
+from .protection import ProtectionLevel
 from .strapdown import strapdown_step_with_force
 
 log = logging.getLogger(__name__)
@@ -130,6 +132,10 @@ class EngineConfig:
     integrity_max_rejected_fraction: float = 0.5
     integrity_max_nis_mean: float = 4.0
     integrity_probation_max_rejected_fraction: float = 0.2
+    # horizontal protection level (companion.nav.protection): the probability that the true error
+    # exceeds the fault-free bound, and the missed-detection probability of a one-satellite fault
+    hpl_integrity_risk: float = 1e-5
+    hpl_missed_detection: float = 1e-3
 
 
 @dataclass
@@ -176,6 +182,8 @@ class NavEngine:
                                     gyro_jump_radps=config.imu_gyro_jump_radps, window=config.imu_median_window,
                                     counters=self.counters) if config.imu_screen_enabled else None
         self.aid = AidSourceBook(config.integrity_window_s)
+        self.protection = ProtectionLevel(config.hpl_integrity_risk, config.hpl_missed_detection,
+                                          math.sqrt(chi2_ppf(config.gate_probability, 1)))
         self.integrity = IntegrityMonitor(IntegrityLimits(
             window_s=config.integrity_window_s, min_updates=config.integrity_min_updates,
             min_rows=config.integrity_min_rows, max_rejected_fraction=config.integrity_max_rejected_fraction,
@@ -250,6 +258,7 @@ class NavEngine:
         self.course_epochs_fused = 0
         self.course_alignment_t_gps = math.nan
         self.aid.clear_windows()
+        self.protection.reset()
         self.integrity.restart(t_gps, probation and self.cfg.integrity_enabled)
         self.initialized = True
         self.reset_counter += 1
@@ -559,7 +568,9 @@ class NavEngine:
                 self.counters[f"{r.kind} rejected: {reason}"] += 1
         self._record(reports, epoch.t_gps)
         rep.reports = reports
-        dx = self.kf.update(batches, self._held_back(reports))
+        fused = self._held_back(reports)
+        self._separation(ins, batches, fused, epoch.t_gps)
+        dx = self.kf.update(batches, fused)
         if any(r.n_accepted for r in reports):
             self._feedback(dx)
             if any(r.n_accepted for r in reports if r.kind in ("pseudorange", "position")):
@@ -574,6 +585,20 @@ class NavEngine:
         if self.on_epoch is not None:
             self.on_epoch(rep)
         return rep
+
+    def _separation(self, ins: InsPoint, batches, reports, t_gps: float) -> None:
+        """Solution separation (companion.nav.protection) of the pseudorange rows about to be fused,
+        against the prior covariance they were gated with."""
+        for b, r in zip(batches, reports):
+            if b.kind != "pseudorange" or r.n_accepted < 2:
+                continue
+            lat, lon, _ = ecef_to_geodetic(ins.r_e)
+            C_h = np.zeros((2, LAYOUT.n))
+            C_h[:, LAYOUT.pos] = C_n_e(lat, lon).T[0:2]
+            acc = r.accepted
+            self.protection.epoch(b.H[acc], b.z[acc], b.r_var[acc], self.kf.P, C_h, t_gps,
+                                  [lab for lab, a in zip(b.labels, acc) if a])
+            return
 
     def _correlation_inflation(self, t_gps: float) -> float:
         """Variance factor for time-correlated pseudorange errors: 1 + 2 tau / T (T = epoch interval)."""
@@ -911,6 +936,8 @@ class NavEngine:
         sig_v = np.sqrt(np.maximum(np.diag(Cen @ P[L.vel, L.vel] @ Cen.T), 0.0))
         sig_a = np.sqrt(np.maximum(np.diag(P[L.att, L.att]), 0.0))
         healthy = bool(np.all(np.isfinite(self.r_e)) and np.all(np.isfinite(P)))
+        Ch = Cen[0:2]
+        pl = self.protection.levels(Ch @ P[L.pos, L.pos] @ Ch.T) if healthy else None
         integrity = self.integrity.state
         if not healthy or math.hypot(sig_r[0], sig_r[1]) > self.cfg.untrusted_sigma_h_m:
             status = "untrusted"
@@ -931,7 +958,9 @@ class NavEngine:
                            status, self.last_gnss_update_t, self.reset_counter,
                            {"clock_bias_m": self.clock_bias_m, "clock_drift_mps": self.clock_drift_mps,
                             "b_a": self.b_a.copy(), "b_g": self.b_g.copy(), "integrity": integrity,
-                            "integrity_reason": self.integrity.reason})
+                            "integrity_reason": self.integrity.reason,
+                            "hpl_m": pl.hpl_m if pl else math.nan, "hpl_cov_m": pl.hpl_cov_m if pl else math.nan,
+                            "hpl_ss_m": pl.hpl_ss_m if pl else math.nan})
 
 
 class _StillnessDetector:
