@@ -26,9 +26,20 @@ def truth_from(records) -> S.Truth:
     hil = records.get("HIL_STATE_QUATERNION", ())
     # 1 s windows: PX4's simulated clock runs at ~0.99x wall time, so a long window would bias
     # the offset floor by the drift within it (5 s x 1 % = 50 ms = 25 cm at 5 m/s)
-    off = S.boot_offset([t for t, _ in att], [m.time_boot_ms * 1e-3 for _, m in att], window_s=1.0)
+    att_recv = np.array([t for t, _ in att])
+    att_boot = np.array([m.time_boot_ms * 1e-3 for _, m in att])
+    off = S.boot_offset(att_recv, att_boot, window_s=1.0)
     t_recv = np.array([t for t, _ in hil])
-    return S.Truth(t_recv - off(t_recv), [m.lat for _, m in hil], [m.lon for _, m in hil],
+    t_boot = t_recv - off(t_recv)
+    # when the harness is busy, datagrams wait in the socket and are read in a burst: their
+    # receive times are late.  PX4 sends the link's messages in order, so a truth sample is no
+    # newer than the ATTITUDE read after it (its own time stamp; +1 SIH step) and no older than
+    # the one read before it
+    k = np.searchsorted(att_recv, t_recv)
+    after = np.where(k < len(att_boot), att_boot[np.minimum(k, len(att_boot) - 1)] + 0.004, np.inf)
+    before = np.where(k > 0, att_boot[np.maximum(k - 1, 0)], -np.inf)
+    t_boot = np.clip(t_boot, before, np.maximum(before, after))
+    return S.Truth(t_boot, [m.lat for _, m in hil], [m.lon for _, m in hil],
                    [S.quat_yaw(m.attitude_quaternion) for _, m in hil])
 
 
