@@ -127,3 +127,18 @@ def test_px4_sitl_arms_hovers_and_flies_a_leg_on_our_estimate(tmp_path):
     assert r["companion_exit_code"] == 0
     assert not math.isnan(r["yaw_rms_deg_ground"]) and r["yaw_rms_deg_ground"] < 5.0
     assert np.isfinite(r["companion_cpu_pct"])
+
+
+def test_ardupilot_command_runs_px4_with_autopilot_px4():
+    import argparse
+
+    from sitl import ardupilot, px4
+    p = argparse.ArgumentParser()
+    sub = p.add_subparsers(dest="cmd")
+    ardupilot.register(sub)
+    px4.register(sub)
+    a = p.parse_args(["ardupilot", "--autopilot", "px4", "--px4-dir", "/nowhere", "--legs", "1"])
+    assert a.func is ardupilot.cmd_ardupilot and a.autopilot == "px4" and a.px4_dir == "/nowhere"
+    assert ardupilot.cmd_ardupilot(a) == 2          # the missing PX4 folder is reported, not raised
+    b = p.parse_args(["px4", "--duration", "5"])
+    assert b.func is px4.cmd_px4 and b.duration == 5.0 and b.out == "out/px4"
