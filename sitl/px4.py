@@ -27,7 +27,7 @@ from pathlib import Path
 from . import ardupilot_score as S
 from .ardupilot import SUMMARY_KEYS, _save_records, say
 from .ardupilot_procs import REPO, CompanionProcess, companion_config
-from .px4_gcs import AUTO_SUB_MODES, OFFBOARD, Px4Gcs, mode_name
+from .px4_gcs import OFFBOARD, Px4Gcs, mode_name
 from .px4_procs import Px4Sitl, dist_problem, find_dist, hardware_only, read_params
 from .px4_result import score
 
@@ -442,4 +442,4 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_px4)
 
 
-__all__ = ["run", "register", "cmd_px4", "AUTO_SUB_MODES"]
+__all__ = ["cmd_px4", "register", "run"]

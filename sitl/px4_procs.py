@@ -159,5 +159,5 @@ class Px4Sitl:
 
 def parse_listener_flags(text: str) -> dict[str, bool] | None:
     """``    cs_ev_pos: True`` lines of ``listener estimator_status_flags`` -> {name: bool}."""
-    flags = {m.group(1): m.group(2) == "True" for m in re.finditer(r"^\s*(\w+): (True|False)\s*$", text, re.M)}
+    flags = {m.group(1): m.group(2) == "True" for m in re.finditer(r"^\s*(\w+): (True|False)\s*$", text, re.MULTILINE)}
     return flags or None

@@ -13,7 +13,13 @@ from __future__ import annotations
 import numpy as np
 
 from . import ardupilot_score as S
-from .ardupilot_result import boot_time_map, our_estimates, position_figures, yaw_figures, _r
+from .ardupilot_result import (
+    _r,
+    boot_time_map,
+    our_estimates,
+    position_figures,
+    yaw_figures,
+)
 from .px4_gcs import mode_name
 
 OUTPUT = "vision"

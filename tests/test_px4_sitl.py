@@ -12,9 +12,15 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from companion.io import mavlink as M
-from sitl.px4 import PARAM_FILE, DEPLOY, imu_noise_overrides, param_value
+from sitl.px4 import DEPLOY, PARAM_FILE, imu_noise_overrides, param_value
 from sitl.px4_gcs import mode_name
-from sitl.px4_procs import dist_problem, find_dist, hardware_only, parse_listener_flags, read_params
+from sitl.px4_procs import (
+    dist_problem,
+    find_dist,
+    hardware_only,
+    parse_listener_flags,
+    read_params,
+)
 from sitl.px4_result import ekf_flag_figures, failsafes
 
 
