@@ -137,9 +137,9 @@ class BootToGpsTime:
       e.g. a UBX epoch matched to the autopilot's reception time): it has priority over
       SYSTEM_TIME for ``refine_hold_s``, during which SYSTEM_TIME only checks for jumps.
     * The offset may drift: :attr:`rate` (s/s) is the least-squares slope of the last
-      ``rate_window`` SYSTEM_TIME offsets and the offset is extrapolated with it.  A real autopilot's clock is off by some
-      ppm; PX4 SITL's lockstep boot clock runs ~1 % slower than UTC, which an offset average alone
-      follows 0.1 s behind, i.e. with a 'jump' every few seconds.
+      ``rate_window`` SYSTEM_TIME offsets and the offset is extrapolated with it.  A real
+      autopilot's clock is off by some ppm; PX4 SITL's lockstep boot clock runs ~1 % slower than
+      UTC, which an offset average alone follows 0.1 s behind, i.e. with a 'jump' every few seconds.
     """
 
     def __init__(self, leap_seconds: int = DEFAULT_LEAP_SECONDS, smoothing: float = 0.1,
