@@ -425,7 +425,8 @@ def add_arguments(p, *, out_default: str = "out/px4") -> None:
     p.add_argument("--px4-dir", help="PX4 SITL folder with start_sih.sh and bin/px4 (default $COMPANION_PX4_DIR, "
                                      "else <repo>/../shared/px4)")
     if not any(a.dest == "duration" for a in p._actions):
-        p.add_argument("--duration", type=float, default=120.0, help="seconds on the ground before arming (default 120)")
+        p.add_argument("--duration", type=float, default=120.0,
+                       help="seconds on the ground before arming (default 120)")
         p.add_argument("--json", help="write the figures as JSON here")
         p.add_argument("--out", default=out_default, help="directory for configs and logs")
         p.add_argument("--legs", type=int, default=4, choices=(1, 2, 3, 4), help="box legs to fly (default 4)")

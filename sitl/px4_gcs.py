@@ -46,7 +46,8 @@ def mode_name(custom_mode: int | None) -> str:
 
 
 class Px4Gcs(Gcs):
-    recorded = RECORDED + ("HIGHRES_IMU", "HIL_STATE_QUATERNION", "DISPLAY_ATTITUDE", "ESTIMATOR_STATUS", "HOME_POSITION")
+    recorded = RECORDED + ("HIGHRES_IMU", "HIL_STATE_QUATERNION", "DISPLAY_ATTITUDE", "ESTIMATOR_STATUS",
+                           "HOME_POSITION")
 
     def __init__(self, gcs_port: int, display_port: int, *, target_system: int = 1, on_statustext=None):
         super().__init__(0, target_system=target_system, on_statustext=on_statustext,
