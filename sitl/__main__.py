@@ -102,8 +102,9 @@ def main(argv=None) -> int:
     faults.register(sub)
     ins_errors.register(sub)
     slips.register(sub)
-    from . import ardupilot
+    from . import ardupilot, px4
     ardupilot.register(sub)
+    px4.register(sub)
     args = p.parse_args(argv)
     return int(args.func(args) or 0)
 

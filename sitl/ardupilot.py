@@ -286,6 +286,11 @@ def format_result(r: dict) -> str:
 
 
 def cmd_ardupilot(args) -> int:
+    if args.autopilot == "px4":         # the same flight on PX4 SITL: sitl/px4.py
+        from .px4 import cmd_px4
+        if args.out == "out/ardupilot":
+            args.out = "out/px4"
+        return cmd_px4(args)
     try:
         res = run(duration_s=args.duration, output=args.output, sitl_bin=args.sitl_bin, out_dir=args.out,
                   legs=args.legs, side_m=args.side, alt_m=args.alt, speed_mps=args.speed,
@@ -320,4 +325,8 @@ def register(subparsers) -> None:
     p.add_argument("--speed", type=float, default=5.0, help="horizontal speed, m/s")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=TOML",
                    help="experiment: override one key of deploy/companion.toml, e.g. filter.zupt_enabled=true")
+    p.add_argument("--autopilot", default="ardupilot", choices=("ardupilot", "px4"),
+                   help="px4: the same flight on PX4 SITL (SIH) in OFFBOARD, as python -m sitl px4")
+    from .px4 import add_arguments
+    add_arguments(p)
     p.set_defaults(func=cmd_ardupilot)

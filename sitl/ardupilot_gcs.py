@@ -30,8 +30,11 @@ RECORDED = ("SIMSTATE", "SIM_STATE", "LOCAL_POSITION_NED", "ATTITUDE", "EKF_STAT
 
 
 class Gcs:
-    def __init__(self, port: int, *, target_system: int = 1, on_statustext=None):
-        self.conn = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=255,
+    recorded = RECORDED          # message types kept in :attr:`records` (PX4's ground station adds its own)
+
+    def __init__(self, port: int, *, target_system: int = 1, on_statustext=None, url: str | None = None):
+        """SITL's SERIAL0 on TCP ``port``; ``url``: another pymavlink connection instead (PX4: UDP)."""
+        self.conn = mavutil.mavlink_connection(url or f"tcp:127.0.0.1:{port}", source_system=255,
                                                source_component=190, dialect="ardupilotmega",
                                                autoreconnect=False)
         self.target_system = target_system
@@ -80,7 +83,7 @@ class Gcs:
                 self._on_statustext(text)
         elif mtype == "COMMAND_ACK":
             self.acks.append((t, msg.command, msg.result))
-        elif mtype in RECORDED:
+        elif mtype in self.recorded:
             self.records[mtype].append((t, msg))
 
     def last(self, mtype: str):

@@ -136,12 +136,21 @@ class BootToGpsTime:
     * :meth:`refine` takes a receiver time tag (GPS time of an event whose boot time is known,
       e.g. a UBX epoch matched to the autopilot's reception time): it has priority over
       SYSTEM_TIME for ``refine_hold_s``, during which SYSTEM_TIME only checks for jumps.
+    * The offset may drift: :attr:`rate` (s/s) is the least-squares slope of the last
+      ``rate_window`` SYSTEM_TIME offsets and the offset is extrapolated with it.  A real
+      autopilot's clock is off by some ppm; PX4 SITL's lockstep boot clock runs ~1 % slower than
+      UTC, which an offset average alone follows 0.1 s behind, i.e. with a 'jump' every few seconds.
     """
 
     def __init__(self, leap_seconds: int = DEFAULT_LEAP_SECONDS, smoothing: float = 0.1,
                  jump_threshold_s: float = 0.05, reboot_tolerance_s: float = 1.0,
-                 refine_hold_s: float = 10.0):
+                 refine_hold_s: float = 10.0, rate_window: int = 30, max_rate: float = 0.05):
         self.leap_seconds = int(leap_seconds)
+        self.max_rate = float(max_rate)
+        self._rate_window: deque = deque(maxlen=rate_window)    # (t_boot, offset - base) of SYSTEM_TIME
+        self._rate_base = 0.0
+        self.rate = 0.0                     # d(offset)/d(boot time)
+        self._ref_boot_s = 0.0              # boot time at which offset_s holds
         self.smoothing = float(smoothing)
         self.jump_threshold_s = float(jump_threshold_s)
         self.reboot_tolerance_s = float(reboot_tolerance_s)
@@ -150,6 +159,7 @@ class BootToGpsTime:
         self.boot_epoch = 0
         self.last_boot_s: float | None = None
         self._candidate: float | None = None
+        self._candidate_boot_s = 0.0
         self._refined_at_boot_s: float | None = None
         self.counters: dict[str, int] = {"system_time": 0, "no_utc": 0, "jumps": 0, "reboots": 0,
                                          "jump_candidates": 0, "refines": 0}
@@ -174,6 +184,7 @@ class BootToGpsTime:
             self.boot_epoch += 1
             log.warning("autopilot reboot detected (boot time %.3f s after %.3f s)", t_boot_s, last)
             self.offset_s = None
+            self.rate = 0.0
             self._candidate = None
             self._refined_at_boot_s = None
             self.last_boot_s = t_boot_s
@@ -207,35 +218,65 @@ class BootToGpsTime:
         self._offset_sample(t_gps - t_boot_s, t_boot_s, weight=weight, from_refine=True)
         self._refined_at_boot_s = t_boot_s
 
+    def _offset_at(self, t_boot_s: float) -> float:
+        return self.offset_s + self.rate * (t_boot_s - self._ref_boot_s)
+
     def _offset_sample(self, sample: float, t_boot: float, weight: float, from_refine: bool) -> None:
         if self.offset_s is None:
-            self.offset_s = sample
+            self.offset_s, self._ref_boot_s = sample, t_boot
             self._candidate = None
+            self._rate_window.clear()
+            self._rate_base = sample        # the window holds small numbers: no cancellation
             return
-        d = sample - self.offset_s
+        predicted = self._offset_at(t_boot)
+        d = sample - predicted
         if abs(d) > self.jump_threshold_s:
             c = self._candidate
-            if c is not None and abs(sample - c) <= self.jump_threshold_s:
+            if c is not None and abs(sample - (c + self.rate * (t_boot - self._candidate_boot_s))) \
+                    <= self.jump_threshold_s:
                 self.counters["jumps"] += 1
                 log.warning("autopilot time mapping jumped by %+.3f s", d)
-                self.offset_s = sample
+                self.offset_s, self._ref_boot_s = sample, t_boot
                 self._candidate = None
+                self._rate_window.clear()
+                self._rate_base = sample
             else:
                 self.counters["jump_candidates"] += 1
-                self._candidate = sample
+                self._candidate, self._candidate_boot_s = sample, t_boot
             return
         self._candidate = None
         held = (not from_refine and self._refined_at_boot_s is not None
                 and t_boot - self._refined_at_boot_s < self.refine_hold_s)
         if held:
             return
-        self.offset_s += weight * d
+        if not from_refine:
+            self._rate_from(t_boot, sample)
+            predicted = self._offset_at(t_boot)
+            d = sample - predicted
+        self.offset_s, self._ref_boot_s = predicted + weight * d, t_boot
+
+    def _rate_from(self, t_boot: float, sample: float) -> None:
+        """Least-squares slope of the last SYSTEM_TIME offsets (>= 3 over >= 2 s; soon enough that
+        a 1 % drift does not reach the jump threshold first)."""
+        w = self._rate_window
+        w.append((t_boot, sample - self._rate_base))
+        if len(w) < 3 or w[-1][0] - w[0][0] < 2.0:
+            return
+        n = len(w)
+        mt = sum(t for t, _ in w) / n
+        mo = sum(o for _, o in w) / n
+        stt = sum((t - mt) ** 2 for t, _ in w)
+        slope = sum((t - mt) * (o - mo) for t, o in w) / stt
+        self.rate = min(max(slope, -self.max_rate), self.max_rate)
 
     def to_gps(self, t_boot_s: float) -> float | None:
-        return None if self.offset_s is None else t_boot_s + self.offset_s
+        return None if self.offset_s is None else t_boot_s + self._offset_at(t_boot_s)
 
     def to_boot(self, t_gps: float) -> float | None:
-        return None if self.offset_s is None else t_gps - self.offset_s
+        if self.offset_s is None:
+            return None
+        # t_gps = t_boot (1 + rate) + offset_s - rate * ref
+        return (t_gps - self.offset_s + self.rate * self._ref_boot_s) / (1.0 + self.rate)
 
 
 # =============================================================================================
