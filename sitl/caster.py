@@ -382,8 +382,10 @@ async def start_caster(source_port: int, *, mountpoint: str = "SITL", user: str 
     if exe:
         port = free_tcp_port()
         out = open(log_path, "wb") if log_path else subprocess.DEVNULL
+        # -r: reconnect to the source 1 s after it went silent (str2str's default, 10 s, kept the
+        # corrections away for up to 10 s after a simulated base outage ended)
         proc = subprocess.Popen([exe, "-in", f"tcpcli://127.0.0.1:{source_port}",
-                                 "-out", f"ntripc://{user}:{password}@:{port}/{mountpoint}"],
+                                 "-out", f"ntripc://{user}:{password}@:{port}/{mountpoint}", "-r", "1000"],
                                 stdin=subprocess.DEVNULL, stdout=out, stderr=out)
         # wait until it listens
         for _ in range(50):

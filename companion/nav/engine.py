@@ -520,6 +520,12 @@ class NavEngine:
                              dgps=self.dgps if cfg.use_dgps else None,
                              elevation_mask_rad=math.radians(cfg.elevation_mask_deg),
                              klobuchar=cfg.klobuchar)
+        if cfg.use_dgps and self.dgps is not None and prep.n < 4 and _stale_corrections(prep.rejected):
+            # the corrections stopped (caster or radio outage): standalone models and their honest
+            # variance keep the pseudoranges and the carrier (TDCP) instead of coasting on the INS
+            prep = prepare_epoch(epoch, self.ephemerides, r_ant, dgps=None,
+                                 elevation_mask_rad=math.radians(cfg.elevation_mask_deg), klobuchar=cfg.klobuchar)
+            self.counters["epochs standalone: DGPS corrections too old"] += 1
         rep.rejected.update(prep.rejected)
         for reason in prep.rejected.values():
             self.counters[f"satellite rejected: {reason}"] += 1
@@ -961,6 +967,12 @@ class NavEngine:
                             "integrity_reason": self.integrity.reason,
                             "hpl_m": pl.hpl_m if pl else math.nan, "hpl_cov_m": pl.hpl_cov_m if pl else math.nan,
                             "hpl_ss_m": pl.hpl_ss_m if pl else math.nan})
+
+
+def _stale_corrections(rejected: dict[str, str]) -> bool:
+    """Most satellites of the epoch were refused for want of a recent DGPS correction."""
+    stale = sum(1 for r in rejected.values() if r in ("DGPS correction too old", "no DGPS correction"))
+    return stale >= 4
 
 
 class _StillnessDetector:
