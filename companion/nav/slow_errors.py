@@ -12,7 +12,8 @@ filter's memory grows with every epoch it carries the INS through.
 The floor here says what a bias allows: the position cannot be known better than a single epoch of
 the slow errors alone would give it, ``(H' R_slow^-1 H)^-1`` over position and receiver clock (a
 common error of all satellites goes into the clock, as it should).  Adding the missing part to the
-position block keeps P positive definite (the sum of two PSD matrices).
+position block keeps P positive definite (the sum of two PSD matrices).  The engine applies it to
+standalone pseudoranges, whose slow errors are metres; DGPS removes most of them.
 """
 from __future__ import annotations
 
