@@ -102,7 +102,9 @@ ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used
 BASE_WAIT_S = 0.8             # hold a rover epoch (IMU time) until the base epoch of the same time
                               # arrived (DGPS without extrapolation, base-corrected TDCP), at most this
 GSF_AGREE_SIGMAS = 3.0        # our heading and the yaw from motion agree within this x their combined sigma
-GSF_RESET_AFTER = 3           # ... disagree at this many GNSS velocities in a row: reset our heading
+GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a row: reset our heading
+                              # (the GSF's convergence took several already; at 1 Hz a wrong heading
+                              # in motion costs metres per second)
 TRUSTED_HEADING_MAX_AGE_S = 5.0   # a dual-antenna heading fused this recently vouches for our heading
 
 
@@ -235,6 +237,8 @@ class NavPipeline:
         self.gsf_heading_resets = 0
         self.attitude_yaw_trusted = True          # False for the run once the yaw from motion contradicted it
         self.heading_confirmed = False            # the filter's heading came from, or agreed with, the yaw from motion
+        self.attitude_yaw_confirmed = False       # ... and a filter started on the ATTITUDE yaw agreed with it once
+        self._heading_from_attitude = False       # the filter's heading was initialised from ATTITUDE
         self._last_trusted_heading_t = -math.inf  # GPS time of the last dual-antenna heading fused
         self.attitude_yaw_sigma_rad = math.radians(float(getattr(mc, "attitude_yaw_sigma_deg", 5.0)))
         self.max_sigma_yaw_rad = math.radians(float(getattr(config.output, "max_sigma_yaw_deg", 10.0)))
@@ -613,9 +617,12 @@ class NavPipeline:
             self._gsf_disagreements = 0
             return
         heading, sigma = eng.heading_and_sigma()
-        if not self._gsf_disagrees(heading, sigma):
+        unknown = sigma > self.max_sigma_yaw_rad and g.yaw_sigma_rad < sigma     # started without a heading
+        if not (unknown or self._gsf_disagrees(heading, sigma)):
             self._gsf_disagreements = 0
             self.heading_confirmed = True
+            if self._heading_from_attitude and self.attitude_yaw_trusted:
+                self.attitude_yaw_confirmed = True
             return
         self._gsf_disagreements += 1
         if self._gsf_disagreements < GSF_RESET_AFTER:
@@ -627,35 +634,43 @@ class NavPipeline:
         v_n = np.array([v_ant_n[0], v_ant_n[1], float((Cne.T @ eng.v_e)[2])])
         cov_n = np.diag([sigma_mps ** 2, sigma_mps ** 2, max(float(cov_v_n[2, 2]), 1e-4)])
         eng.reset_heading(delta, g.yaw_sigma_rad, v_imu_e=Cne @ v_n, cov_v_e=Cne @ cov_n @ Cne.T)
+        # the position was integrated along the wrong heading too: on probation (status
+        # 'converging', not injected) until a consistent window of GNSS, else a re-init from GNSS
+        eng.aid.clear_windows()
+        eng.integrity.restart(eng.t_gps, eng.cfg.integrity_enabled)
         self.gsf_heading_resets += 1
         self.counters["heading reset onto the yaw from motion"] += 1
         self.heading_confirmed = True
-        self._distrust_attitude_yaw()
+        if self._heading_from_attitude:
+            self._distrust_attitude_yaw()
+            self._heading_from_attitude = False
         self._event(m.MAV_SEVERITY_WARNING, f"heading reset {math.degrees(delta):+.0f} deg onto the yaw from "
                                             f"motion (sigma {math.degrees(g.yaw_sigma_rad):.1f} deg)")
 
     def _distrust_attitude_yaw(self) -> None:
         if self.attitude_yaw_trusted:
             self.attitude_yaw_trusted = False
+            self.attitude_yaw_confirmed = False
             self.counters["ATTITUDE yaw no longer trusted"] += 1
         # biases a filter learnt on a wrong heading explain its errors, not the sensors
         self._keep_biases_next = False
 
     def _heading_known(self) -> bool:
-        """Injection gate on the heading: a converged yaw from motion that disagrees with ours
-        objects (a reset follows); one that agrees vouches, as does a dual-antenna heading fused
+        """Injection gate on the heading: a settled yaw from motion (companion.nav.yaw_gsf; not
+        necessarily observed lately) that disagrees with ours objects (a reset follows once it is
+        observed again); a converged one that agrees vouches, as does a dual-antenna heading fused
         in the last TRUSTED_HEADING_MAX_AGE_S.  Otherwise our own heading sigma must be below
         ``output.max_sigma_yaw_deg``, and in horizontal motion the heading must have been
         confirmed by the yaw from motion once: at rest, in a hover or a vertical climb a wrong
         heading costs the lever arm only (centimetres), in motion the INS integrates along it."""
         eng = self.engine
         if not eng.initialized or eng.kf is None:
-            return False
+            return True           # no heading to judge (the status gate decides)
         heading, sigma = eng.heading_and_sigma()
+        if self.gsf.settled and self._gsf_disagrees(heading, sigma):
+            self.counters["solutions withheld: heading contradicts the yaw from motion"] += 1
+            return False
         if self.gsf.converged:
-            if self._gsf_disagrees(heading, sigma):
-                self.counters["solutions withheld: heading contradicts the yaw from motion"] += 1
-                return False
             return True
         if eng.t_gps - self._last_trusted_heading_t <= TRUSTED_HEADING_MAX_AGE_S:
             return True
@@ -808,17 +823,21 @@ class NavPipeline:
         g = self.gsf
         att = self._fresh_attitude()
         if att is not None and self.attitude_yaw_trusted:
-            if g.converged and self._gsf_disagrees(att[2], self.attitude_yaw_sigma_rad):
+            if g.settled and self._gsf_disagrees(att[2], self.attitude_yaw_sigma_rad):
                 self._distrust_attitude_yaw()
                 self._event(m.MAV_SEVERITY_WARNING, "autopilot yaw contradicts the yaw from motion: not used")
             else:
-                self.heading_confirmed = g.converged
+                # confirmed now, or earlier in this run (a re-init in flight, the yaw from motion
+                # possibly out of date on a straight leg)
+                self.heading_confirmed = g.converged or self.attitude_yaw_confirmed
+                self._heading_from_attitude = True
                 return Cne @ euler_to_dcm(*att), self.init_sigmas.att_rad, self.attitude_yaw_sigma_rad
-        if not g.converged:
+        if not g.settled:         # (settled suffices: nothing else to go by; its sigma says how good)
             self.counters["init: waiting for the yaw from motion"] += 1
             return None
         self.counters["init: heading from the yaw from motion"] += 1
         self.heading_confirmed = True
+        self._heading_from_attitude = False
         if att is not None:
             return Cne @ euler_to_dcm(att[0], att[1], g.yaw_rad), self.init_sigmas.att_rad, g.yaw_sigma_rad
         return Cne @ g.C_b_n_estimate(), g.tilt_sigma_rad, g.yaw_sigma_rad

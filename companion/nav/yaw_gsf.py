@@ -61,9 +61,15 @@ class YawGsfConfig:
     innovation_limit_sigma: float = 5.0     # larger innovations move a model's state as if this large
     log_weight_floor: float = math.log(1e-5)  # a model's weight never falls below this (it can come back)
     velocity_gap_s: float = 3.0             # no GNSS velocity for this long: the models' velocities restart
-    # converged: yaw 1-sigma below this after at least min_moving_fusions fusions at speed
+    # converged: yaw 1-sigma below this after at least min_moving_fusions fusions at speed, and the
+    # yaw observed (a fusion that shrank its variance by observed_fraction) in the last observed_within_s:
+    # in steady straight motion the yaw is unobservable and integrated from the gyro alone, which
+    # may be faulty (a 3 deg/s rate error is invisible to the screen), so it neither initialises
+    # nor overrules a heading then
     converged_sigma_rad: float = math.radians(10.0)
     min_moving_fusions: int = 3
+    observed_fraction: float = 0.01
+    observed_within_s: float = 5.0
     moving_speed_mps: float = 0.5
     # in motion (heading matters): moving as above, or a horizontal specific force (levelled by the
     # AHRS, low-passed) above this -- seen at IMU rate, before a 1-Hz GNSS velocity shows the speed
@@ -114,6 +120,7 @@ class YawGsf:
         self.n_moving_fusions = 0
         self.t_last_vel = -math.inf
         self.moving = False                  # the last GNSS velocity showed horizontal motion
+        self.t_yaw_observed = -math.inf      # last fusion that shrank the yaw variance
         self.horizontal_accel_mps2 = 0.0     # |horizontal specific force| in the AHRS's level frame
         self._v_hist: deque = deque(maxlen=64)   # (t, v_n, v_e) of the GNSS velocities
         self.kinematic_accel_mps2 = 0.0
@@ -226,6 +233,7 @@ class YawGsf:
             self.t_last_vel = t_gps
             return True
         self.t_last_vel = t_gps
+        var_before = self.yaw_var_rad2
         P = self.P
         nu = v[None, :] - self.x[:, 0:2]                       # (n, 2)
         s00, s01, s11 = P[:, 0, 0] + r, P[:, 0, 1], P[:, 1, 1] + r
@@ -252,6 +260,8 @@ class YawGsf:
         self.log_w = np.maximum(lw, cfg.log_weight_floor)
         self.log_w -= math.log(float(np.exp(self.log_w).sum()))
         self.n_fusions += 1
+        if self.yaw_var_rad2 < (1.0 - cfg.observed_fraction) * var_before:
+            self.t_yaw_observed = t_gps
         self.moving = math.hypot(v[0], v[1]) > max(cfg.moving_speed_mps, 3.0 * sigma_mps)
         if self.moving:
             self.n_moving_fusions += 1
@@ -295,9 +305,16 @@ class YawGsf:
         return math.sqrt(self.yaw_var_rad2)
 
     @property
+    def settled(self) -> bool:
+        """Yaw sigma below the limit after enough fusions in motion (possibly not observed lately)."""
+        cfg = self.cfg
+        return (self.aligned and self.vel_initialised and self.n_moving_fusions >= cfg.min_moving_fusions
+                and self.yaw_var_rad2 < cfg.converged_sigma_rad ** 2)
+
+    @property
     def converged(self) -> bool:
-        return (self.aligned and self.vel_initialised and self.n_moving_fusions >= self.cfg.min_moving_fusions
-                and self.yaw_var_rad2 < self.cfg.converged_sigma_rad ** 2)
+        """Settled, and the yaw observed in the last ``observed_within_s``."""
+        return self.settled and self.t_last_vel - self.t_yaw_observed <= self.cfg.observed_within_s
 
     @property
     def in_motion(self) -> bool:
@@ -322,7 +339,7 @@ class YawGsf:
         return euler_to_dcm(self.roll_rad, self.pitch_rad, self.yaw_rad)
 
     def snapshot(self) -> dict:
-        return {"aligned": self.aligned, "converged": self.converged,
+        return {"aligned": self.aligned, "converged": self.converged, "settled": self.settled,
                 "yaw_deg": round(math.degrees(self.yaw_rad), 2),
                 "yaw_sigma_deg": round(math.degrees(self.yaw_sigma_rad), 2),
                 "velocity_fusions": self.n_fusions, "moving_fusions": self.n_moving_fusions,
