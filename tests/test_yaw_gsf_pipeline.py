@@ -94,3 +94,26 @@ def test_multirotor_heading_from_motion(uav70, uav_records, fault):
     else:
         assert resets >= 1 or pipe.counters["ATTITUDE yaw no longer trusted"] == 1
         assert not pipe.attitude_yaw_trusted
+
+
+@pytest.fixture(scope="module")
+def car60():
+    from sitl.fly import load_sim
+    return load_sim("nhc", 0, 60.0)
+
+
+@pytest.mark.parametrize("fault", ["none", "yaw180"])
+def test_car_heading_from_motion(car60, fault):
+    """The car (15 s at rest, then driving), loose GPS_RAW_INT fusion (no base, 1 Hz)."""
+    sim = car60
+    records = _attitude_fault(flight_records(sim, 60.0, tight=False, corrections=False), fault)
+    pipe, rows, events, _ = _run(sim, records, pipeline_config(sim, tight=False, corrections=False))
+    t_move = _first_motion_s(sim)
+    print(fault, "first motion", t_move, pipe.health()["yaw_gsf"], events[-6:])
+    print([(round(t), round(h, 1), inj, round(e, 2)) for t, inj, e, h in rows[::50]])
+    good = [t for t, _, _, h in rows if abs(h) < 5.0 and t > t_move]
+    assert good and good[0] <= t_move + 30.0
+    assert all(abs(h) < 60.0 for t, i, _, h in rows if i and t > t_move)
+    assert max(e for _, i, e, _ in rows if i) < 2.0
+    if fault == "yaw180":
+        assert not pipe.attitude_yaw_trusted
