@@ -43,6 +43,16 @@ GPS_RAW_INT fix in loose mode; attitude from the autopilot's latest ATTITUDE; ve
 epoch's Doppler (SPP), else zero when the autopilot is disarmed (on the ground), else GPS_RAW_INT.
 The engine starts at the newest IMU sample; ``engine.reset_counter`` counts (re)initialisations.
 
+Heading from motion (companion.nav.yaw_gsf, health ``yaw_gsf``): a Gaussian-sum yaw estimator
+runs from the first screened IMU sample on the SPP Doppler velocity of every rover epoch (or
+GPS_RAW_INT's in loose mode).  ATTITUDE's yaw initialises with ``mavlink.attitude_yaw_sigma_deg``;
+without ATTITUDE the filter starts once the estimator has settled, from its roll, pitch and yaw.
+A converged estimator that disagrees with our heading beyond 3 combined sigma resets it (event,
+counted; the filter goes on probation) and ATTITUDE's yaw is not used again in the run.  Not
+injected while our heading sigma exceeds ``output.max_sigma_yaw_deg`` (unless the estimator or a
+dual-antenna heading vouches), while the estimator contradicts it, nor in horizontal motion before
+the estimator confirmed it once (at rest a wrong heading costs the lever arm only).
+
 Re-initialisation (logged, counted, announced): autopilot reboot, IMU time jump larger than
 ``REINIT_GAP_S`` in either direction (clock jump, long link loss), an untrusted solution, or a
 diverged one (companion.nav.integrity: the GNSS innovations of a window say the filter is wrong).
