@@ -124,9 +124,8 @@ class YawGsf:
         self.horizontal_accel_mps2 = 0.0     # |horizontal specific force| in the AHRS's level frame
         self._v_hist: deque = deque(maxlen=64)   # (t, v_n, v_e) of the GNSS velocities
         self.kinematic_accel_mps2 = 0.0
-        self._acc_dth = np.zeros(3)
-        self._acc_dv = np.zeros(3)
-        self._acc_dt = 0.0
+        self._acc = [0.0] * 7                # summed dtheta (3), dv (3), dt: plain floats at IMU rate
+        self._n_steps = 0
         self.omega_b_radps = np.zeros(3)
         self.t_gps = math.nan
 
@@ -136,16 +135,22 @@ class YawGsf:
         if not (0.0 < dt_s < 0.5):
             return
         self.t_gps = t_gps
-        dth = np.asarray(dtheta_b, float)
-        dv = np.asarray(dv_b, float)
+        w0, w1, w2 = float(dtheta_b[0]), float(dtheta_b[1]), float(dtheta_b[2])
+        v0, v1, v2 = float(dv_b[0]), float(dv_b[1]), float(dv_b[2])
+        a = self._acc
         # sum to the bank's step; the delta velocity in the body frame at the start of the step
-        self._acc_dv += dv + np.cross(self._acc_dth, dv)
-        self._acc_dth += dth
-        self._acc_dt += dt_s
-        if self._acc_dt < self.cfg.step_s * (1.0 - 1e-6):
+        # (turned by the rotation so far: dv + theta x dv)
+        a[3] += v0 + a[1] * v2 - a[2] * v1
+        a[4] += v1 + a[2] * v0 - a[0] * v2
+        a[5] += v2 + a[0] * v1 - a[1] * v0
+        a[0] += w0
+        a[1] += w1
+        a[2] += w2
+        a[6] += dt_s
+        if a[6] < self.cfg.step_s * (1.0 - 1e-6):
             return
-        dth, dv, dt = self._acc_dth, self._acc_dv, self._acc_dt
-        self._acc_dth, self._acc_dv, self._acc_dt = np.zeros(3), np.zeros(3), 0.0
+        dth, dv, dt = np.array(a[0:3]), np.array(a[3:6]), a[6]
+        self._acc = [0.0] * 7
         self.omega_b_radps = dth / dt
         self._step(dth, dv, dt)
 
@@ -183,7 +188,8 @@ class YawGsf:
             self.b_g -= cfg.gyro_bias_gain_per_s * w * (C0.T @ err_n) * dt
             np.clip(self.b_g, -cfg.gyro_bias_limit_radps, cfg.gyro_bias_limit_radps, out=self.b_g)
         C1 = _skew_exp(corr_n * dt) @ C0 @ _skew_exp(dth - self.b_g * dt)
-        self.C_b_n = _orthonormalise(C1)
+        self._n_steps += 1
+        self.C_b_n = _orthonormalise(C1) if self._n_steps % 50 == 0 else C1
         d_yaw = _wrap(math.atan2(self.C_b_n[1, 0], self.C_b_n[0, 0]) - yaw0)
         if not self.vel_initialised:
             self.x[:, 2] = _wrap(self.x[:, 2] + d_yaw)
