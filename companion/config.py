@@ -86,6 +86,13 @@ class MavlinkConfig:
                                            "ATTITUDE yaw (5 deg, 1 Hz): only where that yaw is its compass "
                                            "(EK3_SRC1_YAW 1), never when it is ours (ExternalNav); a wrong "
                                            "compass is then trusted too (deploy/ turns it on for ArduPilot)")
+    # a compass heading on a drone is good to a few degrees when it is right (calibrated, away from
+    # the motor currents), and can be wrong by anything when it is not (a steel deck, a magnet, a
+    # bad calibration); 5 deg describes the good case, the Gaussian-sum yaw estimator
+    # (companion.nav.yaw_gsf) catches the bad one and the ATTITUDE yaw is dropped for the run
+    attitude_yaw_sigma_deg: float = _f(5.0, min=0.0, max=180.0, min_exclusive=True,
+                                       doc="1-sigma of the autopilot's ATTITUDE yaw (its compass) when it "
+                                           "initialises our heading; checked against the yaw from motion")
     imu_cluster: tuple[str, ...] = _f((), choices=IMU_CLUSTER_STREAMS,
                                       doc="fuse several IMUs (first = primary, its time grid), dropping a "
                                           "faulty one, e.g. [\"RAW_IMU\", \"SCALED_IMU2\", \"SCALED_IMU3\"] "
@@ -197,6 +204,10 @@ class OutputConfig:
     max_sigma_h_m: float = _f(5.0, min=0.0, max=100.0, min_exclusive=True,
                               doc="do not inject worse than this (1-sigma)")
     max_sigma_v_m: float = _f(10.0, min=0.0, max=100.0, min_exclusive=True)
+    # 10 deg turns a 0.2-m horizontal lever arm by 3.5 cm (0.5 m: 9 cm): centimetres
+    max_sigma_yaw_deg: float = _f(10.0, min=0.0, max=180.0, min_exclusive=True,
+                                  doc="do not inject while our heading is worse than this (1-sigma) unless the "
+                                      "yaw from motion or a dual-antenna heading confirms it")
     resume_sigma_fraction: float = _f(0.8, min=0.1, max=1.0,
                                       doc="after a stop on sigma, inject again only below this fraction "
                                       "of max_sigma_h_m / max_sigma_v_m (no flapping at the threshold)")

@@ -43,6 +43,16 @@ GPS_RAW_INT fix in loose mode; attitude from the autopilot's latest ATTITUDE; ve
 epoch's Doppler (SPP), else zero when the autopilot is disarmed (on the ground), else GPS_RAW_INT.
 The engine starts at the newest IMU sample; ``engine.reset_counter`` counts (re)initialisations.
 
+Heading from motion (companion.nav.yaw_gsf, health ``yaw_gsf``): a Gaussian-sum yaw estimator
+runs from the first screened IMU sample on the SPP Doppler velocity of every rover epoch (or
+GPS_RAW_INT's in loose mode).  ATTITUDE's yaw initialises with ``mavlink.attitude_yaw_sigma_deg``;
+without ATTITUDE the filter starts once the estimator has settled, from its roll, pitch and yaw.
+A converged estimator that disagrees with our heading beyond 3 combined sigma resets it (event,
+counted; the filter goes on probation) and ATTITUDE's yaw is not used again in the run.  Not
+injected while our heading sigma exceeds ``output.max_sigma_yaw_deg`` (unless the estimator or a
+dual-antenna heading vouches), while the estimator contradicts it, nor in horizontal motion before
+the estimator confirmed it once (at rest a wrong heading costs the lever arm only).
+
 Re-initialisation (logged, counted, announced): autopilot reboot, IMU time jump larger than
 ``REINIT_GAP_S`` in either direction (clock jump, long link loss), an untrusted solution, or a
 diverged one (companion.nav.integrity: the GNSS innovations of a window say the filter is wrong).
@@ -88,8 +98,10 @@ from .messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoc
                        GpsEphemeris, ImuSample, NavSolution)
 from .nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm  # noqa: E402
 from .nav.engine import NavEngine  # noqa: E402
+from .nav.filter import LAYOUT  # noqa: E402
 from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
-from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale  # noqa: E402
+from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale, ImuScreen  # noqa: E402
+from .nav.yaw_gsf import YawGsf  # noqa: E402
 
 log = logging.getLogger(__name__)
 m = mavlink2
@@ -101,6 +113,11 @@ RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GP
 ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used to initialise
 BASE_WAIT_S = 0.8             # hold a rover epoch (IMU time) until the base epoch of the same time
                               # arrived (DGPS without extrapolation, base-corrected TDCP), at most this
+GSF_AGREE_SIGMAS = 3.0        # our heading and the yaw from motion agree within this x their combined sigma
+GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a row: reset our heading
+                              # (the GSF's convergence took several already; at 1 Hz a wrong heading
+                              # in motion costs metres per second)
+TRUSTED_HEADING_MAX_AGE_S = 5.0   # a dual-antenna heading fused this recently vouches for our heading
 
 
 @dataclass(frozen=True)
@@ -234,6 +251,25 @@ class NavPipeline:
         self.resume_sigma_fraction = float(getattr(config.output, "resume_sigma_fraction", 0.8))
         self.max_hpl_m = float(getattr(config.output, "max_hpl_m", math.inf))
         self.resume_hpl_fraction = float(getattr(config.output, "resume_hpl_fraction", 0.8))
+        # heading from motion (companion.nav.yaw_gsf): runs from the first screened IMU sample on
+        # the GNSS velocity, initialises the heading without ATTITUDE and checks ours all along
+        ec = self.engine.cfg
+        self.gsf = YawGsf()
+        self.gsf_screen_counters: Counter = Counter()      # its own screen: not counted twice in the engine's
+        self.gsf_screen = ImuScreen(clip_fraction=ec.imu_clip_fraction, accel_jump_mps2=ec.imu_accel_jump_mps2,
+                                    gyro_jump_radps=ec.imu_gyro_jump_radps, window=ec.imu_median_window,
+                                    counters=self.gsf_screen_counters) if ec.imu_screen_enabled else None
+        self._gsf_t_imu: float | None = None
+        self._gsf_r_e = None                      # last SPP position of the GSF's velocities (next start)
+        self._gsf_disagreements = 0
+        self.gsf_heading_resets = 0
+        self.attitude_yaw_trusted = True          # False for the run once the yaw from motion contradicted it
+        self.heading_confirmed = False            # the filter's heading came from, or agreed with, the yaw from motion
+        self.attitude_yaw_confirmed = False       # ... and a filter started on the ATTITUDE yaw agreed with it once
+        self._heading_from_attitude = False       # the filter's heading was initialised from ATTITUDE
+        self._last_trusted_heading_t = -math.inf  # GPS time of the last dual-antenna heading fused
+        self.attitude_yaw_sigma_rad = math.radians(float(getattr(mc, "attitude_yaw_sigma_deg", 5.0)))
+        self.max_sigma_yaw_rad = math.radians(float(getattr(config.output, "max_sigma_yaw_deg", 10.0)))
         if self.cluster_streams:
             self._set_imu_full_scale(tuple(t for t, _, _ in self.cluster_streams))
 
@@ -379,6 +415,8 @@ class NavPipeline:
             self.counters["autopilot reboots"] += 1
             self.attitude = None
             self.last_imu = None
+            self.gsf.reset()
+            self._gsf_t_imu = None
             if self.cluster is not None:
                 self._restart_cluster()
             self._reinit("autopilot reboot")
@@ -418,6 +456,8 @@ class NavPipeline:
                 self.counters["moving baselines (NAV-RELPOSNED)"] += 1
                 if self.engine.initialized:
                     self.engine.process(msg)
+                    if msg.carrier_fixed and self.cfg.gnss.moving_baseline_b_m is not None:
+                        self._last_trusted_heading_t = msg.t_gps
         return []
 
     # ------------------------------------------------------------------ IMU
@@ -463,6 +503,8 @@ class NavPipeline:
         acc = float(getattr(self.cfg.mavlink, "imu_accel_full_scale_mps2", 0.0) or min(f.accel_mps2 for f in fs))
         gyro = float(getattr(self.cfg.mavlink, "imu_gyro_full_scale_radps", 0.0) or min(f.gyro_radps for f in fs))
         scr.set_full_scale(ImuFullScale(acc, gyro))
+        if self.gsf_screen is not None:
+            self.gsf_screen.set_full_scale(ImuFullScale(acc, gyro))
 
     def _imu_finite(self, s: ImuSample, unit: str = "") -> bool:
         if all(math.isfinite(x) for x in (*s.dtheta_b.tolist(), *s.dv_b.tolist())):
@@ -508,6 +550,7 @@ class NavPipeline:
         """One IMU sample (of the single stream or fused) into the engine; a solution at the first
         sample of each output slot."""
         self.imu_count += 1
+        self._gsf_imu(s)
         eng = self.engine
         if eng.initialized:
             step = s.t_gps - eng.t_gps
@@ -541,6 +584,132 @@ class NavPipeline:
         self._announce_hold(sol.extras.get("integrity"))
         return [self._finish(sol)]
 
+    def _gsf_imu(self, s: ImuSample) -> None:
+        """The yaw estimator's IMU: every sample, screened like the engine's (its own screen)."""
+        if self._gsf_t_imu is not None:
+            if abs(s.t_gps - self._gsf_t_imu) > REINIT_GAP_S:
+                self.gsf.reset()
+                self.counters["yaw from motion restarted: IMU time jump"] += 1
+            elif not s.t_gps > self._gsf_t_imu:
+                return
+        th, dv = s.dtheta_b.tolist(), s.dv_b.tolist()
+        scr = self.gsf_screen
+        if scr is not None and not scr.check(th, dv, s.dt_s, s.t_gps):
+            if not scr.bridged:
+                return
+            th, dv = scr.dtheta_b, scr.dv_b
+        self._gsf_t_imu = s.t_gps
+        self.gsf.update_imu(th, dv, s.dt_s, s.t_gps)
+
+    def _gsf_epoch_velocity(self, epoch: GnssEpoch) -> None:
+        """The SPP Doppler velocity of a rover epoch for the yaw estimator (no base needed)."""
+        eng = self.engine
+        sol = spp_epoch(epoch, eng.ephemerides, klobuchar=eng.cfg.klobuchar, r_init_e=self._gsf_r_e,
+                        elevation_mask_rad=math.radians(self.cfg.filter.elevation_mask_deg))
+        if sol is None or sol.v_e is None or not (np.all(np.isfinite(sol.v_e)) and math.isfinite(sol.hdop)):
+            self.counters["yaw from motion: epoch without SPP velocity"] += 1
+            return
+        self._gsf_r_e = sol.r_e
+        self._gsf_velocity(epoch.t_gps, sol.r_e, np.asarray(sol.v_e, float),
+                           eng.cfg.sigma_doppler_mps * sol.hdop / math.sqrt(2.0))
+
+    def _gsf_velocity(self, t_gps: float, r_e, v_ant_e, sigma_mps: float) -> None:
+        """One GNSS antenna velocity (ECEF) into the yaw estimator, then our heading checked
+        against it.  The lever-arm velocity (rate x lever arm) and the fix's age (times the
+        acceleration) are not modelled: they widen the sigma."""
+        g = self.gsf
+        lat, lon, _ = ecef_to_geodetic(r_e)
+        Cne = C_n_e(lat, lon)
+        v_n = Cne.T @ v_ant_e
+        lag = max(0.0, self.last_imu.t_gps - t_gps) if self.last_imu is not None else 0.0
+        extra = float(np.linalg.norm(g.omega_b_radps)) * float(np.linalg.norm(self.lever_b)) \
+            + g.kinematic_accel_mps2 * lag
+        sig = math.hypot(sigma_mps, extra)
+        if not g.fuse_velocity(t_gps, v_n[:2], sig):
+            return
+        self.counters["yaw from motion: velocities fused"] += 1
+        self._gsf_check_heading(v_n, sig, Cne)
+
+    def _gsf_disagrees(self, heading_rad: float, sigma_rad: float) -> bool:
+        g = self.gsf
+        d = (g.yaw_rad - heading_rad + math.pi) % (2.0 * math.pi) - math.pi
+        return abs(d) > GSF_AGREE_SIGMAS * math.hypot(sigma_rad, g.yaw_sigma_rad)
+
+    def _gsf_check_heading(self, v_ant_n, sigma_mps: float, Cne) -> None:
+        """Converged yaw from motion against our heading: a disagreement beyond their combined
+        uncertainty at GSF_RESET_AFTER velocities in a row resets our heading onto it (a linear
+        update cannot turn a heading by tens of degrees), its velocity onto the GNSS one; the
+        autopilot's ATTITUDE yaw is not trusted again in this run."""
+        g, eng = self.gsf, self.engine
+        if not (eng.initialized and g.converged):
+            self._gsf_disagreements = 0
+            return
+        heading, sigma = eng.heading_and_sigma()
+        unknown = sigma > self.max_sigma_yaw_rad and g.yaw_sigma_rad < sigma     # started without a heading
+        if not (unknown or self._gsf_disagrees(heading, sigma)):
+            self._gsf_disagreements = 0
+            self.heading_confirmed = True
+            if self._heading_from_attitude and self.attitude_yaw_trusted:
+                self.attitude_yaw_confirmed = True
+            return
+        self._gsf_disagreements += 1
+        if self._gsf_disagreements < GSF_RESET_AFTER:
+            return
+        self._gsf_disagreements = 0
+        delta = (g.yaw_rad - heading + math.pi) % (2.0 * math.pi) - math.pi
+        # horizontal velocity from the GNSS, vertical kept (GPS_RAW_INT has none)
+        cov_v_n = Cne.T @ eng.kf.P[LAYOUT.vel, LAYOUT.vel] @ Cne
+        v_n = np.array([v_ant_n[0], v_ant_n[1], float((Cne.T @ eng.v_e)[2])])
+        cov_n = np.diag([sigma_mps ** 2, sigma_mps ** 2, max(float(cov_v_n[2, 2]), 1e-4)])
+        eng.reset_heading(delta, g.yaw_sigma_rad, v_imu_e=Cne @ v_n, cov_v_e=Cne @ cov_n @ Cne.T)
+        # the position was integrated along the wrong heading too: on probation (status
+        # 'converging', not injected) until a consistent window of GNSS, else a re-init from GNSS
+        eng.aid.clear_windows()
+        eng.integrity.restart(eng.t_gps, eng.cfg.integrity_enabled)
+        self.gsf_heading_resets += 1
+        self.counters["heading reset onto the yaw from motion"] += 1
+        self.heading_confirmed = True
+        if self._heading_from_attitude:
+            self._distrust_attitude_yaw()
+            self._heading_from_attitude = False
+        self._event(m.MAV_SEVERITY_WARNING, f"heading reset {math.degrees(delta):+.0f} deg onto the yaw from "
+                                            f"motion (sigma {math.degrees(g.yaw_sigma_rad):.1f} deg)")
+
+    def _distrust_attitude_yaw(self) -> None:
+        if self.attitude_yaw_trusted:
+            self.attitude_yaw_trusted = False
+            self.attitude_yaw_confirmed = False
+            self.counters["ATTITUDE yaw no longer trusted"] += 1
+        # biases a filter learnt on a wrong heading explain its errors, not the sensors
+        self._keep_biases_next = False
+
+    def _heading_known(self) -> bool:
+        """Injection gate on the heading: a settled yaw from motion (companion.nav.yaw_gsf; not
+        necessarily observed lately) that disagrees with ours objects (a reset follows once it is
+        observed again); a converged one that agrees vouches, as does a dual-antenna heading fused
+        in the last TRUSTED_HEADING_MAX_AGE_S.  Otherwise our own heading sigma must be below
+        ``output.max_sigma_yaw_deg``, and in horizontal motion the heading must have been
+        confirmed by the yaw from motion once: at rest, in a hover or a vertical climb a wrong
+        heading costs the lever arm only (centimetres), in motion the INS integrates along it."""
+        eng = self.engine
+        if not eng.initialized or eng.kf is None:
+            return True           # no heading to judge (the status gate decides)
+        heading, sigma = eng.heading_and_sigma()
+        if self.gsf.settled and self._gsf_disagrees(heading, sigma):
+            self.counters["solutions withheld: heading contradicts the yaw from motion"] += 1
+            return False
+        if self.gsf.converged:
+            return True
+        if eng.t_gps - self._last_trusted_heading_t <= TRUSTED_HEADING_MAX_AGE_S:
+            return True
+        if sigma > self.max_sigma_yaw_rad:
+            self.counters["solutions withheld: heading unknown"] += 1
+            return False
+        if self.gsf.in_motion and not self.heading_confirmed:
+            self.counters["solutions withheld: heading not yet confirmed in motion"] += 1
+            return False
+        return True
+
     AP_HEADING_PERIOD_S = 1.0
     AP_HEADING_SIGMA_RAD = math.radians(5.0)
 
@@ -551,7 +720,7 @@ class NavPipeline:
         off).  Off with ``mavlink.autopilot_heading_on_ground`` or a dual-antenna heading."""
         eng = self.engine
         if not (eng.initialized and self.on_ground and self.cfg.mavlink.autopilot_heading_on_ground) \
-                or self.cfg.gnss.moving_baseline_b_m is not None:
+                or self.cfg.gnss.moving_baseline_b_m is not None or not self.attitude_yaw_trusted:
             return
         t_boot = msg.time_boot_ms * 1e-3
         if t_boot - self._last_ap_heading_boot_s < self.AP_HEADING_PERIOD_S:
@@ -585,6 +754,7 @@ class NavPipeline:
         good = (sol.status in ("nav", "coasting") and bool(np.all(np.isfinite(sol.r_e)))
                 and bool(np.all(np.isfinite(sr))))
         inject = bool(good and sigma_ok)
+        inject = inject and self._heading_known()      # heading gate (yaw from motion, companion.nav.yaw_gsf)
         if good and not sigma_ok and self.output_state == "injecting":
             self._sigma_hold = True       # stopped on sigma (not the first convergence after an init)
         elif inject:
@@ -632,6 +802,8 @@ class NavPipeline:
             self.counters["rover epochs without ephemerides"] += 1
         if self.last_imu is not None and usable:
             self.last_raw_t = self.last_imu.t_gps    # raw observations are usable: no loose fallback
+        if usable:
+            self._gsf_epoch_velocity(epoch)
         if self.wait_for_base and self.base_seen and self.engine.initialized:
             self._held.append(epoch)
             self._release_held()
@@ -676,7 +848,8 @@ class NavPipeline:
             return
         self._try_init_tight(epoch)
 
-    def _attitude_C_b_e(self, r_e) -> np.ndarray | None:
+    def _fresh_attitude(self):
+        """(roll, pitch, yaw) of a recent ATTITUDE, else None (counted)."""
         if self.attitude is None or self.last_imu_boot_us is None:
             self.counters["init: waiting for ATTITUDE"] += 1
             return None
@@ -684,8 +857,36 @@ class NavPipeline:
         if abs(self.last_imu_boot_us * 1e-3 - t_ms) > ATTITUDE_MAX_AGE_S * 1e3:
             self.counters["init: ATTITUDE too old"] += 1
             return None
+        return roll, pitch, yaw
+
+    def _initial_attitude(self, r_e):
+        """(C_b_e, tilt sigma, heading sigma) to initialise with, or None (counted): the autopilot's
+        ATTITUDE with ``mavlink.attitude_yaw_sigma_deg`` unless the converged yaw from motion
+        contradicts its yaw (then that yaw is dropped for the run) or it is missing; then the yaw
+        from motion, with the ATTITUDE's roll and pitch if there is one, else its own."""
         lat, lon, _ = ecef_to_geodetic(r_e)
-        return C_n_e(lat, lon) @ euler_to_dcm(roll, pitch, yaw)
+        Cne = C_n_e(lat, lon)
+        g = self.gsf
+        att = self._fresh_attitude()
+        if att is not None and self.attitude_yaw_trusted:
+            if g.settled and self._gsf_disagrees(att[2], self.attitude_yaw_sigma_rad):
+                self._distrust_attitude_yaw()
+                self._event(m.MAV_SEVERITY_WARNING, "autopilot yaw contradicts the yaw from motion: not used")
+            else:
+                # confirmed now, or earlier in this run (a re-init in flight, the yaw from motion
+                # possibly out of date on a straight leg)
+                self.heading_confirmed = g.converged or self.attitude_yaw_confirmed
+                self._heading_from_attitude = True
+                return Cne @ euler_to_dcm(*att), self.init_sigmas.att_rad, self.attitude_yaw_sigma_rad
+        if not g.settled:         # (settled suffices: nothing else to go by; its sigma says how good)
+            self.counters["init: waiting for the yaw from motion"] += 1
+            return None
+        self.counters["init: heading from the yaw from motion"] += 1
+        self.heading_confirmed = True
+        self._heading_from_attitude = False
+        if att is not None:
+            return Cne @ euler_to_dcm(att[0], att[1], g.yaw_rad), self.init_sigmas.att_rad, g.yaw_sigma_rad
+        return Cne @ g.C_b_n_estimate(), g.tilt_sigma_rad, g.yaw_sigma_rad
 
     def _try_init_tight(self, epoch: GnssEpoch) -> None:
         s = self.last_imu
@@ -703,9 +904,10 @@ class NavPipeline:
         if sol is None or not np.all(np.isfinite(sol.r_e)):
             self.counters["init: no SPP solution"] += 1
             return
-        C = self._attitude_C_b_e(sol.r_e)
-        if C is None:
+        att = self._initial_attitude(sol.r_e)
+        if att is None:
             return
+        C, att_sigmas = att[0], att[1:]
         sig = self.init_sigmas
         dt = s.t_gps - epoch.t_gps
         if sol.v_e is not None and np.all(np.isfinite(sol.v_e)):
@@ -722,7 +924,7 @@ class NavPipeline:
                          pos_cov_e_m2=sol.cov_r_e,
                          clock_bias_m=sol.clock_bias_m + sol.clock_drift_mps * dt,
                          clock_drift_mps=sol.clock_drift_mps if math.isfinite(sol.clock_drift_mps) else 0.0,
-                         how=f"SPP {'DGPS' if use_dgps else 'standalone'} {sol.n_sats} sats")
+                         how=f"SPP {'DGPS' if use_dgps else 'standalone'} {sol.n_sats} sats", att_sigmas=att_sigmas)
         self.mode = "tight"
 
     def _gps_raw(self, msg) -> list[NavSolution]:
@@ -747,10 +949,13 @@ class NavPipeline:
             if eng.initialized:
                 eng.process(GnssAttitude(fix.t_gps, heading_rad=math.radians((yaw_cdeg % 36000) / 100.0),
                                          sigma_heading_rad=math.radians(sig_yaw)))
+                self._last_trusted_heading_t = fix.t_gps
         s = self.last_imu
         loose = not self.raw_expected or (s is not None and s.t_gps - self.last_raw_t > RAW_TIMEOUT_S)
         if not loose:
             return []
+        if fix.v_e is not None:
+            self._gsf_velocity(fix.t_gps, fix.r_e, np.asarray(fix.v_e, float), fix.sigma_vel_mps)
         if not eng.initialized:
             self._try_init_loose()
             return []
@@ -765,9 +970,10 @@ class NavPipeline:
         fix, s = self.last_fix, self.last_imu
         if fix is None or s is None or fix.fix_type < 3 or abs(s.t_gps - fix.t_gps) > 1.5:
             return
-        C = self._attitude_C_b_e(fix.r_e)
-        if C is None:
+        att = self._initial_attitude(fix.r_e)
+        if att is None:
             return
+        C, att_sigmas = att[0], att[1:]
         sig = self.init_sigmas
         if self.disarmed:
             v, sv = np.zeros(3), sig.vel_ground_mps
@@ -777,13 +983,14 @@ class NavPipeline:
             return
         r_imu = fix.r_e - C @ self.lever_b + v * (s.t_gps - fix.t_gps)
         self._initialize(s.t_gps, r_imu, v, C, max(fix.sigma_h_m, fix.sigma_v_m, 1.0), sv, clock_bias_m=None,
-                         clock_drift_mps=0.0, how="GPS_RAW_INT fix (loose)")
+                         clock_drift_mps=0.0, how="GPS_RAW_INT fix (loose)", att_sigmas=att_sigmas)
         self.mode = "loose"
 
     def _initialize(self, t_gps, r, v, C, sig_pos, sig_vel, *, clock_bias_m, clock_drift_mps, how,
-                    pos_cov_e_m2=None) -> None:
+                    pos_cov_e_m2=None, att_sigmas=None) -> None:
         sig = self.init_sigmas
-        p0 = {"att_rad": sig.att_rad, "pos_m": sig_pos, "vel_mps": sig_vel, "ba_mps2": sig.ba_mps2,
+        tilt, heading = att_sigmas if att_sigmas is not None else (sig.att_rad, sig.att_rad)
+        p0 = {"tilt_rad": tilt, "heading_rad": heading, "pos_m": sig_pos, "vel_mps": sig_vel, "ba_mps2": sig.ba_mps2,
               "bg_radps": sig.bg_radps, "clk_m": sig.clk_m, "drift_mps": sig.drift_mps,
               "pos_cov_e_m2": pos_cov_e_m2}
         probation, self._probation_next = self._probation_next, False
@@ -831,6 +1038,9 @@ class NavPipeline:
                                               ("hpl_m", "hpl_cov_m", "hpl_ss_m")}})
         return {"filter": filt, "pipeline": dict(self.counters), "engine": dict(self.engine.counters),
                 "aid_sources": self.engine.aid.snapshot(),
+                "yaw_gsf": {**self.gsf.snapshot(), "heading_resets": self.gsf_heading_resets,
+                            "attitude_yaw_trusted": self.attitude_yaw_trusted,
+                            "imu_screen": dict(self.gsf_screen_counters)},
                 "imu": dict(self.imu_dec.counters), "time_map": dict(self.time_map.counters),
                 **({"imu_cluster": self.cluster_health()} if self.cluster is not None else {}),
                 "ubx": dict(self.ubx.counters), "rtcm": dict(self.rtcm.counters)}

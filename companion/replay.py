@@ -435,7 +435,8 @@ def why_no_solution(res: ReplayResult) -> str:
     if not pc.get("GPS_RAW_INT fixes") and not pc.get("rover epochs"):
         return "no GPS fix (GPS_RAW_INT with a 3-D fix) and no raw GNSS observations in the log"
     if pc.get("init: waiting for ATTITUDE") or pc.get("init: ATTITUDE too old"):
-        return "no recent ATTITUDE to initialise the attitude from"
+        return "no recent ATTITUDE to initialise the attitude from, and no heading from motion (the vehicle " \
+               "never moved enough for the yaw estimator)"
     return "the filter never initialised (see the pipeline counters in --json)"
 
 

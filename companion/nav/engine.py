@@ -813,18 +813,7 @@ class NavEngine:
             return ins
         if max(sigma_filter, abs(delta)) > cfg.course_alignment_reset_above_rad:
             # too far for a linear update: turn the attitude (now and its short history) onto the course
-            R, P = heading_reset(self.kf.P, L.att, u, delta, m.sigma_rad)
-            # the velocity was integrated along the wrong heading: take the GNSS one (its error is
-            # now uncorrelated with everything else)
-            dv = v_imu - ins.v_e
-            P[L.vel, :] = 0.0
-            P[:, L.vel] = 0.0
-            P[L.vel, L.vel] = cov_v_e
-            self.kf.P = P
-            self.C_b_e = R @ self.C_b_e
-            self.v_e = self.v_e + dv
-            self._history = deque((t, r, v + dv, R @ C) for t, r, v, C in self._history)
-            self._phase.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
+            self.reset_heading(delta, m.sigma_rad, v_imu_e=v_imu, cov_v_e=cov_v_e, v_ref_e=ins.v_e)
             self.counters["course alignment: heading reset"] += 1
             log.info("heading reset to the course over ground %.1f deg (%+.1f deg, filter sigma was %.1f deg) "
                      "at %.1f m/s", math.degrees(m.heading_rad), math.degrees(delta), math.degrees(sigma_filter),
@@ -838,6 +827,34 @@ class NavEngine:
         if math.isnan(self.course_alignment_t_gps):
             self.course_alignment_t_gps = ins.t_gps
         return self.ins_at(ins.t_gps) or ins
+
+    def reset_heading(self, delta_heading_rad: float, sigma_heading_rad: float, *, v_imu_e=None, cov_v_e=None,
+                      v_ref_e=None) -> None:
+        """Heading reset (companion.nav.course_alignment.heading_reset): turn the attitude, now and
+        its short history, by ``delta_heading_rad`` about local down and replace the heading
+        variance by ``sigma_heading_rad**2``.  With a GNSS velocity of the IMU ``v_imu_e`` (ECEF, m/s)
+        and its covariance, the velocity is taken from it as well (it was integrated along the wrong
+        heading; its error is then uncorrelated with everything else): the state moves by
+        ``v_imu_e - v_ref_e``, ``v_ref_e`` being the INS velocity at the GNSS time (default: now)."""
+        L = LAYOUT
+        R, P = heading_reset(self.kf.P, L.att, down_axis_e(self.r_e), delta_heading_rad, sigma_heading_rad)
+        dv = np.zeros(3)
+        if v_imu_e is not None:
+            dv = np.asarray(v_imu_e, float) - (self.v_e if v_ref_e is None else np.asarray(v_ref_e, float))
+            P[L.vel, :] = 0.0
+            P[:, L.vel] = 0.0
+            P[L.vel, L.vel] = cov_v_e
+        self.kf.P = P
+        self.C_b_e = R @ self.C_b_e
+        self.v_e = self.v_e + dv
+        self._history = deque((t, r, v + dv, R @ C) for t, r, v, C in self._history)
+        self._phase.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
+
+    def heading_and_sigma(self) -> tuple[float, float]:
+        """The filter's heading (rad, clockwise from true north) and its 1-sigma (rad)."""
+        u = down_axis_e(self.r_e)
+        var = heading_variance(self.kf.P[LAYOUT.att, LAYOUT.att], u)
+        return heading_of(self.C_b_e, self.r_e), math.sqrt(max(var, 0.0))
 
     def _update_with(self, batch: MeasurementBatch, what: str, used_counter: str) -> UpdateReport:
         """Gate one measurement batch, update, count accepted rows and rejections by reason."""

@@ -1,0 +1,355 @@
+"""Heading from motion when nobody knows it: a Gaussian-sum yaw estimator (after the EKF-GSF of
+ArduPilot EKF3 / PX4 ekf2, own implementation).
+
+A single EKF cannot start from an unknown heading: linearised about a heading 180 deg off it
+settles somewhere wrong.  A *bank* of ``n_models`` small filters, each started from a different
+heading (0, 72, 144, 216, 288 deg for five), can: the model whose heading is right predicts the
+GNSS velocity from the accelerometer best, and Bayes' rule moves the weight onto it.
+
+Each model
+  * has an AHRS: the body-to-NED rotation, integrated from the gyro and pulled towards the
+    accelerometer's gravity direction (tilt only).  The models' AHRSs differ by a rotation about
+    the vertical only, and both the gyro integration (right-multiplied) and the tilt correction (a
+    nav-frame rotation about a horizontal axis, computed from the accelerometer alone) commute
+    with a rotation about down; so they are carried exactly as one shared AHRS ``C_b_n`` and a
+    yaw offset per model;
+  * runs a 3-state EKF ``[v_north, v_east, yaw]``, predicted with its own rotated delta velocity
+    (no assumption about the direction of motion: a multirotor moving sideways, a car, a fixed
+    wing or a person carrying the unit all work) and updated with the GNSS horizontal velocity;
+  * has a weight, multiplied by the Gaussian likelihood of every velocity innovation.
+
+The composite yaw is the weighted circular mean, its variance the weighted model variances plus
+the spread of the models about the mean (so an undecided bank says so).
+
+The accelerometer is a gravity reference only when the vehicle does not accelerate: the tilt
+correction is faded out when the specific force is far from 1 g and when the GNSS velocity shows
+a horizontal acceleration (measured over a second or more, without any heading); a turning
+multirotor or a braking car then holds its tilt on the gyro.
+
+Frames: local NED at the vehicle (earth rate and transport rate ignored: 0.004 deg/s over the
+half a minute a convergence takes).  Units SI; angles in rad.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from .earth import euler_to_dcm
+
+G0_MPS2 = 9.80665
+
+
+@dataclass(frozen=True)
+class YawGsfConfig:
+    n_models: int = 5
+    step_s: float = 0.02                    # IMU increments are summed to about this before the bank runs
+    tilt_gain_per_s: float = 0.2            # AHRS tilt correction rate (time constant 5 s), as EKF-GSF
+    gyro_bias_gain_per_s: float = 0.04      # AHRS gyro bias learning (tilt axes only), as EKF-GSF
+    gyro_bias_limit_radps: float = 0.05
+    accel_lowpass_s: float = 0.5            # accelerometer low-pass for the tilt reference (vibration)
+    accel_norm_tolerance: float = 0.2       # tilt correction off when |f| is 20 % off 1 g
+    kinematic_accel_limit_mps2: float = 0.5   # ... and when GNSS shows this much horizontal acceleration
+    # velocity prediction noise (white, PSD): tilt error x g, accelerometer bias, vibration; the
+    # EKF-GSF's 2 m/s^2 per 10-ms step is 0.04 m^2/s^3
+    accel_noise_psd_m2ps3: float = 0.15
+    # yaw random walk: the unestimated vertical gyro bias (0.25 deg/s turn-on on a MEMS flight
+    # controller is 7.5 deg in 30 s, i.e. a random walk of 1.4 deg/sqrt(s) over that time)
+    yaw_noise_psd_rad2ps: float = math.radians(1.4) ** 2
+    innovation_limit_sigma: float = 5.0     # larger innovations move a model's state as if this large
+    log_weight_floor: float = math.log(1e-5)  # a model's weight never falls below this (it can come back)
+    velocity_gap_s: float = 3.0             # no GNSS velocity for this long: the models' velocities restart
+    # converged: yaw 1-sigma below this after at least min_moving_fusions fusions at speed, and the
+    # yaw observed (a fusion that shrank its variance by observed_fraction) in the last observed_within_s:
+    # in steady straight motion the yaw is unobservable and integrated from the gyro alone, which
+    # may be faulty (a 3 deg/s rate error is invisible to the screen), so it neither initialises
+    # nor overrules a heading then
+    converged_sigma_rad: float = math.radians(10.0)
+    min_moving_fusions: int = 3
+    observed_fraction: float = 0.01
+    observed_within_s: float = 5.0
+    moving_speed_mps: float = 0.5
+    # in motion (heading matters): moving as above, or a horizontal specific force (levelled by the
+    # AHRS, low-passed) above this -- seen at IMU rate, before a 1-Hz GNSS velocity shows the speed
+    accelerating_mps2: float = 0.3
+    # a complementary filter carries no covariance: the 1-sigma tilt error stated for it (MEMS IMU,
+    # 5-s correction time constant; the tests measure < 1 deg on a multirotor and a car)
+    tilt_sigma_rad: float = math.radians(2.0)
+
+
+def _wrap(a):
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _skew_exp(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (Rodrigues)."""
+    th = float(np.linalg.norm(phi))
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if th < 1e-9:
+        return np.eye(3) + K
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th ** 2) * (K @ K)
+
+
+def _orthonormalise(C: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(C)
+    return u @ vt
+
+
+class YawGsf:
+    """Feed :meth:`update_imu` with every (screened) IMU sample and :meth:`fuse_velocity` with every
+    GNSS velocity; read :attr:`yaw_rad`, :attr:`yaw_var_rad2`, :attr:`converged`, :attr:`roll_rad`,
+    :attr:`pitch_rad`."""
+
+    def __init__(self, config: YawGsfConfig = YawGsfConfig()):
+        self.cfg = config
+        self.reset()
+
+    def reset(self) -> None:
+        n = self.cfg.n_models
+        self.aligned = False                 # AHRS tilt aligned to the accelerometer
+        self.C_b_n = np.eye(3)               # the shared AHRS (model 0's yaw = its yaw)
+        self.b_g = np.zeros(3)               # AHRS gyro bias (body, rad/s)
+        self.f_lp_b = np.zeros(3)            # low-passed specific force (body)
+        self.x = np.zeros((n, 3))            # per model: v_north, v_east (m/s), yaw (rad)
+        self.P = np.zeros((n, 3, 3))
+        self.log_w = np.full(n, -math.log(n))
+        self.vel_initialised = False
+        self.n_fusions = 0
+        self.n_moving_fusions = 0
+        self.t_last_vel = -math.inf
+        self.moving = False                  # the last GNSS velocity showed horizontal motion
+        self.t_yaw_observed = -math.inf      # last fusion that shrank the yaw variance
+        self.horizontal_accel_mps2 = 0.0     # |horizontal specific force| in the AHRS's level frame
+        self._v_hist: deque = deque(maxlen=64)   # (t, v_n, v_e) of the GNSS velocities
+        self.kinematic_accel_mps2 = 0.0
+        self._acc = [0.0] * 7                # summed dtheta (3), dv (3), dt: plain floats at IMU rate
+        self._n_steps = 0
+        self.omega_b_radps = np.zeros(3)
+        self.t_gps = math.nan
+
+    # ------------------------------------------------------------------ IMU
+    def update_imu(self, dtheta_b, dv_b, dt_s: float, t_gps: float = math.nan) -> None:
+        """One IMU sample: delta angle (rad) and delta velocity (m/s, specific force) over ``dt_s``."""
+        if not (0.0 < dt_s < 0.5):
+            return
+        self.t_gps = t_gps
+        w0, w1, w2 = float(dtheta_b[0]), float(dtheta_b[1]), float(dtheta_b[2])
+        v0, v1, v2 = float(dv_b[0]), float(dv_b[1]), float(dv_b[2])
+        a = self._acc
+        # sum to the bank's step; the delta velocity in the body frame at the start of the step
+        # (turned by the rotation so far: dv + theta x dv)
+        a[3] += v0 + a[1] * v2 - a[2] * v1
+        a[4] += v1 + a[2] * v0 - a[0] * v2
+        a[5] += v2 + a[0] * v1 - a[1] * v0
+        a[0] += w0
+        a[1] += w1
+        a[2] += w2
+        a[6] += dt_s
+        if a[6] < self.cfg.step_s * (1.0 - 1e-6):
+            return
+        dth, dv, dt = np.array(a[0:3]), np.array(a[3:6]), a[6]
+        self._acc = [0.0] * 7
+        self.omega_b_radps = dth / dt
+        self._step(dth, dv, dt)
+
+    def _step(self, dth: np.ndarray, dv: np.ndarray, dt: float) -> None:
+        cfg = self.cfg
+        f_b = dv / dt
+        if not self.aligned:
+            # level the AHRS on the accelerometer when it is near 1 g (not thrown about)
+            if abs(np.linalg.norm(f_b) / G0_MPS2 - 1.0) < 0.1:
+                roll = math.atan2(-f_b[1], -f_b[2])
+                pitch = math.atan2(f_b[0], math.hypot(f_b[1], f_b[2]))
+                self.C_b_n = euler_to_dcm(roll, pitch, 0.0)
+                self.f_lp_b = f_b.copy()
+                n = cfg.n_models
+                self.x[:, 2] = np.arange(n) * (2.0 * math.pi / n)
+                self.P[:] = 0.0
+                self.P[:, 2, 2] = (math.pi / n) ** 2
+                self.aligned = True
+            return
+        a = dt / (cfg.accel_lowpass_s + dt)
+        self.f_lp_b += a * (f_b - self.f_lp_b)
+        C0 = self.C_b_n
+        yaw0 = math.atan2(C0[1, 0], C0[0, 0])
+        # tilt correction: rotate the nav frame so that the measured specific force points up
+        f_n = C0 @ self.f_lp_b
+        self.horizontal_accel_mps2 = math.hypot(f_n[0], f_n[1])
+        norm = float(np.linalg.norm(f_n))
+        w = max(0.0, 1.0 - abs(norm / G0_MPS2 - 1.0) / cfg.accel_norm_tolerance)
+        w *= max(0.0, 1.0 - self.kinematic_accel_mps2 / cfg.kinematic_accel_limit_mps2)
+        corr_n = np.zeros(3)
+        if w > 0.0 and norm > 0.0:
+            u = f_n / norm
+            err_n = np.array([-u[1], u[0], 0.0])          # u x (0, 0, -1): horizontal axis, |.| = sin(tilt error)
+            corr_n = cfg.tilt_gain_per_s * w * err_n
+            self.b_g -= cfg.gyro_bias_gain_per_s * w * (C0.T @ err_n) * dt
+            np.clip(self.b_g, -cfg.gyro_bias_limit_radps, cfg.gyro_bias_limit_radps, out=self.b_g)
+        C1 = _skew_exp(corr_n * dt) @ C0 @ _skew_exp(dth - self.b_g * dt)
+        self._n_steps += 1
+        self.C_b_n = _orthonormalise(C1) if self._n_steps % 50 == 0 else C1
+        d_yaw = _wrap(math.atan2(self.C_b_n[1, 0], self.C_b_n[0, 0]) - yaw0)
+        if not self.vel_initialised:
+            self.x[:, 2] = _wrap(self.x[:, 2] + d_yaw)
+            self.P[:, 2, 2] += cfg.yaw_noise_psd_rad2ps * dt
+            return
+        # each model's delta velocity: the shared one turned by the model's yaw offset
+        dv_n = C0 @ dv
+        c = self.x[:, 2] - yaw0
+        cs, sn = np.cos(c), np.sin(c)
+        dvn = cs * dv_n[0] - sn * dv_n[1]
+        dve = sn * dv_n[0] + cs * dv_n[1]
+        self.x[:, 0] += dvn
+        self.x[:, 1] += dve
+        self.x[:, 2] = _wrap(self.x[:, 2] + d_yaw)
+        # F = [[1, 0, -dve], [0, 1, dvn], [0, 0, 1]]: P <- F P F^T + Q, written out per model
+        P = self.P
+        p02, p12, p22 = P[:, 0, 2].copy(), P[:, 1, 2].copy(), P[:, 2, 2].copy()
+        P[:, 0, 0] += -2.0 * dve * p02 + dve * dve * p22
+        P[:, 1, 1] += 2.0 * dvn * p12 + dvn * dvn * p22
+        P[:, 0, 1] += -dve * p12 + dvn * p02 - dve * dvn * p22
+        P[:, 1, 0] = P[:, 0, 1]
+        P[:, 0, 2] = p02 - dve * p22
+        P[:, 2, 0] = P[:, 0, 2]
+        P[:, 1, 2] = p12 + dvn * p22
+        P[:, 2, 1] = P[:, 1, 2]
+        q_v = cfg.accel_noise_psd_m2ps3 * dt
+        P[:, 0, 0] += q_v
+        P[:, 1, 1] += q_v
+        P[:, 2, 2] += cfg.yaw_noise_psd_rad2ps * dt
+
+    # ------------------------------------------------------------------ GNSS
+    def fuse_velocity(self, t_gps: float, v_ne_mps, sigma_mps: float) -> bool:
+        """GNSS horizontal velocity (north, east; m/s) with its 1-sigma per axis.  Returns True
+        when it was fused (not before the AHRS is levelled)."""
+        v = np.asarray(v_ne_mps, float)[:2]
+        if not (self.aligned and np.all(np.isfinite(v)) and math.isfinite(sigma_mps) and sigma_mps > 0.0):
+            return False
+        cfg = self.cfg
+        self._update_kinematic_accel(t_gps, v, sigma_mps)
+        r = sigma_mps ** 2
+        if not self.vel_initialised or t_gps - self.t_last_vel > cfg.velocity_gap_s:
+            self.x[:, 0:2] = v
+            self.P[:, 0:2, :] = 0.0
+            self.P[:, :, 0:2] = 0.0
+            self.P[:, 0, 0] = self.P[:, 1, 1] = r
+            self.vel_initialised = True
+            self.t_last_vel = t_gps
+            return True
+        self.t_last_vel = t_gps
+        var_before = self.yaw_var_rad2
+        P = self.P
+        nu = v[None, :] - self.x[:, 0:2]                       # (n, 2)
+        s00, s01, s11 = P[:, 0, 0] + r, P[:, 0, 1], P[:, 1, 1] + r
+        det = s00 * s11 - s01 * s01
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det       # S^-1
+        nis = nu[:, 0] ** 2 * i00 + 2.0 * nu[:, 0] * nu[:, 1] * i01 + nu[:, 1] ** 2 * i11
+        # likelihood with the full innovation; the state moves as if it were at most k sigma
+        ll = -0.5 * nis - 0.5 * np.log(det)
+        lim = cfg.innovation_limit_sigma ** 2
+        scale = np.where(nis > lim, np.sqrt(lim / np.maximum(nis, 1e-30)), 1.0)
+        nu_s = nu * scale[:, None]
+        # K = P[:, :, :2] S^-1  (n, 3, 2)
+        Pc = P[:, :, 0:2]
+        K = np.empty((len(nu), 3, 2))
+        K[:, :, 0] = Pc[:, :, 0] * i00[:, None] + Pc[:, :, 1] * i01[:, None]
+        K[:, :, 1] = Pc[:, :, 0] * i01[:, None] + Pc[:, :, 1] * i11[:, None]
+        self.x += np.einsum("nij,nj->ni", K, nu_s)
+        self.x[:, 2] = _wrap(self.x[:, 2])
+        self.P = P - np.einsum("nij,nkj->nik", K, Pc)          # (I - K H) P, H = [I2 0]
+        self.P = 0.5 * (self.P + np.transpose(self.P, (0, 2, 1)))
+        lw = self.log_w + ll
+        lw -= lw.max()
+        lw -= math.log(float(np.exp(lw).sum()))
+        self.log_w = np.maximum(lw, cfg.log_weight_floor)
+        self.log_w -= math.log(float(np.exp(self.log_w).sum()))
+        self.n_fusions += 1
+        if self.yaw_var_rad2 < (1.0 - cfg.observed_fraction) * var_before:
+            self.t_yaw_observed = t_gps
+        self.moving = math.hypot(v[0], v[1]) > max(cfg.moving_speed_mps, 3.0 * sigma_mps)
+        if self.moving:
+            self.n_moving_fusions += 1
+        return True
+
+    def _update_kinematic_accel(self, t_gps: float, v: np.ndarray, sigma_mps: float) -> None:
+        """Horizontal acceleration from the GNSS velocity over at least a second (heading-free).
+        Its noise (sqrt(2) sigma / span) is left in: noise only slows the tilt correction down,
+        while an acceleration taken for noise would pull the tilt off."""
+        h = self._v_hist
+        h.append((t_gps, float(v[0]), float(v[1])))
+        while len(h) > 2 and t_gps - h[1][0] >= 1.0:
+            h.popleft()
+        t0, vn0, ve0 = h[0]
+        span = t_gps - t0
+        if not (0.5 <= span <= 3.0):
+            self.kinematic_accel_mps2 = 0.0 if span > 3.0 else self.kinematic_accel_mps2
+            return
+        self.kinematic_accel_mps2 = math.hypot(v[0] - vn0, v[1] - ve0) / span
+
+    # ------------------------------------------------------------------ output
+    @property
+    def weights(self) -> np.ndarray:
+        return np.exp(self.log_w)
+
+    @property
+    def yaw_rad(self) -> float:
+        w = self.weights
+        return math.atan2(float(w @ np.sin(self.x[:, 2])), float(w @ np.cos(self.x[:, 2])))
+
+    @property
+    def yaw_var_rad2(self) -> float:
+        if not self.aligned:
+            return math.pi ** 2
+        w = self.weights
+        d = _wrap(self.x[:, 2] - self.yaw_rad)
+        return float(w @ (self.P[:, 2, 2] + d * d))
+
+    @property
+    def yaw_sigma_rad(self) -> float:
+        return math.sqrt(self.yaw_var_rad2)
+
+    @property
+    def settled(self) -> bool:
+        """Yaw sigma below the limit after enough fusions in motion (possibly not observed lately)."""
+        cfg = self.cfg
+        return (self.aligned and self.vel_initialised and self.n_moving_fusions >= cfg.min_moving_fusions
+                and self.yaw_var_rad2 < cfg.converged_sigma_rad ** 2)
+
+    @property
+    def converged(self) -> bool:
+        """Settled, and the yaw observed in the last ``observed_within_s``."""
+        return self.settled and self.t_last_vel - self.t_yaw_observed <= self.cfg.observed_within_s
+
+    @property
+    def in_motion(self) -> bool:
+        """Moving or accelerating horizontally: a wrong heading now corrupts an INS."""
+        return self.moving or (self.aligned and self.horizontal_accel_mps2 > self.cfg.accelerating_mps2)
+
+    @property
+    def roll_rad(self) -> float:
+        C = self.C_b_n
+        return math.atan2(C[2, 1], C[2, 2])
+
+    @property
+    def pitch_rad(self) -> float:
+        return -math.asin(max(-1.0, min(1.0, float(self.C_b_n[2, 0]))))
+
+    @property
+    def tilt_sigma_rad(self) -> float:
+        return self.cfg.tilt_sigma_rad
+
+    def C_b_n_estimate(self) -> np.ndarray:
+        """Body-to-NED rotation with the composite yaw (a yaw turn leaves roll and pitch alone)."""
+        return euler_to_dcm(self.roll_rad, self.pitch_rad, self.yaw_rad)
+
+    def snapshot(self) -> dict:
+        return {"aligned": self.aligned, "converged": self.converged, "settled": self.settled,
+                "yaw_deg": round(math.degrees(self.yaw_rad), 2),
+                "yaw_sigma_deg": round(math.degrees(self.yaw_sigma_rad), 2),
+                "velocity_fusions": self.n_fusions, "moving_fusions": self.n_moving_fusions,
+                "weights": [round(float(x), 4) for x in self.weights]}
+
+
+__all__ = ["YawGsf", "YawGsfConfig"]
