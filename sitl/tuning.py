@@ -60,7 +60,10 @@ def tuning_for(scenario) -> FilterTuning:
                         zupt_enabled=not paper_like,
                         sigma_phase_elevation_scaling=rx.el_scaling,
                         sigma_pseudorange_standalone_floor_m=standalone_floor,
-                        sigma_phase_m=math.hypot(rx.carrier_noise_m, rx.carrier_mp_m),
+                        # TDCP differences consecutive epochs: of the multipath only what changed in
+                        # an epoch interval (1 s) is left, 2 (1 - rho) of its variance instead of 2
+                        sigma_phase_m=math.hypot(rx.carrier_noise_m, rx.carrier_mp_m * math.sqrt(
+                            1.0 - math.exp(-1.0 / rx.carrier_mp_tau_s)) if rx.carrier_mp_tau_s > 0 else rx.carrier_mp_m),
                         sigma_tdcp_floor_mps=0.005,
                         gnss_latency_s=0.0 if scenario.name == "paper" else 0.08)
 

@@ -77,3 +77,45 @@ def test_single_differences_cancel_the_clock_and_whiten_the_noise():
     R = D @ np.diag(b.r_var) @ D.T
     info = (D @ H).T @ np.linalg.solve(R, D @ H)
     assert np.allclose(sd.H.T @ sd.H, info)
+
+
+def test_tdcp_displacement_error_model_against_two_integrated_trajectories():
+    """The INS displacement between two epochs, integrated for a truth and an estimate that differ
+    in attitude (psi) and accelerometer bias: its error is dv_k T + (T^2 / 2)([f x] psi + C dba)
+    (dv_k the velocity error at the second epoch), the model tdcp_batch's attitude and bias columns
+    carry (companion.nav.measurements, with the filter's convention truth = estimate + error)."""
+    from companion.nav.strapdown import strapdown_step
+    from companion.nav.earth import gravity_ecef, skew
+    T, n = 1.0, 400
+    tau = T / n
+    f_b = np.array([1.5, -0.8, -9.3])           # accelerating while hovering (body, m/s^2)
+    psi = np.array([2e-3, -1.5e-3, 3e-3])       # attitude error, ECEF
+    dba = np.array([0.02, -0.01, 0.015])        # accelerometer bias error, body
+    C_true = rotation_from_rotvec(psi) @ C0
+    rt, vt, Ct = R0.copy(), V0.copy(), C_true
+    re, ve, Ce = R0.copy(), V0.copy(), C0.copy()
+    for _ in range(n):
+        rt, vt, Ct = strapdown_step(rt, vt, Ct, np.zeros(3), f_b * tau, tau)
+        re, ve, Ce = strapdown_step(re, ve, Ce, np.zeros(3), (f_b + dba) * tau, tau)   # est = true + dba
+    D = (rt - R0) - (re - R0)
+    dv_k = vt - ve
+    f_e = C0 @ f_b
+    model = dv_k * T + 0.5 * T * T * (skew(f_e) @ psi + C0 @ dba)
+    assert np.linalg.norm(D - model) < 0.02 * np.linalg.norm(D - dv_k * T)
+    # and the batch's columns are that model along the line of sight, per unit time
+    from companion.gnss.prepare import PreparedEpoch
+    from companion.nav.measurements import PhaseRecord, tdcp_batch
+    r_sat = R0 + 2.2e7 * np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81])
+    z = np.zeros(1)
+    prep = PreparedEpoch(t_gps=1.0, signal="L1C", r_approx_e=R0, sats=["G01"], r_sat_e=r_sat[None, :],
+                         v_sat_e=np.zeros((1, 3)), pseudorange_m=z, sigma_pseudorange_m=z + 1.0,
+                         sat_clock_bias_m=z, sat_clock_drift_mps=z, carrier_cycles=z + 1000.0,
+                         wavelength_m=z + 0.19, doppler_hz=z, cn0_dbhz=z + 45.0, lock_time_s=z + 10.0,
+                         half_cycle=np.zeros(1, bool), loss_of_lock=np.zeros(1, bool), elevation_rad=z + 1.0,
+                         azimuth_rad=z, iode=np.zeros(1, int), dgps_age_s=z, iono_m=z, tropo_m=z)
+    u = (r_sat - R0) / np.linalg.norm(r_sat - R0)
+    prev = {"G01": PhaseRecord(0.0, 900.0, 0.19, float(np.linalg.norm(r_sat - R0)), 0.0, u, 10.0)}
+    ins = InsPoint(1.0, R0, V0, C0, np.zeros(3), 0.0, 0.0)
+    b = tdcp_batch(ins, prep, prev, np.zeros(3), 0.005, 0.005, 2.0, specific_force_e=f_e)
+    assert np.allclose(b.H[0, L.att] @ psi + b.H[0, L.ba] @ dba + b.H[0, L.vel] @ dv_k,
+                       -u @ model / T, rtol=1e-6)

@@ -28,7 +28,7 @@ from ..gnss.ephemeris_store import EphemerisStore
 from ..gnss.prepare import prepare_epoch
 from ..messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
                         ImuSample, NavSolution)
-from .earth import C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
+from .earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
 from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
@@ -44,6 +44,9 @@ from .protection import ProtectionLevel
 from .strapdown import strapdown_step_with_force
 
 log = logging.getLogger(__name__)
+
+
+FLOOR_MAX_HEADING_SIGMA_RAD = math.radians(10.0)   # slow-error floor only once the heading is known
 
 
 @dataclass
@@ -176,6 +179,7 @@ class NavEngine:
         self._history_t: deque = deque()
         self._pending: list = []           # GNSS messages waiting for the IMU to pass their time
         self._phase: dict[str, PhaseRecord] = {}
+        self._prev_epoch_v: tuple[float, np.ndarray] | None = None   # (t_gps, corrected v_e) of the last epoch
         self._base_phase: dict[str, deque] = {}
         self._still = _StillnessDetector(config) if config.zupt_enabled else None
         self.imu_screen = ImuScreen(clip_fraction=config.imu_clip_fraction, accel_jump_mps2=config.imu_accel_jump_mps2,
@@ -253,6 +257,7 @@ class NavEngine:
         self._history_t.clear()
         self._push_history()
         self._phase.clear()
+        self._prev_epoch_v = None
         self._pending.clear()
         self._last_epoch_t = math.nan
         self.course_epochs_fused = 0
@@ -558,7 +563,8 @@ class NavEngine:
                 batches.append(tdcp_batch(ins, prep, self._phase, self.lever_arm_b, cfg.sigma_phase_m,
                                           cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s,
                                           phase_correction_m=corr,
-                                          elevation_scaling=cfg.sigma_phase_elevation_scaling))
+                                          elevation_scaling=cfg.sigma_phase_elevation_scaling,
+                                          specific_force_e=self._mean_specific_force_e(ins)))
         batches = [b for b in batches if len(b)]
         if cfg.measurement_form == "single_difference" and batches and len(prep.sats):
             # reference: the highest satellite that every GNSS batch contains
@@ -619,6 +625,12 @@ class NavEngine:
         """Keep the position covariance above what the slow pseudorange errors allow
         (companion.nav.slow_errors)."""
         if not self.cfg.slow_error_floor or len(prep.sigma_pseudorange_slow_m) != len(prep.sats):
+            return
+        if self.heading_and_sigma()[1] > FLOOR_MAX_HEADING_SIGMA_RAD:
+            # heading unknown: the position rows see it only through the linearised lever arm,
+            # which is meaningless for errors of tens of degrees; a position kept uncertain would
+            # let those rows keep "measuring" the heading (a car started 179 deg off became
+            # confidently wrong before it drove)
             return
         if np.any(np.isfinite(prep.dgps_age_s)):
             # DGPS: the slow part left (decorrelation over the baseline, ~0.2 m) is small beside the
@@ -849,6 +861,7 @@ class NavEngine:
         self.v_e = self.v_e + dv
         self._history = deque((t, r, v + dv, R @ C) for t, r, v, C in self._history)
         self._phase.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
+        self._prev_epoch_v = None
 
     def heading_and_sigma(self) -> tuple[float, float]:
         """The filter's heading (rad, clockwise from true north) and its 1-sigma (rad)."""
@@ -926,6 +939,18 @@ class NavEngine:
                 del self._phase[sat]
                 self.counters["carrier bookkeeping restarted (slip flag / lock time)"] += 1
 
+    def _mean_specific_force_e(self, ins: InsPoint) -> np.ndarray | None:
+        """Mean specific force (ECEF, m/s^2) since the last epoch, from the velocity change and the
+        ECEF mechanisation (v' = f + g - 2 Omega x v); None without a recent previous epoch."""
+        prev = self._prev_epoch_v
+        if prev is None:
+            return None
+        T = ins.t_gps - prev[0]
+        if not 0.0 < T <= self.cfg.tdcp_max_interval_s:
+            return None
+        omega = np.array([0.0, 0.0, OMEGA_IE_RADPS])
+        return (ins.v_e - prev[1]) / T - gravity_ecef(ins.r_e) + 2.0 * np.cross(omega, ins.v_e)
+
     def _remember_phase(self, ins: InsPoint, dx: np.ndarray, prep) -> None:
         """Store each satellite's carrier and its geometric range from the *corrected* INS state,
         for the next epoch's TDCP.  Every epoch replaces the record, so a slip that the gate caught
@@ -937,6 +962,7 @@ class NavEngine:
         fixed = InsPoint(ins.t_gps, ins.r_e + dx[L.pos], ins.v_e + dx[L.vel], C, ins.omega_ib_b,
                          ins.clock_bias_m + dx[L.clk], ins.clock_drift_mps + dx[L.drift])
         r_ant, _, _ = antenna_state(fixed, self.lever_arm_b)
+        self._prev_epoch_v = (ins.t_gps, fixed.v_e.copy())
         seen = set()
         finite = np.isfinite(prep.carrier_cycles)
         if np.any(finite):

@@ -99,7 +99,7 @@ def doppler_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, sigma_mps: float
 def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_b: np.ndarray,
                sigma_phase_m: float, sigma_rate_floor_mps: float, max_interval_s: float,
                layout=LAYOUT, phase_correction_m: dict[str, float] | None = None,
-               elevation_scaling: bool = False) -> MeasurementBatch:
+               elevation_scaling: bool = False, specific_force_e: np.ndarray | None = None) -> MeasurementBatch:
     """Pseudorange rate from time-differenced carrier phase (seed 000 eqs 2-7, 14).
 
     Over one epoch interval the integer ambiguity cancels.  The *prediction* uses the INS
@@ -111,12 +111,18 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
 
     The error of the INS displacement is modelled as dv_k T (the velocity error over the
     interval), giving the paper's range-rate Jacobian H_v = -u plus the receiver clock drift.
+    With ``specific_force_e`` (the mean specific force over the interval, ECEF, m/s^2) the
+    displacement error also carries how the velocity error grew inside the interval,
+    ``(T^2 / 2) ([f x] psi + C_b_e dba)``: with a heading uncertain by degrees (an initialisation
+    in flight) and the vehicle accelerating, that term is several TDCP sigmas, and leaving it out
+    made the gate reject good rows until the filter re-initialised again.
     ``phase_correction_m`` optionally removes common errors (e.g. a base station's time-differenced
     carrier, see :mod:`companion.nav.engine`).  With ``elevation_scaling`` the carrier noise grows as
     1/sin(elevation) (multipath), floored at 10 degrees.
     """
     r_ant, _, _ = antenna_state(ins, lever_arm_b)
     rows, labels, zs, rvar = [], [], [], []
+    f_cross = skew(specific_force_e) if specific_force_e is not None else None
     for i, sat in enumerate(prep.sats):
         prev = previous.get(sat)
         phi = prep.carrier_cycles[i]
@@ -143,6 +149,9 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
         h[layout.vel] = -u_mid
         h[layout.pos] = (prev.los_e - u) / T
         h[layout.drift] = 1.0
+        if f_cross is not None:
+            h[layout.att] = -0.5 * T * (u_mid @ f_cross)
+            h[layout.ba] = -0.5 * T * (u_mid @ ins.C_b_e)
         rows.append(h)
         labels.append(sat)
         zs.append(meas - pred)
