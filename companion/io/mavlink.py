@@ -406,7 +406,8 @@ def gps_fix_from_gps_raw_int(msg, time_map: BootToGpsTime, *, uere_m: float = 3.
         v_e = C_n_e(lat, lon) @ v_n
     nsat = int(msg.satellites_visible)
     return GnssFix(t_gps=t_gps, r_e=r_e, v_e=v_e, sigma_h_m=sigma_h, sigma_v_m=sigma_v,
-                   sigma_vel_mps=sigma_vel, num_sats=0 if nsat == 255 else nsat, fix_type=fix_type)
+                   sigma_vel_mps=sigma_vel, num_sats=0 if nsat == 255 else nsat, fix_type=fix_type,
+                   autopilot_clock=True)
 
 
 # =============================================================================================
