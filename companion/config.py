@@ -222,10 +222,12 @@ class FilterConfig:
     # time + dt_imu).  ArduPilot's SYSTEM_TIME is its GPS fix time plus the time since the fix
     # *arrived* (AP_GPS::time_epoch_usec), so it lags GPS time by the receiver's output latency:
     # tens of ms for a u-blox M8/F9 at 5-10 Hz (ArduPilot budgets 0.12 s of GPS lag for them, 0.22 s
-    # for older ones), ~0 with a PPS line.  PX4 sets its clock from the GPS driver the same way.
-    # Mean 0 (the sign and size depend on the installation); sigma 0.1 s covers 0.2 s at 2 sigma and
-    # keeps the linearised model good (0.1 s is 1 m at 10 m/s); the random walk lets the estimate
-    # follow a latency that changes by a few ms over minutes.
+    # for older ones), ~0 with a PPS line.  PX4 sets its clock from the fix time as the GPS message
+    # is parsed, so it lags the same way; a driver that sets it only once leaves the mapping to
+    # drift with the board's crystal (tens of ppm, ~0.1 s per hour): raise the random walk there.
+    # Mean 0 (the sign and size depend on the installation; a real stream was off by 0.265 s);
+    # sigma 0.1 s covers that at 2.7 sigma and 0.2 s at 2 (the model is linear in the offset: 0.1 s
+    # is 1 m at 10 m/s); the random walk (1 ms per 100 s) follows a latency that wanders slowly.
     imu_time_offset_s: float = _f(0.0, min=-1.0, max=1.0,
                                   doc="prior mean of the IMU time-tag offset (GPS time = IMU tag + this), s")
     imu_time_offset_sigma_s: float = _f(0.1, min=0.0, max=1.0,

@@ -16,7 +16,8 @@ What it does with the inputs
 ----------------------------
 * IMU (HIGHRES_IMU / RAW_IMU / SCALED_IMU2/3) -> :class:`~companion.messages.ImuSample` via
   :class:`~companion.io.mavlink.ImuDecoder`, GPS time from :class:`~companion.io.mavlink.BootToGpsTime`
-  (SYSTEM_TIME).  With ``mavlink.imu_cluster`` set, every listed stream has its own decoder and
+  (SYSTEM_TIME; what it leaves, e.g. ArduPilot's receiver latency, is the filter's ``dt_imu`` state,
+  ``filter.imu_time_offset_*``, reported as ``imu_time_offset_s`` in the solution extras and health).  With ``mavlink.imu_cluster`` set, every listed stream has its own decoder and
   the samples go through an :class:`~companion.nav.imu_cluster.ImuCluster` (unit = position in the
   list, the first is the primary whose time grid the fused samples keep); a unit dropped or
   re-admitted by its fault test is announced and counted (health ``imu_cluster``).

@@ -162,7 +162,7 @@ def test_absurd_numbers_are_refused_naming_the_key(key, tp):
                 loads_config(_toml_for(key, value), "x.toml")
 
 
-# times that are offsets, not intervals: either sign is meaningful (a real IMU stream needed -0.265 s)
+# times that are offsets, not intervals: either sign is meaningful (a clock that lags or leads)
 SIGNED_TIME_KEYS = {"filter.imu_time_offset_s"}
 
 
