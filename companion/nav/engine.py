@@ -860,9 +860,23 @@ class NavEngine:
         for r in reports:
             self.aid.record(r, t_gps, g)
 
+    IMU_TIME_OFFSET_MAX_SIGMAS = 3.0
+
     def _check_integrity(self, t_gps: float) -> None:
-        """After a GNSS update: has the filter diverged, or has a probation window passed?"""
-        if not self.cfg.integrity_enabled or not self.integrity.evaluate(self.aid, t_gps):
+        """After a GNSS update: has the filter diverged, or has a probation window passed?  An IMU
+        time-tag offset estimate beyond IMU_TIME_OFFSET_MAX_SIGMAS prior sigmas of the configured
+        mean is a divergence too: in a steady turn a heading error and a time offset look alike
+        (dv = dpsi x v against a dt = (w x v) dt), so a contradicting gyro can hide in it."""
+        if not self.cfg.integrity_enabled:
+            return
+        sig = self.cfg.imu_time_offset_sigma_s
+        off = self.imu_time_offset_s - self.cfg.imu_time_offset_s
+        if sig > 0 and not abs(off) <= self.IMU_TIME_OFFSET_MAX_SIGMAS * sig:
+            changed = self.integrity.implausible_state(
+                t_gps, f"IMU time offset {self.imu_time_offset_s * 1e3:.0f} ms: {abs(off) / sig:.1f} sigma from its prior")
+        else:
+            changed = self.integrity.evaluate(self.aid, t_gps)
+        if not changed:
             return
         state = self.integrity.state
         if state == IntegrityState.DIVERGED:
