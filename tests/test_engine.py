@@ -255,3 +255,32 @@ def test_imu_time_tag_offset_is_estimated_in_flight():
     assert eng.solution().extras["imu_time_offset_s"] == eng.imu_time_offset_s
     assert rms["late"] <= 1.1 * rms["exact"]
     assert rms["ignored"] > 1.5 * rms["exact"]
+
+
+def test_time_offset_lookup_and_plausibility():
+    """Receiver-timed messages are predicted at t - dt_imu on the IMU's tags, autopilot-timed ones
+    (GPS_RAW_INT, ATTITUDE) at their own tag; an estimate beyond 3 prior sigmas is a divergence."""
+    from companion.io.mavlink import BootToGpsTime, gps_fix_from_gps_raw_int
+    from companion.messages import GnssAttitude
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    from companion.nav.integrity import IntegrityState
+    t0, r0, v, C, samples, rs = _straight_line_imu(seconds=0.5)
+    eng = NavEngine(EngineConfig(noise=NOISE, imu_time_offset_s=0.02, imu_time_offset_sigma_s=0.1))
+    eng.initialize(t0, r0, v, C, P0)
+    assert eng.imu_time_offset_s == 0.02 and eng.kf.P[17, 17] == pytest.approx(0.01)
+    eng.imu_time_offset_s = 0.08
+    t = t0 + 0.3
+    assert eng.imu_time_of(GnssEpoch(t, ())) == pytest.approx(t - 0.08)
+    assert eng.imu_time_of(GnssAttitude(t, heading_rad=0.0)) == pytest.approx(t - 0.08)
+    assert eng.imu_time_of(GnssAttitude(t, heading_rad=0.0, autopilot_clock=True)) == t
+    tm = BootToGpsTime()
+    tm.update_system_time(int((t0 + 1e9) * 1e6), 100_000)
+    raw = mavlink2.MAVLink_gps_raw_int_message(150_000_000, 3, 350000000, 1390000000, 100000, 100, 100, 500, 9000,
+                                                10, 100000, 500, 800, 300, 0, 0)
+    fix = gps_fix_from_gps_raw_int(raw, tm)
+    assert fix.autopilot_clock and eng.imu_time_of(fix) == fix.t_gps
+    eng._check_integrity(t)
+    assert eng.integrity.state == IntegrityState.OK
+    eng.imu_time_offset_s = 0.02 - 0.31          # 3.1 prior sigmas from the configured mean
+    eng._check_integrity(t)
+    assert eng.integrity.state == IntegrityState.DIVERGED and "IMU time offset" in eng.integrity.reason

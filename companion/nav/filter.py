@@ -10,7 +10,9 @@ Error-state convention ("correction" form, truth = estimate + error):
   boot time through :class:`~companion.io.mavlink.BootToGpsTime`) plus ``dt_imu``.  The INS runs on
   the tags; a GNSS measurement at receiver time t is compared with the INS at tag t - dt_imu (see
   :mod:`.engine`).  ArduPilot's SYSTEM_TIME lags GPS time by the receiver's output latency, so a
-  lagging clock gives a positive ``dt_imu``.
+  lagging clock gives a positive ``dt_imu``.  Observable when the motion changes (accelerations,
+  turn entries and exits); in a steady turn it looks like a heading error, so an estimate beyond 3
+  prior sigmas is treated as a divergence (:meth:`.engine.NavEngine._check_integrity`).
 
 Continuous error dynamics (derived from the ECEF mechanization in :mod:`.strapdown`):
 

@@ -53,7 +53,7 @@ class PhaseRecord:
     sat_clock_bias_m: float
     los_e: np.ndarray
     lock_time_s: float
-    los_rate_m_ps: float = 0.0   # u . v_ant at that epoch: what a time-tag error did to the range
+    los_rate_mps: float = 0.0   # u . v_ant at that epoch: what a time-tag error did to the range
 
 
 def antenna_state(ins: InsPoint, lever_arm_b: np.ndarray):
@@ -147,7 +147,7 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
     interval), giving the paper's range-rate Jacobian H_v = -u plus the receiver clock drift.
     A time-tag error dt_imu is common to both epochs (it is a slowly varying state): it changes the
     interval's range difference by (u_k.v_ant,k - u_k-1.v_ant,k-1) dt_imu, the change of the
-    line-of-sight velocity over the interval (``PhaseRecord.los_rate_m_ps`` holds the earlier one).
+    line-of-sight velocity over the interval (``PhaseRecord.los_rate_mps`` holds the earlier one).
     ``phase_correction_m`` optionally removes common errors (e.g. a base station's time-differenced
     carrier, see :mod:`companion.nav.engine`).  With ``elevation_scaling`` the carrier noise grows as
     1/sin(elevation) (multipath), floored at 10 degrees.
@@ -181,7 +181,7 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
         h[layout.pos] = (prev.los_e - u) / T
         h[layout.drift] = 1.0
         # dt_imu: the same tag error at both epochs moved both ranges by u . v_ant of their epoch
-        h[layout.toff] = (float(u @ v_ant) - prev.los_rate_m_ps) / T
+        h[layout.toff] = (float(u @ v_ant) - prev.los_rate_mps) / T
         rows.append(h)
         labels.append(sat)
         zs.append(meas - pred)
