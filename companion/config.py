@@ -238,6 +238,22 @@ class FilterConfig:
     accel_bias_rw_mps2_per_sqrt_s: float = _f(1.0e-4, min=0.0, max=0.1)
     clock_bias_psd_m2ps: float = _f(0.1, min=0.0, max=1e6)
     clock_drift_psd_m2ps3: float = _f(0.01, min=0.0, max=1e6)
+    # IMU time-tag offset (companion.nav.filter dt_imu: GPS time of an IMU sample = its mapped boot
+    # time + dt_imu).  ArduPilot's SYSTEM_TIME is its GPS fix time plus the time since the fix
+    # *arrived* (AP_GPS::time_epoch_usec), so it lags GPS time by the receiver's output latency:
+    # tens of ms for a u-blox M8/F9 at 5-10 Hz (ArduPilot budgets 0.12 s of GPS lag for them, 0.22 s
+    # for older ones), ~0 with a PPS line.  PX4 sets its clock from the fix time as the GPS message
+    # is parsed, so it lags the same way; a driver that sets it only once leaves the mapping to
+    # drift with the board's crystal (tens of ppm, ~0.1 s per hour): raise the random walk there.
+    # Mean 0 (the sign and size depend on the installation; a real stream was off by 0.265 s);
+    # sigma 0.1 s covers that at 2.7 sigma and 0.2 s at 2 (the model is linear in the offset: 0.1 s
+    # is 1 m at 10 m/s); the random walk (1 ms per 100 s) follows a latency that wanders slowly.
+    imu_time_offset_s: float = _f(0.0, min=-1.0, max=1.0,
+                                  doc="prior mean of the IMU time-tag offset (GPS time = IMU tag + this), s")
+    imu_time_offset_sigma_s: float = _f(0.1, min=0.0, max=1.0,
+                                        doc="its prior 1-sigma (0 = not estimated: the mean is used as is)")
+    imu_time_offset_rw_s_per_sqrt_s: float = _f(1e-4, min=0.0, max=0.1,
+                                                doc="random walk of the IMU time-tag offset")
     use_pseudorange: bool = _f(True)
     use_dgps: bool = _f(True)
     use_tdcp: bool = _f(True)
@@ -323,7 +339,10 @@ class FilterConfig:
             gyro_bias_rw_radps_per_sqrt_s=self.gyro_bias_rw_radps_per_sqrt_s,
             accel_bias_rw_mps2_per_sqrt_s=self.accel_bias_rw_mps2_per_sqrt_s,
             clock_bias_psd_m2ps=self.clock_bias_psd_m2ps,
-            clock_drift_psd_m2ps3=self.clock_drift_psd_m2ps3)
+            clock_drift_psd_m2ps3=self.clock_drift_psd_m2ps3,
+            # without the state (sigma 0) it has no noise either: P stays exactly zero there
+            imu_time_offset_rw_s_per_sqrt_s=self.imu_time_offset_rw_s_per_sqrt_s if self.imu_time_offset_sigma_s > 0
+            else 0.0)
 
     def engine_config(self, lever_arm_b_m=(0.0, 0.0, 0.0)):
         """The engine configuration.  Keys the engine does not (or no longer) know are left out
@@ -343,7 +362,8 @@ class FilterConfig:
 
 
 _NOISE_FIELDS = {"gyro_arw_rad_per_sqrt_s", "accel_vrw_mps_per_sqrt_s", "gyro_bias_rw_radps_per_sqrt_s",
-                 "accel_bias_rw_mps2_per_sqrt_s", "clock_bias_psd_m2ps", "clock_drift_psd_m2ps3"}
+                 "accel_bias_rw_mps2_per_sqrt_s", "clock_bias_psd_m2ps", "clock_drift_psd_m2ps3",
+                 "imu_time_offset_rw_s_per_sqrt_s"}
 
 
 @dataclass(frozen=True, slots=True)

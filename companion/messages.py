@@ -144,6 +144,9 @@ class GnssFix:
     # False when the source carries no vertical velocity (GPS_RAW_INT: speed and course only); the
     # vertical component of v_e is then a placeholder and only the horizontal velocity is fused
     vertical_velocity_valid: bool = True
+    # True when t_gps is the autopilot's boot time mapped through SYSTEM_TIME (GPS_RAW_INT), like the
+    # IMU's: it then shares the IMU's time-tag offset (companion.nav.filter, dt_imu)
+    autopilot_clock: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,6 +163,7 @@ class GnssAttitude:
     sigma_heading_rad: float = math.radians(0.2)
     sigma_pitch_rad: float = math.radians(0.2)
     sigma_roll_rad: float = math.radians(0.4)
+    autopilot_clock: bool = False     # t_gps from the autopilot's boot time (ATTITUDE, GPS_RAW_INT yaw)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -16,7 +16,8 @@ What it does with the inputs
 ----------------------------
 * IMU (HIGHRES_IMU / RAW_IMU / SCALED_IMU2/3) -> :class:`~companion.messages.ImuSample` via
   :class:`~companion.io.mavlink.ImuDecoder`, GPS time from :class:`~companion.io.mavlink.BootToGpsTime`
-  (SYSTEM_TIME).  With ``mavlink.imu_cluster`` set, every listed stream has its own decoder and
+  (SYSTEM_TIME; what it leaves, e.g. ArduPilot's receiver latency, is the filter's ``dt_imu`` state,
+  ``filter.imu_time_offset_*``, reported as ``imu_time_offset_s`` in the solution extras and health).  With ``mavlink.imu_cluster`` set, every listed stream has its own decoder and
   the samples go through an :class:`~companion.nav.imu_cluster.ImuCluster` (unit = position in the
   list, the first is the primary whose time grid the fused samples keep); a unit dropped or
   re-admitted by its fault test is announced and counted (health ``imu_cluster``).
@@ -729,7 +730,8 @@ class NavPipeline:
         if t_gps is None:
             return
         self._last_ap_heading_boot_s = t_boot
-        eng.process(GnssAttitude(t_gps, heading_rad=float(msg.yaw), sigma_heading_rad=self.AP_HEADING_SIGMA_RAD))
+        eng.process(GnssAttitude(t_gps, heading_rad=float(msg.yaw), sigma_heading_rad=self.AP_HEADING_SIGMA_RAD,
+                                 autopilot_clock=True))
         self.counters["autopilot heading fused (on the ground)"] += 1
 
     def _announce_hold(self, integrity: str | None) -> None:
@@ -909,7 +911,8 @@ class NavPipeline:
             return
         C, att_sigmas = att[0], att[1:]
         sig = self.init_sigmas
-        dt = s.t_gps - epoch.t_gps
+        # the newest IMU sample is at GPS time tag + dt_imu (the epoch is on the receiver's time)
+        dt = s.t_gps + self._imu_time_offset_prior() - epoch.t_gps
         if sol.v_e is not None and np.all(np.isfinite(sol.v_e)):
             v, sv = np.asarray(sol.v_e, float), sig.vel_doppler_mps
         elif self.disarmed:                 # disarmed: not moving (a ground vehicle may drive)
@@ -948,7 +951,7 @@ class NavPipeline:
             self.counters["GPS_RAW_INT yaw"] += 1
             if eng.initialized:
                 eng.process(GnssAttitude(fix.t_gps, heading_rad=math.radians((yaw_cdeg % 36000) / 100.0),
-                                         sigma_heading_rad=math.radians(sig_yaw)))
+                                         sigma_heading_rad=math.radians(sig_yaw), autopilot_clock=True))
                 self._last_trusted_heading_t = fix.t_gps
         s = self.last_imu
         loose = not self.raw_expected or (s is not None and s.t_gps - self.last_raw_t > RAW_TIMEOUT_S)
@@ -995,9 +998,10 @@ class NavPipeline:
               "pos_cov_e_m2": pos_cov_e_m2}
         probation, self._probation_next = self._probation_next, False
         b_a, b_g = self._biases_to_keep() if self._keep_biases_next else (None, None)
+        offset = self._imu_time_offset_prior()       # same rule as the biases: before the flag is cleared
         self._keep_biases_next = False
         self.engine.initialize(t_gps, r, v, C, p0, clock_bias_m=clock_bias_m, clock_drift_mps=clock_drift_mps,
-                               probation=probation, b_a=b_a, b_g=b_g)
+                               probation=probation, b_a=b_a, b_g=b_g, imu_time_offset_s=offset)
         self.counters["initialisations"] += 1
         self.last_init_reason = how
         self.output_state = "init"
@@ -1005,6 +1009,17 @@ class NavPipeline:
         self._hpl_hold = False
         self._event(m.MAV_SEVERITY_INFO, f"nav init #{self.engine.reset_counter}: {how}"
                     + ("; not injected until consistent" if probation else ""))
+
+    def _imu_time_offset_prior(self) -> float:
+        """Prior mean of the IMU time-tag offset for the next initialisation: after a re-init of the
+        same IMU stream (not a reboot: the time mapping starts over) the offset the filter had
+        learnt, when within 3 sigma of the configured prior; else the configured mean."""
+        f = self.cfg.filter
+        learnt = self.engine.imu_time_offset_s
+        if (self._keep_biases_next and math.isfinite(learnt)
+                and abs(learnt - f.imu_time_offset_s) <= 3.0 * f.imu_time_offset_sigma_s):
+            return float(learnt)
+        return float(f.imu_time_offset_s)
 
     def _biases_to_keep(self):
         """After a re-init in flight (same IMU): the sensor biases the filter had learnt, when
@@ -1036,6 +1051,9 @@ class NavPipeline:
                          "inject": sol.extras.get("inject"),
                          "protection_level": {k: _round_or_none(sol.extras.get(k)) for k in
                                               ("hpl_m", "hpl_cov_m", "hpl_ss_m")}})
+            if "imu_time_offset_s" in sol.extras:     # dt_imu: GPS time of an IMU sample = tag + this
+                filt.update({"imu_time_offset_s": round(float(sol.extras["imu_time_offset_s"]), 5),
+                             "imu_time_offset_sigma_s": round(float(sol.extras["imu_time_offset_sigma_s"]), 5)})
         return {"filter": filt, "pipeline": dict(self.counters), "engine": dict(self.engine.counters),
                 "aid_sources": self.engine.aid.snapshot(),
                 "yaw_gsf": {**self.gsf.snapshot(), "heading_resets": self.gsf_heading_resets,

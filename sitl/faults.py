@@ -179,8 +179,27 @@ async def _fly_case(case: FaultCase, *, duration_s: float, speedup: float, out_d
                if k in ("imu_samples_overridden", "rover_epochs_faulty", "clock_jumps")}
     row.update({"applied": applied, "statustext": res["statustext"][-20:],
                 "companion_exit_code": res["companion_exit_code"],
-                "reset_counters_seen": res["reset_counters_seen"]})
+                "reset_counters_seen": res["reset_counters_seen"],
+                "imu_time_offset": imu_time_offset_series(res["field_log_dir"], captured["ap"].t0)})
     return row
+
+
+def imu_time_offset_series(field_log_dir, t0_gps: float) -> list[list[float]]:
+    """The companion's IMU time-tag offset estimate over the flight, from the health reports of its
+    field log: [time from the start of the flight (s), offset (s), its 1-sigma (s)] per report."""
+    from companion.io.fieldlog import read_field_log
+    out = []
+    try:
+        for rec in read_field_log(field_log_dir):
+            if rec.kind != "event":
+                continue
+            obj = json.loads(rec.payload)
+            f = obj.get("health", {}).get("filter", {}) if obj.get("event") in ("health", "stop") else {}
+            if "imu_time_offset_s" in f and f.get("t_gps") is not None:
+                out.append([round(float(f["t_gps"]) - t0_gps, 2), f["imu_time_offset_s"], f["imu_time_offset_sigma_s"]])
+    except (OSError, ValueError):
+        pass
+    return out
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -256,6 +275,10 @@ def cmd_faults(args) -> int:
                                                "duration_s": args.duration, "speedup": args.speedup},
                                               indent=2, default=str))
         print(f"wrote {args.json}")
+    for r in rows:
+        if r.get("imu_time_offset"):
+            print(f"{r['fault']}: IMU time offset estimate (t s: ms +- 1-sigma ms) " + ", ".join(
+                f"{t:.0f}: {1e3 * o:.1f} +- {1e3 * s:.1f}" for t, o, s in r["imu_time_offset"]))
     return 130 if interrupted else 0
 
 

@@ -162,10 +162,22 @@ def test_absurd_numbers_are_refused_naming_the_key(key, tp):
                 loads_config(_toml_for(key, value), "x.toml")
 
 
-@pytest.mark.parametrize("key", [k for k, tp in _numeric_keys() if k.endswith(("_hz", "_bps", "_s"))])
+# times that are offsets, not intervals: either sign is meaningful (a clock that lags or leads)
+SIGNED_TIME_KEYS = {"filter.imu_time_offset_s"}
+
+
+@pytest.mark.parametrize("key", [k for k, tp in _numeric_keys() if k.endswith(("_hz", "_bps", "_s"))
+                                 and k not in SIGNED_TIME_KEYS])
 def test_negative_rates_and_intervals_are_refused(key):
     with pytest.raises(ConfigError, match=f"{key}: must be >"):
         loads_config(_toml_for(key, "-1.0"), "x.toml")
+
+
+@pytest.mark.parametrize("key", sorted(SIGNED_TIME_KEYS))
+def test_signed_time_offsets_accept_either_sign(key):
+    section, name = key.split(".")
+    for value in (-0.265, 0.08):
+        assert getattr(getattr(loads_config(_toml_for(key, repr(value)), "x.toml"), section), name) == value
 
 
 @pytest.mark.parametrize("key", _vector_keys())

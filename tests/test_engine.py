@@ -8,7 +8,7 @@ import pytest
 from scipy.stats import chi2
 
 from companion.messages import GnssEpoch, GnssFix, ImuSample
-from companion.nav.earth import C_n_e, geodetic_to_ecef, rotation_from_rotvec
+from companion.nav.earth import C_n_e, ecef_to_geodetic, geodetic_to_ecef, rotation_from_rotvec
 from companion.nav.engine import EngineConfig, NavEngine
 from companion.nav.filter import ProcessNoise
 from companion.nav.strapdown import invert_step
@@ -199,3 +199,88 @@ def test_nees_is_consistent_when_the_filter_model_matches_the_truth():
           f"{inside * 100:.0f} % of epochs inside")
     assert lo <= avg.mean() <= hi
     assert inside >= 0.80
+
+
+def _fly_uav_with_imu_tags_late(sim, late_s, sigma_s):
+    """Engine level, tdcp_dgps on the 'uav' flight: the IMU's tags are ``late_s`` behind GPS time
+    (SYSTEM_TIME late), the GNSS epochs carry receiver time and arrive 80 ms late.  Returns the
+    horizontal error at 1 Hz (truth at the samples' GPS time) and the engine."""
+    from sitl.paper import mode_config
+    tun = tuning_for(sim.scenario)
+    noise = dataclasses.replace(tun.noise, imu_time_offset_rw_s_per_sqrt_s=1e-4 if sigma_s > 0 else 0.0)
+    eng = NavEngine(dataclasses.replace(mode_config("tdcp_dgps", tun, sim.lever_arm_b), noise=noise,
+                                        imu_time_offset_sigma_s=sigma_s))
+    for e in sim.ephemerides:
+        eng.process(e)
+    eng.process(sim.base)
+    truth = sim.truth
+    d_att, d_pos, d_vel = initial_errors(np.random.default_rng(10_003), tun.p0, truth.r_e[0])
+    eng.initialize(truth.t_gps[0] - late_s, truth.r_e[0] + d_pos, truth.v_e[0] + d_vel,
+                   rotation_from_rotvec(d_att) @ truth.C_b_e[0], tun.p0)
+    up = -C_n_e(*ecef_to_geodetic(truth.r_e[0])[:2])[:, 2]
+    rov, base = sim.rover_epochs, sim.base_epochs
+    i_r = i_b = 0
+    err_h = []
+    for k, s in enumerate(sim.imu, start=1):
+        while i_b < len(base) and base[i_b].t_gps + 0.08 <= s.t_gps:
+            eng.process(base[i_b])
+            i_b += 1
+        while i_r < len(rov) and rov[i_r].t_gps + 0.08 <= s.t_gps:
+            eng.process(rov[i_r])
+            i_r += 1
+        eng.process_imu(ImuSample(s.t_gps - late_s, s.dt_s, s.dtheta_b, s.dv_b, s.imu_id))
+        if k % 200 == 0:
+            d = eng.r_e - truth.r_e[k]
+            err_h.append(float(np.linalg.norm(d - up * (d @ up))))
+    return np.array(err_h), eng
+
+
+def test_imu_time_tag_offset_is_estimated_in_flight():
+    """80 ms between the IMU's tags and GPS time: the dt_imu state finds it within 10 ms by the
+    end of the 70-s flight (climb, acceleration, first turn), and the position after 40 s is as
+    good as with exact tags; without the state the same flight is much worse."""
+    from sitl.fly import load_sim
+    from companion.nav.filter import LAYOUT
+    sim = load_sim("uav", 0, 70.0)
+    err_late, eng = _fly_uav_with_imu_tags_late(sim, 0.08, 0.1)
+    err_exact, eng_exact = _fly_uav_with_imu_tags_late(sim, 0.0, 0.1)
+    err_ignored, _ = _fly_uav_with_imu_tags_late(sim, 0.08, 0.0)
+    sigma = math.sqrt(eng.kf.P[LAYOUT.toff, LAYOUT.toff])
+    rms = {name: float(np.sqrt(np.mean(e[40:] ** 2))) for name, e in
+           (("late", err_late), ("exact", err_exact), ("ignored", err_ignored))}
+    print(f"offset {eng.imu_time_offset_s * 1e3:.1f} +- {sigma * 1e3:.1f} ms (exact tags: "
+          f"{eng_exact.imu_time_offset_s * 1e3:.1f} ms); horizontal RMS after 40 s {rms}")
+    assert abs(eng.imu_time_offset_s - 0.08) < 0.010 and sigma < 0.010
+    assert abs(eng_exact.imu_time_offset_s) < 0.010
+    assert eng.solution().extras["imu_time_offset_s"] == eng.imu_time_offset_s
+    assert rms["late"] <= 1.1 * rms["exact"]
+    assert rms["ignored"] > 1.5 * rms["exact"]
+
+
+def test_time_offset_lookup_and_plausibility():
+    """Receiver-timed messages are predicted at t - dt_imu on the IMU's tags, autopilot-timed ones
+    (GPS_RAW_INT, ATTITUDE) at their own tag; an estimate beyond 3 prior sigmas is a divergence."""
+    from companion.io.mavlink import BootToGpsTime, gps_fix_from_gps_raw_int
+    from companion.messages import GnssAttitude
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+    from companion.nav.integrity import IntegrityState
+    t0, r0, v, C, samples, rs = _straight_line_imu(seconds=0.5)
+    eng = NavEngine(EngineConfig(noise=NOISE, imu_time_offset_s=0.02, imu_time_offset_sigma_s=0.1))
+    eng.initialize(t0, r0, v, C, P0)
+    assert eng.imu_time_offset_s == 0.02 and eng.kf.P[17, 17] == pytest.approx(0.01)
+    eng.imu_time_offset_s = 0.08
+    t = t0 + 0.3
+    assert eng.imu_time_of(GnssEpoch(t, ())) == pytest.approx(t - 0.08)
+    assert eng.imu_time_of(GnssAttitude(t, heading_rad=0.0)) == pytest.approx(t - 0.08)
+    assert eng.imu_time_of(GnssAttitude(t, heading_rad=0.0, autopilot_clock=True)) == t
+    tm = BootToGpsTime()
+    tm.update_system_time(int((t0 + 1e9) * 1e6), 100_000)
+    raw = mavlink2.MAVLink_gps_raw_int_message(150_000_000, 3, 350000000, 1390000000, 100000, 100, 100, 500, 9000,
+                                                10, 100000, 500, 800, 300, 0, 0)
+    fix = gps_fix_from_gps_raw_int(raw, tm)
+    assert fix.autopilot_clock and eng.imu_time_of(fix) == fix.t_gps
+    eng._check_integrity(t)
+    assert eng.integrity.state == IntegrityState.OK
+    eng.imu_time_offset_s = 0.02 - 0.31          # 3.1 prior sigmas from the configured mean
+    eng._check_integrity(t)
+    assert eng.integrity.state == IntegrityState.DIVERGED and "IMU time offset" in eng.integrity.reason

@@ -133,9 +133,14 @@ class BootToGpsTime:
     * A boot time that goes backwards (by more than ``reboot_tolerance_s``) means the autopilot
       rebooted: the mapping is reset, ``reboots`` counted and ``boot_epoch`` incremented (users
       such as :class:`ImuDecoder` reset their own state when it changes).
-    * :meth:`refine` takes a receiver time tag (GPS time of an event whose boot time is known,
-      e.g. a UBX epoch matched to the autopilot's reception time): it has priority over
-      SYSTEM_TIME for ``refine_hold_s``, during which SYSTEM_TIME only checks for jumps.
+    * :meth:`refine` takes a receiver time tag (GPS time of an event whose boot time is known):
+      it has priority over SYSTEM_TIME for ``refine_hold_s``, during which SYSTEM_TIME only checks
+      for jumps.  The pipeline has no such pair and does not call it: GPS_RAW_INT ``time_usec`` is
+      when the autopilot *received* the fix (no GPS time in the message), SERIAL_CONTROL bytes carry
+      no boot time, and a raw epoch matched to either is late by the receiver's output latency --
+      the very lag that makes SYSTEM_TIME late.  An honest pair needs an event the autopilot stamps
+      and the receiver times (e.g. a trigger pin into UBX TIM-TM2).  What SYSTEM_TIME leaves is
+      estimated by the filter instead (``dt_imu``, :mod:`companion.nav.filter`).
     * The offset may drift: :attr:`rate` (s/s) is the least-squares slope of the last
       ``rate_window`` SYSTEM_TIME offsets and the offset is extrapolated with it.  A real
       autopilot's clock is off by some ppm; PX4 SITL's lockstep boot clock runs ~1 % slower than
@@ -447,7 +452,8 @@ def gps_fix_from_gps_raw_int(msg, time_map: BootToGpsTime, *, uere_m: float = 3.
         v_e = C_n_e(lat, lon) @ v_n
     nsat = int(msg.satellites_visible)
     return GnssFix(t_gps=t_gps, r_e=r_e, v_e=v_e, sigma_h_m=sigma_h, sigma_v_m=sigma_v,
-                   sigma_vel_mps=sigma_vel, num_sats=0 if nsat == 255 else nsat, fix_type=fix_type)
+                   sigma_vel_mps=sigma_vel, num_sats=0 if nsat == 255 else nsat, fix_type=fix_type,
+                   autopilot_clock=True)
 
 
 # =============================================================================================

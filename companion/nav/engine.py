@@ -11,6 +11,16 @@ sample.  An epoch that arrives before the IMU has passed its time waits in a que
 arrives late (the usual case in the field: receivers report 20-100 ms after the epoch) is
 interpolated from the history.  The correction is applied at the current IMU time, treating the
 error state as constant over the latency (it changes by ~v_err * latency, far below the noise).
+
+The IMU's time tags are the autopilot's boot time mapped to GPS time by SYSTEM_TIME, which lags by
+the receiver latency; the filter estimates that offset (state ``dt_imu``, :mod:`.filter`).  The INS
+and its history stay on the IMU's tags (``t_gps`` of the engine and of its solutions); a message
+time-tagged by the receiver (raw epochs, NAV-RELPOSNED, SPP of an epoch) is looked up at
+``t_gps - imu_time_offset_s`` (:meth:`NavEngine.imu_time_of`), one tagged on the autopilot's clock
+(``autopilot_clock``: GPS_RAW_INT, ATTITUDE) at its own tag.  Shifting the look-up rather than the
+IMU tags leaves the history, the IMU intervals and the shell's time comparisons untouched when the
+estimate moves; the solution of an IMU sample is the vehicle at that sample's GPS time (tag +
+offset), which is what the autopilot, stamping it with the sample's boot time, needs.
 """
 from __future__ import annotations
 
@@ -32,7 +42,8 @@ from .earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic, gravity_ecef, gravit
 from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
-from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, baseline_batch, doppler_batch,
+from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, attitude_rate_e, baseline_batch,
+                           doppler_batch,
                            horizontal_velocity_fix_batch, line_of_sight, nhc_batch, position_fix_batch,
                            pseudorange_batch, single_difference, tdcp_batch, velocity_fix_batch, zero_rate_batch,
                            zero_velocity_batch)
@@ -114,6 +125,10 @@ class EngineConfig:
     leave_one_out_kinds: tuple = ("tdcp", "pseudorange")
     gravity_gradient_refresh_m: float = 200.0
     klobuchar: tuple | None = None
+    # IMU time-tag offset dt_imu (GPS time of an IMU sample = its tag + dt_imu): prior mean and
+    # 1-sigma; sigma 0 = not estimated (held at the mean).  Its random walk is in ProcessNoise.
+    imu_time_offset_s: float = 0.0
+    imu_time_offset_sigma_s: float = 0.0
     # dual-antenna moving baseline (NAV-RELPOSNED): body FRD vector from the moving-base antenna to
     # the rover antenna (None = not installed); a measured length further than the tolerance (plus
     # 3 sigma) from it is a wrong carrier fix and is rejected; float solutions are not used
@@ -171,6 +186,7 @@ class NavEngine:
         self.clock_bias_m = 0.0
         self.clock_drift_mps = 0.0
         self.clock_initialized = False
+        self.imu_time_offset_s = float(config.imu_time_offset_s)
         self._last_dtheta = (0.0, 0.0, 0.0)
         self._last_tau = 1.0
         self._b_a_list = [0.0, 0.0, 0.0]
@@ -211,7 +227,7 @@ class NavEngine:
     # ------------------------------------------------------------------ set-up
     def initialize(self, t_gps: float, r_e, v_e, C_b_e, P0_sigmas: dict, *,
                    clock_bias_m: float | None = None, clock_drift_mps: float = 0.0,
-                   b_a=None, b_g=None, probation: bool = False) -> None:
+                   b_a=None, b_g=None, probation: bool = False, imu_time_offset_s: float | None = None) -> None:
         """Start (or restart) navigating from a known state; bumps ``reset_counter``.  With
         ``probation`` (a restart after a divergence) the solution status is ``converging`` until
         the integrity monitor has seen one consistent window of GNSS.
@@ -219,7 +235,8 @@ class NavEngine:
         ``P0_sigmas`` (1-sigma): tilt_rad and heading_rad (or att_rad for both), pos_m, vel_mps,
         ba_mps2, bg_radps, and optionally clk_m, drift_mps, and pos_cov_e_m2 (a 3x3 ECEF position
         covariance, floored at pos_m on every axis).  Without ``clock_bias_m`` the clock is
-        taken from the first epoch's pseudoranges."""
+        taken from the first epoch's pseudoranges.  ``imu_time_offset_s``: the prior mean of the
+        IMU time-tag offset (default: the configured one), with the configured sigma."""
         L = LAYOUT
         d = np.zeros(L.n)
         d[L.pos] = P0_sigmas["pos_m"] ** 2
@@ -228,6 +245,7 @@ class NavEngine:
         d[L.bg] = P0_sigmas["bg_radps"] ** 2
         d[L.clk] = P0_sigmas.get("clk_m", 1e3) ** 2
         d[L.drift] = P0_sigmas.get("drift_mps", 10.0) ** 2
+        d[L.toff] = self.cfg.imu_time_offset_sigma_s ** 2
         P0 = np.diag(d)
         cov = P0_sigmas.get("pos_cov_e_m2")
         if cov is not None and np.all(np.isfinite(cov)):
@@ -253,6 +271,7 @@ class NavEngine:
         self.clock_initialized = clock_bias_m is not None
         self.clock_bias_m = float(clock_bias_m or 0.0)
         self.clock_drift_mps = float(clock_drift_mps)
+        self.imu_time_offset_s = float(self.cfg.imu_time_offset_s if imu_time_offset_s is None else imu_time_offset_s)
         self._history.clear()
         self._history_t.clear()
         self._push_history()
@@ -396,9 +415,9 @@ class NavEngine:
             if self._nhc_countdown_s <= 0.0:
                 self._nhc_countdown_s += 1.0 / self.cfg.nhc_rate_hz
                 self._nhc_update()
-        if self._pending and self._pending[0].t_gps <= self.t_gps:
-            ready = [e for e in self._pending if e.t_gps <= self.t_gps]
-            self._pending = [e for e in self._pending if e.t_gps > self.t_gps]
+        if self._pending and self.imu_time_of(self._pending[0]) <= self.t_gps:
+            ready = [e for e in self._pending if self.imu_time_of(e) <= self.t_gps]
+            self._pending = [e for e in self._pending if self.imu_time_of(e) > self.t_gps]
             for e in ready:
                 if isinstance(e, GnssFix):
                     self._process_fix(e)
@@ -468,8 +487,30 @@ class NavEngine:
             self._history.popleft()
             self._history_t.popleft()
 
+    def imu_time_of(self, msg) -> float:
+        """The IMU tag at which a message's measurement is predicted: its own ``t_gps`` if it is
+        tagged on the autopilot's clock, else (receiver time) ``t_gps - imu_time_offset_s``."""
+        t = msg.t_gps
+        return t if getattr(msg, "autopilot_clock", False) else t - self.imu_time_offset_s
+
+    ACCELERATION_HALF_WINDOW_S = 0.05
+
     def ins_at(self, t_gps: float) -> InsPoint | None:
-        """INS state linearly interpolated to ``t_gps`` between the bracketing IMU samples."""
+        """INS state linearly interpolated to ``t_gps`` (an IMU tag) between the bracketing IMU
+        samples, with the mean acceleration over +-ACCELERATION_HALF_WINDOW_S (for the dt_imu
+        columns: a window, not one interval, so one sample's noise does not enter the Jacobian)."""
+        x = self._interpolate(t_gps)
+        if x is None:
+            return None
+        r, v, C = x
+        ts = self._history_t
+        h = self.ACCELERATION_HALF_WINDOW_S
+        t0, t1 = max(t_gps - h, ts[0]), min(t_gps + h, ts[-1])
+        a = (self._interpolate(t1)[1] - self._interpolate(t0)[1]) / (t1 - t0) if t1 - t0 > 1e-3 else np.zeros(3)
+        clk = self.clock_bias_m - self.clock_drift_mps * (self.t_gps - t_gps)
+        return InsPoint(t_gps, r, v, C, self.omega_ib_b, clk, self.clock_drift_mps, a)
+
+    def _interpolate(self, t_gps: float):
         ts = self._history_t
         if not ts or t_gps > ts[-1] or t_gps < ts[0]:
             return None
@@ -483,8 +524,7 @@ class NavEngine:
             r = r0 * (1.0 - a) + r1 * a
             v = v0 * (1.0 - a) + v1 * a
             C = C0 if a < 0.5 else C1
-        clk = self.clock_bias_m - self.clock_drift_mps * (self.t_gps - t_gps)
-        return InsPoint(t_gps, r, v, C, self.omega_ib_b, clk, self.clock_drift_mps)
+        return r, v, C
 
     @property
     def omega_ib_b(self) -> np.ndarray:
@@ -496,24 +536,24 @@ class NavEngine:
         if not self.initialized:
             self.counters["gnss before init"] += 1
             return None
-        if epoch.t_gps > self.t_gps:
+        if self.imu_time_of(epoch) > self.t_gps:
             self._wait_for_imu(epoch)
             return None
         return self._process_epoch(epoch)
 
     def _wait_for_imu(self, msg) -> None:
         """Hold a GNSS message whose time the IMU has not reached yet (time-ordered queue)."""
-        if msg.t_gps > self.t_gps + self.cfg.history_s:
+        if self.imu_time_of(msg) > self.t_gps + self.cfg.history_s:
             self.counters["gnss message too far ahead of the IMU (dropped)"] += 1
             return
-        bisect.insort(self._pending, msg, key=lambda e: e.t_gps)
+        bisect.insort(self._pending, msg, key=self.imu_time_of)
         if len(self._pending) > 20:
             self._pending.pop(0)
             self.counters["gnss message dropped: waiting queue full"] += 1
 
     def _process_epoch(self, epoch: GnssEpoch) -> EpochReport:
         rep = EpochReport(epoch.t_gps)
-        ins = self.ins_at(epoch.t_gps)
+        ins = self.ins_at(self.imu_time_of(epoch))
         if ins is None:
             self.counters["gnss epoch older than INS history"] += 1
             rep.rejected["epoch"] = "older than INS history"
@@ -704,13 +744,13 @@ class NavEngine:
         if not self.initialized:
             self.counters["fix before init"] += 1
             return None
-        if fix.t_gps > self.t_gps:
+        if self.imu_time_of(fix) > self.t_gps:
             self._wait_for_imu(fix)
             return None
         return self._process_fix(fix)
 
     def _process_fix(self, fix: GnssFix):
-        ins = self.ins_at(fix.t_gps)
+        ins = self.ins_at(self.imu_time_of(fix))
         if ins is None or fix.fix_type < 3 or not np.all(np.isfinite(fix.r_e)):
             self.counters["fix unusable"] += 1
             return None
@@ -719,11 +759,14 @@ class NavEngine:
         cov = Cne @ np.diag([fix.sigma_h_m ** 2 / 2, fix.sigma_h_m ** 2 / 2, fix.sigma_v_m ** 2]) @ Cne.T
         if fix.v_e is not None:
             ins = self._course_alignment(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2)
-        batches = [position_fix_batch(ins, fix.r_e, cov, self.lever_arm_b)]
+        ap = fix.autopilot_clock
+        batches = [position_fix_batch(ins, fix.r_e, cov, self.lever_arm_b, autopilot_clock=ap)]
         if fix.v_e is not None and fix.vertical_velocity_valid:
-            batches.append(velocity_fix_batch(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2, self.lever_arm_b))
+            batches.append(velocity_fix_batch(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2, self.lever_arm_b,
+                                              autopilot_clock=ap))
         elif fix.v_e is not None:       # no vertical velocity in the message: do not assert zero
-            batches.append(horizontal_velocity_fix_batch(ins, fix.v_e, fix.sigma_vel_mps, Cne, self.lever_arm_b))
+            batches.append(horizontal_velocity_fix_batch(ins, fix.v_e, fix.sigma_vel_mps, Cne, self.lever_arm_b,
+                                                         autopilot_clock=ap))
         reports = [self.kf.gate(b) for b in batches]
         for r in reports:
             self.counters[f"fix {r.kind} used"] += r.n_accepted
@@ -742,18 +785,19 @@ class NavEngine:
         if not self.initialized:
             self.counters["attitude before init"] += 1
             return None
-        if att.t_gps > self.t_gps:
+        if self.imu_time_of(att) > self.t_gps:
             self._wait_for_imu(att)
             return None
         return self._process_attitude(att)
 
     def _process_attitude(self, att: GnssAttitude):
-        ins = self.ins_at(att.t_gps)
+        ins = self.ins_at(self.imu_time_of(att))
         if ins is None:
             self.counters["attitude older than INS history"] += 1
             return None
         lat, lon, _ = ecef_to_geodetic(ins.r_e)
-        b = attitude_batch(ins.C_b_e, C_n_e(lat, lon), att)
+        b = attitude_batch(ins.C_b_e, C_n_e(lat, lon), att,
+                           rate_e=None if att.autopilot_clock else attitude_rate_e(ins))
         if not len(b):
             self.counters["attitude without angles"] += 1
             return None
@@ -779,18 +823,19 @@ class NavEngine:
         if abs(length - nominal) > self.cfg.baseline_length_tol_m + 3.0 * sig_len:
             self.counters["baseline rejected: length (wrong carrier fix?)"] += 1
             return None
-        if bl.t_gps > self.t_gps:
+        if self.imu_time_of(bl) > self.t_gps:
             self._wait_for_imu(bl)
             return None
         return self._process_baseline(bl)
 
     def _process_baseline(self, bl: GnssBaseline):
-        ins = self.ins_at(bl.t_gps)
+        ins = self.ins_at(self.imu_time_of(bl))
         if ins is None:
             self.counters["baseline older than INS history"] += 1
             return None
         lat, lon, _ = ecef_to_geodetic(ins.r_e)
-        b = baseline_batch(ins.C_b_e, C_n_e(lat, lon), bl, np.asarray(self.cfg.moving_baseline_b_m, float))
+        b = baseline_batch(ins.C_b_e, C_n_e(lat, lon), bl, np.asarray(self.cfg.moving_baseline_b_m, float),
+                           rate_e=attitude_rate_e(ins))
         return self._update_with(b, "baseline", "baseline rows used")
 
     def _course_alignment_pending(self) -> bool:
@@ -900,9 +945,23 @@ class NavEngine:
         for r in reports:
             self.aid.record(r, t_gps, g)
 
+    IMU_TIME_OFFSET_MAX_SIGMAS = 3.0
+
     def _check_integrity(self, t_gps: float) -> None:
-        """After a GNSS update: has the filter diverged, or has a probation window passed?"""
-        if not self.cfg.integrity_enabled or not self.integrity.evaluate(self.aid, t_gps):
+        """After a GNSS update: has the filter diverged, or has a probation window passed?  An IMU
+        time-tag offset estimate beyond IMU_TIME_OFFSET_MAX_SIGMAS prior sigmas of the configured
+        mean is a divergence too: in a steady turn a heading error and a time offset look alike
+        (dv = dpsi x v against a dt = (w x v) dt), so a contradicting gyro can hide in it."""
+        if not self.cfg.integrity_enabled:
+            return
+        sig = self.cfg.imu_time_offset_sigma_s
+        off = self.imu_time_offset_s - self.cfg.imu_time_offset_s
+        if sig > 0 and not abs(off) <= self.IMU_TIME_OFFSET_MAX_SIGMAS * sig:
+            changed = self.integrity.implausible_state(
+                t_gps, f"IMU time offset {self.imu_time_offset_s * 1e3:.0f} ms: {abs(off) / sig:.1f} sigma from its prior")
+        else:
+            changed = self.integrity.evaluate(self.aid, t_gps)
+        if not changed:
             return
         state = self.integrity.state
         if state == IntegrityState.DIVERGED:
@@ -923,6 +982,7 @@ class NavEngine:
         self._b_a_list, self._b_g_list = self.b_a.tolist(), self.b_g.tolist()
         self.clock_bias_m += dx[L.clk]
         self.clock_drift_mps += dx[L.drift]
+        self.imu_time_offset_s += dx[L.toff]
         # the newest history sample is "now": keep it consistent with the corrected state
         self._history[-1] = (self.t_gps, self.r_e, self.v_e, self.C_b_e)
 
@@ -954,14 +1014,18 @@ class NavEngine:
     def _remember_phase(self, ins: InsPoint, dx: np.ndarray, prep) -> None:
         """Store each satellite's carrier and its geometric range from the *corrected* INS state,
         for the next epoch's TDCP.  Every epoch replaces the record, so a slip that the gate caught
-        spoils one interval only; a half-cycle-ambiguous carrier is not stored."""
+        spoils one interval only; a half-cycle-ambiguous carrier is not stored.  The record is
+        tagged with the epoch's (receiver) time; a corrected time-tag offset moves the antenna
+        along its path (the epoch is then predicted from dt_imu earlier on the IMU tags)."""
         if not self.cfg.use_tdcp:
             return
         L = LAYOUT
         C = rotation_from_rotvec(dx[L.att]) @ ins.C_b_e
         fixed = InsPoint(ins.t_gps, ins.r_e + dx[L.pos], ins.v_e + dx[L.vel], C, ins.omega_ib_b,
                          ins.clock_bias_m + dx[L.clk], ins.clock_drift_mps + dx[L.drift])
-        r_ant, _, _ = antenna_state(fixed, self.lever_arm_b)
+        r_ant, v_ant, _ = antenna_state(fixed, self.lever_arm_b)
+        if dx[L.toff] != 0.0:
+            r_ant = r_ant - v_ant * dx[L.toff]
         self._prev_epoch_v = (ins.t_gps, fixed.v_e.copy())
         seen = set()
         finite = np.isfinite(prep.carrier_cycles)
@@ -971,9 +1035,10 @@ class NavEngine:
                 sat = prep.sats[i]
                 if bool(prep.half_cycle[i]):
                     continue   # unresolved half-cycle: do not build on this carrier
-                self._phase[sat] = PhaseRecord(ins.t_gps, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]),
-                                               float(rho[j]), float(prep.sat_clock_bias_m[i]), u[j],
-                                               float(prep.lock_time_s[i]))
+                self._phase[sat] = PhaseRecord(prep.t_gps, float(prep.carrier_cycles[i]),
+                                               float(prep.wavelength_m[i]), float(rho[j]),
+                                               float(prep.sat_clock_bias_m[i]), u[j], float(prep.lock_time_s[i]),
+                                               float(u[j] @ v_ant))
                 seen.add(sat)
         for sat in [s for s in self._phase if s not in seen]:
             del self._phase[sat]
@@ -1015,7 +1080,9 @@ class NavEngine:
                             "b_a": self.b_a.copy(), "b_g": self.b_g.copy(), "integrity": integrity,
                             "integrity_reason": self.integrity.reason,
                             "hpl_m": pl.hpl_m if pl else math.nan, "hpl_cov_m": pl.hpl_cov_m if pl else math.nan,
-                            "hpl_ss_m": pl.hpl_ss_m if pl else math.nan})
+                            "hpl_ss_m": pl.hpl_ss_m if pl else math.nan,
+                            "imu_time_offset_s": self.imu_time_offset_s,
+                            "imu_time_offset_sigma_s": math.sqrt(max(float(P[L.toff, L.toff]), 0.0))})
 
 
 def _stale_corrections(rejected: dict[str, str]) -> bool:

@@ -6,6 +6,13 @@ Error-state convention ("correction" form, truth = estimate + error):
 * position ``dr`` (m, ECEF), velocity ``dv`` (m/s, ECEF)
 * accelerometer bias ``dba`` (m/s^2, body), gyro bias ``dbg`` (rad/s, body): b(true) = b(est) + db
 * receiver clock bias ``dclk`` (m) and drift ``ddrift`` (m/s)
+* IMU time-tag offset ``dt_imu`` (s): the GPS time of an IMU sample is its mapped time tag (autopilot
+  boot time through :class:`~companion.io.mavlink.BootToGpsTime`) plus ``dt_imu``.  The INS runs on
+  the tags; a GNSS measurement at receiver time t is compared with the INS at tag t - dt_imu (see
+  :mod:`.engine`).  ArduPilot's SYSTEM_TIME lags GPS time by the receiver's output latency, so a
+  lagging clock gives a positive ``dt_imu``.  Observable when the motion changes (accelerations,
+  turn entries and exits); in a steady turn it looks like a heading error, so an estimate beyond 3
+  prior sigmas is treated as a divergence (:meth:`.engine.NavEngine._check_integrity`).
 
 Continuous error dynamics (derived from the ECEF mechanization in :mod:`.strapdown`):
 
@@ -13,6 +20,7 @@ Continuous error dynamics (derived from the ECEF mechanization in :mod:`.strapdo
     dr'   = dv
     dv'   = -[(C_b_e f_b) x] psi + G(r) dr - 2 Omega_ie dv - C_b_e dba
     dclk' = ddrift
+    dt_imu' = white noise (a random walk: the mapping drifts slowly, e.g. as the latency changes)
 
 with G the gravity gradient (its horizontal part is what makes the Schuler oscillation).
 Discretisation: Phi = I + F tau (tau = one IMU interval, 2.5-20 ms, where the first-order form is
@@ -33,7 +41,7 @@ from .earth import OMEGA_IE_RADPS
 class StateLayout:
     """Indices of the error-state vector (class attributes: slices are not dataclass-friendly)."""
 
-    n = 17
+    n = 18
     att = slice(0, 3)
     pos = slice(3, 6)
     vel = slice(6, 9)
@@ -41,6 +49,7 @@ class StateLayout:
     bg = slice(12, 15)
     clk = 15
     drift = 16
+    toff = 17      # IMU time-tag offset dt_imu, s
 
 
 LAYOUT = StateLayout()
@@ -56,6 +65,7 @@ class ProcessNoise:
     accel_bias_rw_mps2_per_sqrt_s: float    # accelerometer bias random walk
     clock_bias_psd_m2ps: float = 0.1        # receiver clock phase noise, m^2/s
     clock_drift_psd_m2ps3: float = 0.01     # receiver clock frequency random walk, m^2/s^3
+    imu_time_offset_rw_s_per_sqrt_s: float = 0.0   # random walk of the IMU time-tag offset
 
 
 @dataclass
@@ -125,6 +135,7 @@ class ErrorStateKalmanFilter:
         d[L.bg] = q.gyro_bias_rw_radps_per_sqrt_s ** 2 * tau
         d[L.clk] = q.clock_bias_psd_m2ps * tau + q.clock_drift_psd_m2ps3 * tau ** 3 / 3.0
         d[L.drift] = q.clock_drift_psd_m2ps3 * tau
+        d[L.toff] = q.imu_time_offset_rw_s_per_sqrt_s ** 2 * tau
         Qd = np.diag(d)
         Qd[L.clk, L.drift] = Qd[L.drift, L.clk] = q.clock_drift_psd_m2ps3 * tau ** 2 / 2.0
         self._Qd = Qd

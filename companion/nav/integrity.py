@@ -134,6 +134,17 @@ class IntegrityMonitor:
                 return True
         return False
 
+    def implausible_state(self, t_gps: float, why: str) -> bool:
+        """The filter's own estimate is outside what is physically plausible (e.g. an IMU time-tag
+        offset far beyond its prior): it is absorbing an error its model does not have, and its
+        innovations may look fine meanwhile.  Diverged, like a failed window.  True when the state
+        changed."""
+        if self.state == IntegrityState.DIVERGED:
+            return False
+        self.state, self.reason, self.t_changed = IntegrityState.DIVERGED, why, t_gps
+        self.counters[IntegrityCounter.DIVERGED] += 1
+        return True
+
     def _window_failure(self, src: str, w) -> str | None:
         lim = self.limits
         if w.rejected_fraction >= lim.max_rejected_fraction:

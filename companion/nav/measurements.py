@@ -5,6 +5,14 @@ noise variances).  Adding a sensor means adding one function here, not editing t
 Conventions: ``u`` is the unit line-of-sight vector from the antenna to the satellite (ECEF), so
 d(range)/d(r_antenna) = -u^T.  The antenna is at r_ant = r_imu + C_b_e l_b; with the attitude error
 convention C(true) = (I + [psi x]) C(est), d(r_ant)/d(psi) = -[(C_b_e l_b) x].
+
+IMU time-tag offset (state ``dt_imu``, see :mod:`.filter`): a measurement taken at GNSS time t is
+predicted from the INS at tag t - dt_imu, so its column is d(predicted)/d(dt_imu) = minus the rate
+of change of the prediction along the INS trajectory: u.v_ant for a range, the antenna
+acceleration (and the turning line of sight) for a range rate, -v_ant for a position, -a_ant for a
+velocity, -H_psi (C_b_e w_ib_b - w_ie_e) for an attitude.  A measurement time-tagged on the
+autopilot's own clock (GPS_RAW_INT, ATTITUDE: boot time mapped like the IMU's) shares the IMU's
+offset and gets no column (``autopilot_clock``).
 """
 from __future__ import annotations
 
@@ -31,6 +39,7 @@ class InsPoint:
     omega_ib_b: np.ndarray      # body angular rate over the last IMU interval, rad/s
     clock_bias_m: float
     clock_drift_mps: float
+    a_e: np.ndarray | None = None   # IMU acceleration (ECEF, m/s^2) there, for the dt_imu column
 
 
 @dataclass
@@ -44,6 +53,7 @@ class PhaseRecord:
     sat_clock_bias_m: float
     los_e: np.ndarray
     lock_time_s: float
+    los_rate_mps: float = 0.0   # u . v_ant at that epoch: what a time-tag error did to the range
 
 
 def antenna_state(ins: InsPoint, lever_arm_b: np.ndarray):
@@ -55,6 +65,23 @@ def antenna_state(ins: InsPoint, lever_arm_b: np.ndarray):
                     w[0] * lever_arm_b[1] - w[1] * lever_arm_b[0]])
     earth_term = np.array([-OMEGA_IE_RADPS * l_e[1], OMEGA_IE_RADPS * l_e[0], 0.0])
     return ins.r_e + l_e, ins.v_e + ins.C_b_e @ wxl - earth_term, l_e
+
+
+def antenna_acceleration(ins: InsPoint, lever_arm_b: np.ndarray) -> np.ndarray:
+    """Antenna acceleration (ECEF) at a constant body rate: the time derivative of
+    :func:`antenna_state`'s velocity with dC/dt = C [w x] - [W_ie x] C (W_ie the earth rate)."""
+    a = np.zeros(3) if ins.a_e is None else np.asarray(ins.a_e, float)
+    w = np.asarray(ins.omega_ib_b, float)
+    C = ins.C_b_e
+    earth = np.array([0.0, 0.0, OMEGA_IE_RADPS])
+    wl_e = C @ np.cross(w, lever_arm_b)
+    return (a + C @ np.cross(w, np.cross(w, lever_arm_b)) - 2.0 * np.cross(earth, wl_e)
+            + np.cross(earth, np.cross(earth, C @ lever_arm_b)))
+
+
+def attitude_rate_e(ins: InsPoint) -> np.ndarray:
+    """Rotation rate of C_b_e as an ECEF rotation vector: C(t + h) = (I + h [rate x]) C(t)."""
+    return ins.C_b_e @ np.asarray(ins.omega_ib_b, float) - np.array([0.0, 0.0, OMEGA_IE_RADPS])
 
 
 def line_of_sight(r_sat_e: np.ndarray, r_ant_e: np.ndarray):
@@ -69,13 +96,14 @@ def pseudorange_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, layout=LAYOU
     """Corrected pseudoranges (standalone-modelled or DGPS-corrected, see gnss.prepare):
     model rho = |r_sat - r_ant| + clock_bias + noise."""
     ok = np.isfinite(prep.pseudorange_m)
-    r_ant, _, l_e = antenna_state(ins, lever_arm_b)
+    r_ant, v_ant, l_e = antenna_state(ins, lever_arm_b)
     rho, u = line_of_sight(prep.r_sat_e[ok], r_ant)
     z = prep.pseudorange_m[ok] - (rho + ins.clock_bias_m)
     H = np.zeros((len(z), layout.n))
     H[:, layout.pos] = -u
     H[:, layout.att] = u @ skew(l_e)
     H[:, layout.clk] = 1.0
+    H[:, layout.toff] = u @ v_ant
     sig = np.maximum(prep.sigma_pseudorange_m[ok], sigma_floor_m)
     labels = [s for s, k in zip(prep.sats, ok) if k]
     return MeasurementBatch("pseudorange", labels, z, H, sig * sig)
@@ -86,12 +114,18 @@ def doppler_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, sigma_mps: float
     """Pseudorange rate from Doppler: -lambda*D + c*sat_clock_drift = u.(v_sat - v_ant) + drift."""
     ok = np.isfinite(prep.doppler_hz)
     r_ant, v_ant, _ = antenna_state(ins, lever_arm_b)
-    _, u = line_of_sight(prep.r_sat_e[ok], r_ant)
+    rho, u = line_of_sight(prep.r_sat_e[ok], r_ant)
+    dv = prep.v_sat_e[ok] - v_ant
     rate_meas = -prep.wavelength_m[ok] * prep.doppler_hz[ok] + prep.sat_clock_drift_mps[ok]
-    rate_pred = np.einsum("ij,ij->i", u, prep.v_sat_e[ok] - v_ant) + ins.clock_drift_mps
+    rate_pred = np.einsum("ij,ij->i", u, dv) + ins.clock_drift_mps
     H = np.zeros((len(rate_meas), layout.n))
     H[:, layout.vel] = -u
     H[:, layout.drift] = 1.0
+    # dt_imu: the antenna acceleration along the line of sight, and the line of sight turning as
+    # the antenna moves (d u / d r_ant = -(I - u u^T) / rho)
+    uv = u @ v_ant
+    H[:, layout.toff] = (u @ antenna_acceleration(ins, lever_arm_b)
+                         + (np.einsum("ij,j->i", dv, v_ant) - uv * np.einsum("ij,ij->i", u, dv)) / rho)
     labels = [s for s, k in zip(prep.sats, ok) if k]
     return MeasurementBatch("doppler", labels, rate_meas - rate_pred, H, np.full(len(labels), sigma_mps ** 2))
 
@@ -116,11 +150,14 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
     ``(T^2 / 2) ([f x] psi + C_b_e dba)``: with a heading uncertain by degrees (an initialisation
     in flight) and the vehicle accelerating, that term is several TDCP sigmas, and leaving it out
     made the gate reject good rows until the filter re-initialised again.
+    A time-tag error dt_imu is common to both epochs (it is a slowly varying state): it changes the
+    interval's range difference by (u_k.v_ant,k - u_k-1.v_ant,k-1) dt_imu, the change of the
+    line-of-sight velocity over the interval (``PhaseRecord.los_rate_mps`` holds the earlier one).
     ``phase_correction_m`` optionally removes common errors (e.g. a base station's time-differenced
     carrier, see :mod:`companion.nav.engine`).  With ``elevation_scaling`` the carrier noise grows as
     1/sin(elevation) (multipath), floored at 10 degrees.
     """
-    r_ant, _, _ = antenna_state(ins, lever_arm_b)
+    r_ant, v_ant, _ = antenna_state(ins, lever_arm_b)
     rows, labels, zs, rvar = [], [], [], []
     f_cross = skew(specific_force_e) if specific_force_e is not None else None
     for i, sat in enumerate(prep.sats):
@@ -152,6 +189,8 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
         if f_cross is not None:
             h[layout.att] = -0.5 * T * (u_mid @ f_cross)
             h[layout.ba] = -0.5 * T * (u_mid @ ins.C_b_e)
+        # dt_imu: the same tag error at both epochs moved both ranges by u . v_ant of their epoch
+        h[layout.toff] = (float(u @ v_ant) - prev.los_rate_mps) / T
         rows.append(h)
         labels.append(sat)
         zs.append(meas - pred)
@@ -164,27 +203,33 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
 
 
 def position_fix_batch(ins: InsPoint, r_fix_e: np.ndarray, cov_e: np.ndarray, lever_arm_b: np.ndarray,
-                       layout=LAYOUT) -> MeasurementBatch:
+                       layout=LAYOUT, autopilot_clock: bool = False) -> MeasurementBatch:
     """Loose coupling: antenna position from a GNSS fix.  ``cov_e`` is its 3x3 ECEF covariance;
-    it is decorrelated (whitened) so the filter's per-row gating and diagonal noise apply."""
-    r_ant, _, l_e = antenna_state(ins, lever_arm_b)
+    it is decorrelated (whitened) so the filter's per-row gating and diagonal noise apply.
+    ``autopilot_clock``: the fix is time-tagged on the autopilot's clock (no dt_imu column)."""
+    r_ant, v_ant, l_e = antenna_state(ins, lever_arm_b)
     H = np.zeros((3, layout.n))
     H[:, layout.pos] = np.eye(3)
     H[:, layout.att] = -skew(l_e)
+    if not autopilot_clock:
+        H[:, layout.toff] = -v_ant
     return _whitened("position", ["x", "y", "z"], r_fix_e - r_ant, H, cov_e)
 
 
 def velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, cov_e: np.ndarray, lever_arm_b: np.ndarray,
-                       layout=LAYOUT) -> MeasurementBatch:
+                       layout=LAYOUT, autopilot_clock: bool = False) -> MeasurementBatch:
     """Loose coupling: antenna velocity from a GNSS fix."""
     _, v_ant, _ = antenna_state(ins, lever_arm_b)
     H = np.zeros((3, layout.n))
     H[:, layout.vel] = np.eye(3)
+    if not autopilot_clock:
+        H[:, layout.toff] = -antenna_acceleration(ins, lever_arm_b)
     return _whitened("velocity", ["vx", "vy", "vz"], v_fix_e - v_ant, H, cov_e)
 
 
 def horizontal_velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, sigma_mps: float, C_n_e_: np.ndarray,
-                                  lever_arm_b: np.ndarray, layout=LAYOUT) -> MeasurementBatch:
+                                  lever_arm_b: np.ndarray, layout=LAYOUT,
+                                  autopilot_clock: bool = False) -> MeasurementBatch:
     """Loose coupling: north and east antenna velocity only, for a fix that does not carry a
     vertical one (GPS_RAW_INT: speed over ground and course).  ``C_n_e_`` is the local NED-to-ECEF
     rotation; rows are z_ne = C_e_n[0:2] (v_fix - v_ant), each with variance sigma^2."""
@@ -192,6 +237,8 @@ def horizontal_velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, sigma_mps:
     C_e_ne = C_n_e_.T[0:2]
     H = np.zeros((2, layout.n))
     H[:, layout.vel] = C_e_ne
+    if not autopilot_clock:
+        H[:, layout.toff] = -C_e_ne @ antenna_acceleration(ins, lever_arm_b)
     return MeasurementBatch("velocity", ["vn", "ve"], C_e_ne @ (np.asarray(v_fix_e, float) - v_ant), H,
                             np.full(2, sigma_mps ** 2))
 
@@ -240,11 +287,13 @@ def _euler_of(C_b_e: np.ndarray, C_e_n: np.ndarray) -> np.ndarray:
                      math.atan2(C[1, 0], C[0, 0])])
 
 
-def attitude_batch(C_b_e: np.ndarray, C_n_e_: np.ndarray, meas, layout=LAYOUT) -> MeasurementBatch:
+def attitude_batch(C_b_e: np.ndarray, C_n_e_: np.ndarray, meas, layout=LAYOUT,
+                   rate_e: np.ndarray | None = None) -> MeasurementBatch:
     """Euler angles from a multi-antenna GNSS receiver (seed 003).  The Jacobian of the Euler angles
     with respect to the misalignment psi (the relation between Euler-angle errors and the platform
     misalignment) is evaluated by central differences of the exact Euler map, which stays correct
-    at any attitude short of pitch +-90 deg."""
+    at any attitude short of pitch +-90 deg.  ``rate_e`` (:func:`attitude_rate_e`) gives the dt_imu
+    column -H_psi rate_e; None (a measurement on the autopilot's clock) gives none."""
     from .earth import rotation_from_rotvec
 
     C_e_n = C_n_e_.T
@@ -265,19 +314,22 @@ def attitude_batch(C_b_e: np.ndarray, C_n_e_: np.ndarray, meas, layout=LAYOUT) -
     r = np.empty(len(rows))
     for k, (i, _, v, s) in enumerate(rows):
         H[k, layout.att] = J[i]
+        if rate_e is not None:
+            H[k, layout.toff] = -J[i] @ rate_e
         z[k] = _wrap_pi(np.array([v - e0[i]]))[0]
         r[k] = s * s
     return MeasurementBatch("attitude", [name for _, name, _, _ in rows], z, H, r)
 
 
 def baseline_batch(C_b_e: np.ndarray, C_n_e_: np.ndarray, meas, baseline_b_m: np.ndarray,
-                   layout=LAYOUT) -> MeasurementBatch:
+                   layout=LAYOUT, rate_e: np.ndarray | None = None) -> MeasurementBatch:
     """Moving-baseline vector of a dual-antenna receiver (UBX NAV-RELPOSNED): the NED vector from
     the moving-base antenna to the rover antenna, predicted as ``C_e_n C_b_e b`` with the body
     vector ``b`` of the installation.  It observes the heading (and the tilt about the axis
     perpendicular to it) at any attitude, whatever direction the antennas are mounted in -- a
     heading-only measurement with an offset is exact only for a baseline along body x or a level
-    vehicle.  Jacobian w.r.t. the misalignment by central differences, as :func:`attitude_batch`."""
+    vehicle.  Jacobian w.r.t. the misalignment by central differences, as :func:`attitude_batch`;
+    ``rate_e`` as there (NAV-RELPOSNED is tagged with GPS time)."""
     from .earth import rotation_from_rotvec
 
     C_e_n = C_n_e_.T
@@ -290,6 +342,8 @@ def baseline_batch(C_b_e: np.ndarray, C_n_e_: np.ndarray, meas, baseline_b_m: np
         d[j] = h
         H[:, layout.att.start + j] = (C_e_n @ rotation_from_rotvec(d) @ C_b_e @ b
                                       - C_e_n @ rotation_from_rotvec(-d) @ C_b_e @ b) / (2 * h)
+    if rate_e is not None:
+        H[:, layout.toff] = -H[:, layout.att] @ rate_e
     z = np.asarray(meas.rel_pos_ned_m, float) - pred
     r = np.maximum(np.asarray(meas.sigma_ned_m, float), 1e-3) ** 2
     return MeasurementBatch("baseline", ["baseline N", "baseline E", "baseline D"], z, H, r)
