@@ -298,13 +298,20 @@ def cmd_ardupilot(args) -> int:
     except RuntimeError as exc:
         print(f"sitl ardupilot: {exc}", file=sys.stderr)
         return 2
-    print(format_result(res))
-    if args.json:
+    return report(res, format_result(res), args.json)
+
+
+def report(res: dict, text: str, json_path: str | None) -> int:
+    """Print a flight's result, write its JSON (the summary keys, then the details) and return
+    the exit status: 0 flown (armed, box completed, external navigation used, no failsafe), 1 not,
+    130 interrupted.  Shared by the ArduPilot and PX4 flights."""
+    print(text)
+    if json_path:
         obj = {k: res.get(k) for k in SUMMARY_KEYS}
         obj["details"] = {k: v for k, v in res.items() if k not in SUMMARY_KEYS}
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(obj, indent=2, default=str))
-        print(f"wrote {args.json}")
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps(obj, indent=2, default=str))
+        print(f"wrote {json_path}")
     if res.get("interrupted"):
         return 130
     ok = res.get("armed") and res.get("box_completed") and res.get("ext_nav_used") and not res.get("failsafes")

@@ -105,6 +105,14 @@ def score(records, statustext, res: dict, output: str) -> dict:
                           flight, ground_end)
     out["ekf_yaw_rms_deg_ground"] = ekf_yaw["yaw_rms_deg_ground"]
     out["ekf_yaw_rms_deg_ground_per_min"] = ekf_yaw["yaw_rms_deg_ground_per_min"]
+    out.update(ekf_position_figures(records, truth, ref, origin_e7, flight, ground_end))
+    return out
+
+
+def ekf_position_figures(records, truth, ref, origin_e7, flight, ground_end) -> dict:
+    """The autopilot's own position (LOCAL_POSITION_NED about the GPS_GLOBAL_ORIGIN it reports)
+    against the truth, and its origin against ours; {} before it reported both."""
+    out = {}
     org = records.get("GPS_GLOBAL_ORIGIN", [(None, None)])[-1][1]
     lp = records.get("LOCAL_POSITION_NED", ())
     if org is not None and lp:

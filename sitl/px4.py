@@ -16,7 +16,6 @@ Ctrl-C stops the flight; every process started here is stopped on the way out.
 """
 from __future__ import annotations
 
-import json
 import math
 import struct
 import sys
@@ -25,7 +24,7 @@ import time
 from pathlib import Path
 
 from . import ardupilot_score as S
-from .ardupilot import SUMMARY_KEYS, _save_records, say
+from .ardupilot import SUMMARY_KEYS, _save_records, report, say
 from .ardupilot_procs import REPO, CompanionProcess, companion_config
 from .px4_gcs import OFFBOARD, Px4Gcs, mode_name
 from .px4_procs import Px4Sitl, dist_problem, find_dist, hardware_only, read_params
@@ -407,17 +406,7 @@ def cmd_px4(args) -> int:
     except RuntimeError as exc:
         print(f"sitl px4: {exc}", file=sys.stderr)
         return 2
-    print(format_result(res))
-    if args.json:
-        obj = {k: res.get(k) for k in SUMMARY_KEYS}
-        obj["details"] = {k: v for k, v in res.items() if k not in SUMMARY_KEYS}
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(obj, indent=2, default=str))
-        print(f"wrote {args.json}")
-    if res.get("interrupted"):
-        return 130
-    ok = res.get("armed") and res.get("box_completed") and res.get("ext_nav_used") and not res.get("failsafes")
-    return 0 if ok else 1
+    return report(res, format_result(res), args.json)
 
 
 def add_arguments(p, *, out_default: str = "out/px4") -> None:

@@ -14,6 +14,7 @@ import numpy as np
 
 from . import ardupilot_score as S
 from .ardupilot_result import (
+    ekf_position_figures,
     _r,
     boot_time_map,
     our_estimates,
@@ -126,15 +127,5 @@ def score(records, statustext, res: dict, *, flag_samples, console_lines, states
                           flight, ground_end)
     out["ekf_yaw_rms_deg_ground"] = ekf_yaw["yaw_rms_deg_ground"]
     out["ekf_yaw_rms_deg_flight"] = ekf_yaw["yaw_rms_deg_flight"]
-    org = records.get("GPS_GLOBAL_ORIGIN", [(None, None)])[-1][1]
-    lp = records.get("LOCAL_POSITION_NED", ())
-    if org is not None and lp:
-        out["ekf_origin_e7"] = (org.latitude, org.longitude)
-        if origin_e7 is not None:
-            d = S.ned_from_latlon_e7([org.latitude], [org.longitude], *origin_e7)[0]
-            out["ekf_origin_minus_ours_m"] = [round(float(x), 3) for x in d]
-        shift = S.ned_from_latlon_e7([org.latitude], [org.longitude], *ref)[0]
-        ekf = position_figures(np.array([m.time_boot_ms for _, m in lp]) * 1e-3,
-                               np.array([[m.x, m.y] for _, m in lp]) + shift, truth, ref, flight, ground_end)
-        out["ekf_rms_h_m"], out["ekf_max_error_h_m"] = ekf["rms_h_m"], ekf["max_error_h_m"]
+    out.update(ekf_position_figures(records, truth, ref, origin_e7, flight, ground_end))
     return out

@@ -158,7 +158,9 @@ def clean(uav70):
     return _fly(uav70, None, True)[0]
 
 
-@pytest.mark.parametrize("fault, unscreened_min_m", [("16g", 5.0), ("4 x full scale", 20.0), ("2000 deg/s", 100.0),
+# unscreened_min_m: what the fault does without the screen (the 4 full-scale samples: 37 m before
+# the TDCP model carried the attitude/bias growth inside the interval, 15.8 m since)
+@pytest.mark.parametrize("fault, unscreened_min_m", [("16g", 5.0), ("4 x full scale", 10.0), ("2000 deg/s", 100.0),
                                                      ("1e5 m/s^2", 1000.0)])
 def test_one_corrupted_sample_in_flight_stays_bounded(uav70, clean, fault, unscreened_min_m):
     err_raw, _ = _fly(uav70, fault, False)
