@@ -112,7 +112,15 @@ def score(records, statustext, res: dict, *, flag_samples, console_lines, states
     recv = [t for t, _ in est]
     out["estimates_received"] = len(recv)
     t_last = records["HIL_STATE_QUATERNION"][-1][0]
-    out["estimate_rate_hz"] = round((len(recv) - 1) / (t_last - recv[0]), 2) if len(recv) > 1 else None
+    out["estimate_rate_hz_run"] = round((len(recv) - 1) / (t_last - recv[0]), 2) if len(recv) > 1 else None
+    # the rate EKF2 flew on (takeoff to touchdown): PX4 SITL may step its UTC clock once disarmed
+    # (seen: +5.8 s after a landing under load), a time jump the companion re-initialises on
+    if airborne is not None:
+        t_recv_boot = to_boot(np.array(recv)) if recv else np.array([])
+        n_air = int(np.count_nonzero((t_recv_boot >= airborne[0]) & (t_recv_boot <= airborne[1])))
+        out["estimate_rate_hz"] = round(n_air / (airborne[1] - airborne[0]), 2)
+    else:
+        out["estimate_rate_hz"] = None
     if recv:
         # stamp (IMU sample time) to arrival here, both in PX4 boot time: our output latency
         lat = to_boot(np.array(recv)) - np.array([m.usec for _, m in est]) * 1e-6

@@ -117,3 +117,31 @@ def test_no_false_convergence_while_stationary():
     assert min(sig) > 60.0
     assert g.n_moving_fusions == 0 and not g.in_motion
     assert abs(math.degrees(g.roll_rad) - 2.0) < 1.0 and abs(math.degrees(g.pitch_rad) + 3.0) < 1.0
+
+
+def _rest_then_accelerate(g, rng, t_rest_s, accel_n_mps2, t_accel_s, dt=0.008):
+    """PX4 SIH's IMU as measured at rest (125 Hz; per-sample accel sd 0.36/1.23/1.0 m/s^2, gyro sd
+    0.097/0.050/0.021 rad/s): ``t_rest_s`` at rest, then ``accel_n_mps2`` (north, level) for
+    ``t_accel_s``.  Yields (t, in_motion) after every sample."""
+    acc_sd, gyr_sd = np.array([0.36, 1.23, 1.0]), np.array([0.097, 0.050, 0.021])
+    C_b_n = euler_to_dcm(math.radians(1.0), math.radians(-1.5), math.radians(40.0))
+    for k in range(1, int((t_rest_s + t_accel_s) / dt) + 1):
+        t = k * dt
+        a_n = np.array([accel_n_mps2, 0.0, 0.0]) if t > t_rest_s else np.zeros(3)
+        f_b = C_b_n.T @ (a_n - np.array([0.0, 0.0, 9.80665]))
+        g.update_imu(rng.normal(0.0, gyr_sd) * dt, (f_b + rng.normal(0.0, acc_sd)) * dt, dt, 1000.0 + t)
+        yield t, g.in_motion
+
+
+def test_a_noisy_imu_at_rest_is_not_in_motion_but_an_acceleration_is():
+    """The heading gate withholds injection in motion until the yaw from motion confirms the
+    heading: PX4 SIH's noisy IMU at rest (or in a hover) must not count as motion (a 0.3 m/s^2
+    threshold flapped 164 times in a 20-s PX4 SITL ground phase and EKF2 lost our position), a
+    2 m/s^2 start of a leg must, within half a second and before any GNSS velocity shows it."""
+    g = YawGsf()
+    rng = np.random.default_rng(7)
+    t_rest, t_move = 60.0, 1.0
+    seen = [(t, m) for t, m in _rest_then_accelerate(g, rng, t_rest, 2.0, t_move)]
+    assert not any(m for t, m in seen if 2.0 < t <= t_rest)
+    first = next(t for t, m in seen if t > t_rest and m)
+    assert first - t_rest < 0.5

@@ -72,8 +72,13 @@ class YawGsfConfig:
     observed_within_s: float = 5.0
     moving_speed_mps: float = 0.5
     # in motion (heading matters): moving as above, or a horizontal specific force (levelled by the
-    # AHRS, low-passed) above this -- seen at IMU rate, before a 1-Hz GNSS velocity shows the speed
+    # AHRS, low-passed) above this -- seen at IMU rate, before a 1-Hz GNSS velocity shows the speed --
+    # and above accelerating_noise_sigmas of the low-passed accelerometer noise and vibration as
+    # measured (PX4 SIH at rest: 1.2 m/s^2 per 125-Hz sample, up to 0.42 m/s^2 after the low-pass,
+    # which a fixed 0.3 took for motion 164 times in 20 s)
     accelerating_mps2: float = 0.3
+    accelerating_noise_sigmas: float = 5.0
+    vibration_window_s: float = 5.0         # time constant of the accelerometer scatter estimate
     # a complementary filter carries no covariance: the 1-sigma tilt error stated for it (MEMS IMU,
     # 5-s correction time constant; the tests measure < 1 deg on a multirotor and a car)
     tilt_sigma_rad: float = math.radians(2.0)
@@ -122,6 +127,12 @@ class YawGsf:
         self.moving = False                  # the last GNSS velocity showed horizontal motion
         self.t_yaw_observed = -math.inf      # last fusion that shrank the yaw variance
         self.horizontal_accel_mps2 = 0.0     # |horizontal specific force| in the AHRS's level frame
+        self.f_scatter_var_b = np.zeros(3)   # variance of the specific force about its low-pass (body)
+        self.w_lp_b = np.zeros(3)            # low-passed rate and the variance about it (body)
+        self.w_scatter_var_b = np.zeros(3)
+        self._step_dt = 0.0
+        self._lp_var_gain = 0.0              # low-passed noise variance / input noise variance
+        self._n_scatter = 0
         self._v_hist: deque = deque(maxlen=64)   # (t, v_n, v_e) of the GNSS velocities
         self.kinematic_accel_mps2 = 0.0
         self._acc = [0.0] * 7                # summed dtheta (3), dv (3), dt: plain floats at IMU rate
@@ -171,7 +182,16 @@ class YawGsf:
                 self.aligned = True
             return
         a = dt / (cfg.accel_lowpass_s + dt)
-        self.f_lp_b += a * (f_b - self.f_lp_b)
+        r = f_b - self.f_lp_b
+        self._n_scatter += 1                   # a plain mean until the window is full
+        b = max(dt / (cfg.vibration_window_s + dt), 1.0 / self._n_scatter)
+        self.f_scatter_var_b += b * (r * r - self.f_scatter_var_b)
+        self._lp_var_gain = a / (2.0 - a)      # steady-state output/input variance of the low-pass
+        self.f_lp_b += a * r
+        rw = dth / dt - self.w_lp_b
+        self.w_scatter_var_b += b * (rw * rw - self.w_scatter_var_b)
+        self.w_lp_b += a * rw
+        self._step_dt = dt
         C0 = self.C_b_n
         yaw0 = math.atan2(C0[1, 0], C0[0, 0])
         # tilt correction: rotate the nav frame so that the measured specific force points up
@@ -323,9 +343,24 @@ class YawGsf:
         return self.settled and self.t_last_vel - self.t_yaw_observed <= self.cfg.observed_within_s
 
     @property
+    def accelerating_threshold_mps2(self) -> float:
+        """Horizontal low-passed specific force that counts as accelerating: the configured floor,
+        or ``accelerating_noise_sigmas`` of what the noise makes of it at rest, as measured: the
+        accelerometer's scatter (vibration can be metres per second squared) after the low-pass,
+        plus g times the AHRS's tilt noise (the gyro's scatter as a random walk the tilt correction
+        holds: variance ARW^2 / (2 tilt_gain)), on the noisier horizontal axis."""
+        C = self.C_b_n
+        C2 = C * C                                        # diag(C diag(var) C^T) = C2 @ var
+        var_f_n = C2 @ self.f_scatter_var_b * self._lp_var_gain
+        var_tilt_n = C2 @ self.w_scatter_var_b * self._step_dt / (2.0 * self.cfg.tilt_gain_per_s)
+        var = max(float(var_f_n[0]), float(var_f_n[1])) + G0_MPS2 ** 2 * max(float(var_tilt_n[0]),
+                                                                               float(var_tilt_n[1]))
+        return max(self.cfg.accelerating_mps2, self.cfg.accelerating_noise_sigmas * math.sqrt(var))
+
+    @property
     def in_motion(self) -> bool:
         """Moving or accelerating horizontally: a wrong heading now corrupts an INS."""
-        return self.moving or (self.aligned and self.horizontal_accel_mps2 > self.cfg.accelerating_mps2)
+        return self.moving or (self.aligned and self.horizontal_accel_mps2 > self.accelerating_threshold_mps2)
 
     @property
     def roll_rad(self) -> float:
