@@ -10,7 +10,7 @@ from scipy.stats import chi2
 from companion.messages import GnssEpoch, GnssFix, ImuSample
 from companion.nav.earth import C_n_e, ecef_to_geodetic, geodetic_to_ecef, rotation_from_rotvec
 from companion.nav.engine import EngineConfig, NavEngine
-from companion.nav.filter import ProcessNoise
+from companion.nav.filter import LAYOUT, ProcessNoise
 from companion.nav.strapdown import invert_step
 from sitl.paper import initial_errors, run_ins_mode
 from sitl.scenario import build_scenario
@@ -106,6 +106,26 @@ def test_bad_imu_samples_are_dropped_counted_and_navigation_continues():
     assert eng.counters["imu sample not after previous (dropped)"] == 1
     assert np.linalg.norm(eng.r_e - rs[-1]) < 1e-3
     assert np.all(np.isfinite(eng.kf.P))
+
+
+def test_lost_imu_samples_are_bridged_not_skipped():
+    """Half a second of IMU messages lost on the link at 54 m/s: the sample after the gap is held
+    over it, so the position keeps up with the vehicle (skipping the interval left it 27 m behind,
+    unseen by the covariance), and the covariance grows by what the vehicle could have done."""
+    t0, r0, v, C, samples, rs = _straight_line_imu(seconds=2.0)
+    eng = NavEngine(EngineConfig(noise=NOISE))
+    eng.initialize(t0, r0, v, C, P0)
+    lost = range(100, 150)                   # 0.5 s
+    for k, s in enumerate(samples):
+        if k == lost[-1] + 1:
+            var_vel_before = float(np.trace(eng.kf.P[LAYOUT.vel, LAYOUT.vel]))
+        if k not in lost:
+            eng.process_imu(s)
+        if k == lost[-1] + 1:
+            grown = float(np.trace(eng.kf.P[LAYOUT.vel, LAYOUT.vel])) - var_vel_before
+    assert eng.counters["imu time gap"] == 1
+    assert np.linalg.norm(eng.r_e - rs[-1]) < 1e-3
+    assert grown > 3 * (1.0 * 0.5) ** 2
 
 
 def _shift_clock(epochs, t_from, jump_m):

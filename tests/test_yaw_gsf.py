@@ -33,8 +33,9 @@ def _sim(name, duration_s):
     return sim, v_n, eul, t_move, epochs
 
 
-def _run(sim, v_n, eul, epochs, alpha_deg, sigma_mps, seed=1):
-    """(t from start, yaw error deg, yaw sigma deg, converged, tilt error deg) after every velocity."""
+def _run(sim, v_n, eul, epochs, alpha_deg, sigma_mps, seed=1, gap_s=None):
+    """(t from start, yaw error deg, yaw sigma deg, converged, tilt error deg) after every velocity
+    (none in ``gap_s`` = (start, end) from the start, if given)."""
     rng = np.random.default_rng(seed)
     a = math.radians(alpha_deg)
     R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
@@ -46,6 +47,8 @@ def _run(sim, v_n, eul, epochs, alpha_deg, sigma_mps, seed=1):
         g.update_imu(s.dtheta_b, s.dv_b, s.dt_s, s.t_gps)
         while j < len(epochs) and epochs[j] <= s.t_gps:
             j += 1
+            if gap_s is not None and gap_s[0] <= s.t_gps - t0 < gap_s[1]:
+                continue
             if g.fuse_velocity(s.t_gps, R @ v_n[k, :2] + rng.normal(0.0, sigma_mps, 2), sigma_mps):
                 err = _wrap_deg(math.degrees(g.yaw_rad) - (eul[k, 2] + alpha_deg))
                 tilt = max(abs(math.degrees(g.roll_rad) - eul[k, 0]), abs(math.degrees(g.pitch_rad) - eul[k, 1]))
@@ -145,3 +148,17 @@ def test_a_noisy_imu_at_rest_is_not_in_motion_but_an_acceleration_is():
     assert not any(m for t, m in seen if 2.0 < t <= t_rest)
     first = next(t for t, m in seen if t > t_rest and m)
     assert first - t_rest < 0.5
+
+
+def test_after_a_gnss_velocity_gap_the_bank_starts_over_and_stays_honest(uav):
+    """35 s without GNSS velocity on the survey flight's legs and turns: the AHRS cannot tell
+    acceleration from tilt then (holding its tilt on the gyro instead), and the bank must converge
+    again from its own data rather than vouch for a yaw carried through the gap (a converged-looking
+    bank reset a good heading 157 deg off after a 60-s outage of the simulated flight)."""
+    sim, v_n, eul, t_move, epochs = uav
+    gap = (t_move + 10.0, t_move + 45.0)
+    g, out = _run(sim, v_n, eul, epochs, 0.0, 0.1, gap_s=gap)
+    after = [o for o in out if o[0] >= gap[1]]
+    assert g.gap_restarts == 1 and after
+    assert all(abs(e) <= 3.0 * s + 0.5 for _, e, s, c, _ in after if c)
+    assert max(o[4] for o in after) < 2.0 * math.degrees(g.tilt_sigma_rad)

@@ -58,6 +58,10 @@ log = logging.getLogger(__name__)
 
 
 FLOOR_MAX_HEADING_SIGMA_RAD = math.radians(10.0)   # slow-error floor only once the heading is known
+# over lost IMU samples the last sample's rate and specific force are held; the change the vehicle
+# could have made meanwhile (1-sigma, a manoeuvring multirotor) widens the covariance
+IMU_GAP_ACCEL_SIGMA_MPS2 = 1.0
+IMU_GAP_RATE_SIGMA_RADPS = 0.1
 
 
 @dataclass
@@ -379,10 +383,23 @@ class NavEngine:
             if not scr.bridged:
                 return None            # nothing good to hold yet (counted by the screen)
             th, dvl, bridged = scr.dtheta_b, scr.dv_b, True
+        tau_sample = tau
         gap = s.t_gps - self.t_gps - tau
         if abs(gap) > 0.5 * tau:
-            # a lost sample or a clock jump: integrate what we have, widen the covariance for the gap
             self.counters["imu time gap"] += 1
+        if gap > 0.5 * tau:
+            # lost samples (a link drops IMU messages; the decoder restarts its chain after a long
+            # interval): hold this sample's rate and specific force over the gap -- integrating
+            # only its own interval left the position behind by v x gap (4 m per 0.5 s at 9 m/s,
+            # unseen by the covariance) -- and widen the covariance by what the vehicle could have
+            # done meanwhile (IMU_GAP_*)
+            k = (tau + gap) / tau
+            th = [x * k for x in th]
+            dvl = [x * k for x in dvl]
+            tau += gap
+            self.counters["imu gap bridged (s, x1000)"] += int(round(gap * 1000.0))
+            va, vw = (IMU_GAP_ACCEL_SIGMA_MPS2 * gap) ** 2, (IMU_GAP_RATE_SIGMA_RADPS * gap) ** 2
+            self.kf.add_body_noise(self.C_b_e, (vw, vw, vw), (va, va, va))
         bg, ba = self._b_g_list, self._b_a_list
         dtheta = (th[0] - bg[0] * tau, th[1] - bg[1] * tau, th[2] - bg[2] * tau)
         dv = (dvl[0] - ba[0] * tau, dvl[1] - ba[1] * tau, dvl[2] - ba[2] * tau)
@@ -399,7 +416,7 @@ class NavEngine:
         else:
             g = self._g_ref + self._grad @ d
         self.r_e, self.v_e, self.C_b_e, dv_e = strapdown_step_with_force(r0, self.v_e, C0, dtheta, dv, tau, g)
-        self.kf.propagate(C0, dv_e, self._grad, tau + gap if gap > 0.5 * tau else tau)
+        self.kf.propagate(C0, dv_e, self._grad, tau)
         if bridged:
             self.kf.add_body_noise(C0, scr.var_dtheta_b, scr.var_dv_b)    # what the sample could have hidden
         self._last_dtheta = dtheta
@@ -408,7 +425,8 @@ class NavEngine:
         self.t_gps = s.t_gps
         self._push_history()
         # ZUPT/ZARU on the ground only: a hovering multirotor with a quiet IMU looks still too
-        if self._still is not None and self._still.add(th, dvl, tau) and self.ground_mode:
+        if self._still is not None and self._still.add(s.dtheta_b.tolist(), s.dv_b.tolist(), tau_sample) \
+                and self.ground_mode:
             self._zero_motion_update()
         if self.cfg.nhc_enabled:
             self._nhc_countdown_s -= tau

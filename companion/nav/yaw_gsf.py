@@ -123,6 +123,7 @@ class YawGsf:
         self.vel_initialised = False
         self.n_fusions = 0
         self.n_moving_fusions = 0
+        self.gap_restarts = 0                # bank restarts after a gap in the GNSS velocities
         self.t_last_vel = -math.inf
         self.moving = False                  # the last GNSS velocity showed horizontal motion
         self.t_yaw_observed = -math.inf      # last fusion that shrank the yaw variance
@@ -139,6 +140,20 @@ class YawGsf:
         self._n_steps = 0
         self.omega_b_radps = np.zeros(3)
         self.t_gps = math.nan
+
+    def _restart_bank(self) -> None:
+        """The models spread over the circle again (model 0 on the AHRS's yaw), equal weights,
+        velocities to be re-initialised by the next GNSS velocity; the AHRS keeps its tilt."""
+        n = self.cfg.n_models
+        yaw0 = math.atan2(self.C_b_n[1, 0], self.C_b_n[0, 0])
+        self.x[:] = 0.0
+        self.x[:, 2] = _wrap(yaw0 + np.arange(n) * (2.0 * math.pi / n))
+        self.P[:] = 0.0
+        self.P[:, 2, 2] = (math.pi / n) ** 2
+        self.log_w[:] = -math.log(n)
+        self.vel_initialised = False
+        self.n_moving_fusions = 0
+        self.t_yaw_observed = -math.inf
 
     # ------------------------------------------------------------------ IMU
     def update_imu(self, dtheta_b, dv_b, dt_s: float, t_gps: float = math.nan) -> None:
@@ -200,6 +215,10 @@ class YawGsf:
         norm = float(np.linalg.norm(f_n))
         w = max(0.0, 1.0 - abs(norm / G0_MPS2 - 1.0) / cfg.accel_norm_tolerance)
         w *= max(0.0, 1.0 - self.kinematic_accel_mps2 / cfg.kinematic_accel_limit_mps2)
+        if math.isfinite(self.t_last_vel) and self.t_gps - self.t_last_vel > cfg.velocity_gap_s:
+            # GNSS velocity lost (none yet: levelling at rest, as at the alignment): the acceleration is unknown and |f| near 1 g does not mean level
+            # (3 m/s^2 along a leg is 17 deg of 'tilt' at 5 % off 1 g): the gyro alone holds the tilt
+            w = 0.0
         corr_n = np.zeros(3)
         if w > 0.0 and norm > 0.0:
             u = f_n / norm
@@ -250,7 +269,14 @@ class YawGsf:
         cfg = self.cfg
         self._update_kinematic_accel(t_gps, v, sigma_mps)
         r = sigma_mps ** 2
-        if not self.vel_initialised or t_gps - self.t_last_vel > cfg.velocity_gap_s:
+        if self.vel_initialised and t_gps - self.t_last_vel > cfg.velocity_gap_s:
+            # without GNSS velocity the AHRS cannot tell acceleration from tilt: its tilt, and the
+            # yaw through it, wander in every turn (30 deg in a 60-s outage of the survey flight, and
+            # a converged-looking bank then reset a good heading onto 157 deg off).  Start the bank
+            # over: it must converge again before it vouches for or overrules a heading
+            self._restart_bank()
+            self.gap_restarts += 1
+        if not self.vel_initialised:
             self.x[:, 0:2] = v
             self.P[:, 0:2, :] = 0.0
             self.P[:, :, 0:2] = 0.0
@@ -384,6 +410,7 @@ class YawGsf:
                 "yaw_deg": round(math.degrees(self.yaw_rad), 2),
                 "yaw_sigma_deg": round(math.degrees(self.yaw_sigma_rad), 2),
                 "velocity_fusions": self.n_fusions, "moving_fusions": self.n_moving_fusions,
+                "gap_restarts": self.gap_restarts,
                 "weights": [round(float(x), 4) for x in self.weights]}
 
 
