@@ -102,6 +102,7 @@ from .nav.engine import NavEngine  # noqa: E402
 from .nav.filter import LAYOUT  # noqa: E402
 from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
 from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale, ImuScreen  # noqa: E402
+from .nav.integrity import GNSS_SOURCES, POSITION_SOURCES  # noqa: E402
 from .nav.yaw_gsf import YawGsf  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -664,9 +665,14 @@ class NavPipeline:
         cov_n = np.diag([sigma_mps ** 2, sigma_mps ** 2, max(float(cov_v_n[2, 2]), 1e-4)])
         eng.reset_heading(delta, g.yaw_sigma_rad, v_imu_e=Cne @ v_n, cov_v_e=Cne @ cov_n @ Cne.T)
         # the position was integrated along the wrong heading too: on probation (status
-        # 'converging', not injected) until a consistent window of GNSS, else a re-init from GNSS
+        # 'converging', not injected) until a consistent window of GNSS, else a re-init from GNSS --
+        # unless its GNSS rows kept being fused (a 25-deg heading error in a hover cost the velocity
+        # and the lever arm, not the GNSS-bound position; a 5-s pause put PX4 into failsafe)
+        probation = eng.cfg.integrity_enabled and not self._position_gnss_bound()
         eng.aid.clear_windows()
-        eng.integrity.restart(eng.t_gps, eng.cfg.integrity_enabled)
+        eng.integrity.restart(eng.t_gps, probation)
+        if not probation:
+            self.counters["heading reset without probation (position GNSS-bound)"] += 1
         self.gsf_heading_resets += 1
         self.counters["heading reset onto the yaw from motion"] += 1
         self.heading_confirmed = True
@@ -675,6 +681,23 @@ class NavPipeline:
             self._heading_from_attitude = False
         self._event(m.MAV_SEVERITY_WARNING, f"heading reset {math.degrees(delta):+.0f} deg onto the yaw from "
                                             f"motion (sigma {math.degrees(g.yaw_sigma_rad):.1f} deg)")
+
+    def _position_gnss_bound(self) -> bool:
+        """Over the last integrity window a position source (pseudoranges, GNSS fixes) was fused
+        at least ``min_updates`` times and no GNSS source rejected more than a probation allows
+        (a 180-deg heading in motion left the fused pseudoranges 10-20 m off at a mean NIS of 0.2:
+        their inflated variance hides it, the TDCP rows, half rejected, do not)."""
+        eng = self.engine
+        lim = eng.integrity.limits
+        bound = False
+        for src in GNSS_SOURCES:
+            w = eng.aid.window(src, eng.t_gps)
+            if w.n_updates == 0:
+                continue
+            if w.rejected_fraction > lim.probation_max_rejected_fraction:
+                return False
+            bound = bound or (src in POSITION_SOURCES and w.n_updates >= lim.min_updates)
+        return bound
 
     def _distrust_attitude_yaw(self) -> None:
         if self.attitude_yaw_trusted:
