@@ -109,6 +109,7 @@ log = logging.getLogger(__name__)
 m = mavlink2
 GROUND_VEHICLE_TYPES = (m.MAV_TYPE_GROUND_ROVER, m.MAV_TYPE_SURFACE_BOAT)
 
+HEADING_RESET_QUIET_S = 60.0   # a heading reset skips probation only this long after the last one or a re-init
 REINIT_GAP_S = 1.0            # IMU time step (either direction) that restarts the filter
 CLUSTER_OUTPUT_ID = 100       # imu_id of the fused samples of an IMU cluster
 RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GPS_RAW_INT fusion
@@ -225,6 +226,7 @@ class NavPipeline:
         self.attitude = None                      # (time_boot_ms, roll, pitch, yaw)
         self._last_ap_heading_boot_s = -1e9       # last autopilot heading fused on the ground
         self.on_ground = False
+        self._last_trouble_t = -math.inf
         self.engine.ground_mode = False            # no NHC until the autopilot says we are on the ground
         self.vehicle_type: int | None = None       # HEARTBEAT type (MAV_TYPE)
         self.disarmed = False
@@ -297,6 +299,7 @@ class NavPipeline:
             # reboot, which may have re-initialised the sensors)
             self._keep_biases_next = reason != "autopilot reboot"
             self.counters[f"re-init: {reason}"] += 1
+            self._last_trouble_t = self.engine.t_gps
             self._event(m.MAV_SEVERITY_WARNING, f"nav re-init: {reason}" + (f" ({detail})" if detail else ""))
 
     # ------------------------------------------------------------------ input
@@ -667,8 +670,13 @@ class NavPipeline:
         # the position was integrated along the wrong heading too: on probation (status
         # 'converging', not injected) until a consistent window of GNSS, else a re-init from GNSS --
         # unless its GNSS rows kept being fused (a 25-deg heading error in a hover cost the velocity
-        # and the lever arm, not the GNSS-bound position; a 5-s pause put PX4 into failsafe)
-        probation = eng.cfg.integrity_enabled and not self._position_gnss_bound()
+        # and the lever arm, not the GNSS-bound position; a 5-s pause put PX4 into failsafe) ...
+        # -- once: a reset within HEADING_RESET_QUIET_S of another or of a re-initialisation means
+        # a heading that keeps running away (a gyro fault below every screen: 6 m injected after
+        # its re-init without this), whose position is not to be trusted either
+        repeated = eng.t_gps - self._last_trouble_t < HEADING_RESET_QUIET_S
+        self._last_trouble_t = eng.t_gps
+        probation = eng.cfg.integrity_enabled and (repeated or not self._position_gnss_bound())
         eng.aid.clear_windows()
         eng.integrity.restart(eng.t_gps, probation)
         if not probation:
