@@ -661,6 +661,9 @@ def redacted(cfg: Config) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 # writing
 
+_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
 def _toml_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -670,7 +673,10 @@ def _toml_value(v) -> str:
         r = repr(v)
         return r if ("." in r or "e" in r or "inf" in r or "nan" in r) else r + ".0"
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        # a TOML basic string: backslash, quote and every control character escaped (a raw
+        # newline or tab from a multi-line string would make the field log's copy unreadable)
+        return '"' + "".join(_TOML_ESCAPES.get(c) or (f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F else c)
+                             for c in v) + '"'
     if isinstance(v, (tuple, list)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {v!r} as TOML")
