@@ -35,11 +35,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"companion {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_gnss(sub)
-    from . import allan_cli, config_cli, export, run_cli
+    from . import allan_cli, config_cli, export, run_cli, signing_cli
     run_cli.register(sub)
     export.register(sub)
     allan_cli.register(sub)
     config_cli.register(sub)
+    signing_cli.register(sub)
     return parser
 
 

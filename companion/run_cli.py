@@ -27,6 +27,14 @@ def cmd_run(args) -> int:
     warning = secrets_readable_by_others(cfg)
     if warning:
         logging.getLogger("companion").warning("%s", warning)
+    from .io.mavlink_signing import SigningKeyError, signing_preflight
+    try:                                     # no start without the signing key it is configured with
+        warning = signing_preflight(cfg)
+    except SigningKeyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if warning:
+        logging.getLogger("companion").warning("%s", warning)
     import asyncio
 
     from .service import Service
