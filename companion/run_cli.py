@@ -77,8 +77,8 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from .journal_log import configure_logging       # <N> syslog priorities when stderr is the journal
+    configure_logging(logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING)
     from .extras import MissingExtra
     try:
         return int(args.func(args) or 0)
