@@ -20,8 +20,8 @@ from pymavlink import mavutil
 import companion.io.mavlink as M
 from companion.config import loads_config
 from companion.io.mavlink_signing import (DEFAULT_LINK_ID, LinkSigning, SigningKeyError, generate_key_file,
-                                          key_file_warning, key_from_text, load_key, signing_preflight,
-                                          signing_timestamp)
+                                          key_file_warning, key_from_text, load_key, sign_encoder,
+                                          signing_preflight, signing_timestamp)
 
 mav = M.mavlink2
 KEY_HEX = "5c" * 8 + "a1b2c3d4" * 6
@@ -66,10 +66,7 @@ def packed(msg, key: bytes | None = None, timestamp: int | None = None, link_id:
     """Frame bytes as 1/1 made by a separate encoder: unsigned, or signed with ``key``."""
     enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
     if key is not None:
-        enc.signing.secret_key = key
-        enc.signing.sign_outgoing = True
-        enc.signing.link_id = link_id
-        enc.signing.timestamp = signing_timestamp(time.time()) if timestamp is None else timestamp
+        sign_encoder(enc, key, link_id, timestamp)
     return bytes(msg.pack(enc))
 
 
