@@ -133,8 +133,9 @@ class GnssConfig:
                                        "after a lock longer than 4 s")
     serial_control_release_after_s: float = _f(10.0, min=1.0, max=600.0,
                                                doc="no RXM-RAWX epoch for this long = give the port back")
-    serial_control_retry_max_s: float = _f(60.0, min=5.0, max=3600.0,
-                                           doc="longest wait between probes (back-off from 5 s, doubling)")
+    serial_control_retry_max_s: float = _f(600.0, min=5.0, max=86400.0,
+                                           doc="longest wait between probes (back-off from 5 s, doubling); "
+                                           "each probe freezes the autopilot's GPS for the probe window")
     serial_control_probe_armed: bool = _f(False, doc="probe while the vehicle is armed (interrupts the "
                                           "autopilot's GPS for the probe window in flight)")
     serial_control_enable_sfrbx: bool = _f(True, doc="once claimed, switch UBX RXM-SFRBX on (volatile "

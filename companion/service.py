@@ -258,9 +258,7 @@ class Service:
     async def _mavlink_task(self) -> None:
         from .io.mavlink import link_from_config
         link = link_from_config(self.cfg.mavlink)
-        if self.origin_mgr is not None:
-            link.subscribe("GPS_GLOBAL_ORIGIN",
-                           lambda msg, t_ns: self.origin_mgr.on_gps_global_origin(msg, time.monotonic()))
+        self._subscribe(link)
         await link.start()
         self.link = link
         children = []
@@ -294,6 +292,12 @@ class Service:
             if self.link is link:
                 self.link = None
             await link.close()
+
+    def _subscribe(self, link) -> None:
+        """What the service takes from the link besides the logged stream: GPS_GLOBAL_ORIGIN."""
+        if self.origin_mgr is not None:
+            link.subscribe("GPS_GLOBAL_ORIGIN",
+                           lambda msg, t_ns: self.origin_mgr.on_gps_global_origin(msg, time.monotonic()))
 
     def _port_claim(self, link):
         """The SERIAL_CONTROL tunnel to the receiver on the autopilot's GPS port and the state

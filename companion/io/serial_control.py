@@ -31,7 +31,9 @@ hold the port at all.  What ArduPilot does (``GCS_serial_control.cpp``, ``AP_GPS
 * **probing**: EXCLUSIVE polls for ``probe_s``; a checked RXM-RAWX frame with at least
   :data:`MIN_RAW_MEASUREMENTS` measurements in what comes back = raw observations are flowing
   -> **claimed** at once; none -> release (the unlock is sent three times, UDP may drop one),
-  retry after a back-off doubling from ``retry_initial_s`` to ``retry_max_s``.  No probe starts
+  retry after a back-off doubling from ``retry_initial_s`` (5 s) to ``retry_max_s`` (600 s):
+  each probe freezes the autopilot's GPS for its window, so after the first minutes (when
+  ArduPilot's driver, with ``GPS_RAW_DATA`` 1, has switched RAWX on) they become rare.  No probe starts
   while the vehicle is armed (HEARTBEAT ``MAV_MODE_FLAG_SAFETY_ARMED``) unless ``probe_when_armed``:
   the autopilot's GPS is not interrupted in flight to look for something it has not had so far.
 * **claimed**: EXCLUSIVE polls for as long as raw epochs keep coming; none for
@@ -261,7 +263,7 @@ class PortClaim:
     RELEASED, PROBING, CLAIMED = "released", "probing", "claimed"
 
     def __init__(self, tunnel: SerialControlTunnel, *, mode: str = "detect", probe_s: float = 3.0,
-                 release_after_s: float = 10.0, retry_initial_s: float = 5.0, retry_max_s: float = 60.0,
+                 release_after_s: float = 10.0, retry_initial_s: float = 5.0, retry_max_s: float = 600.0,
                  probe_when_armed: bool = False, enable_sfrbx: bool = True,
                  clock: Callable[[], float] = time.monotonic):
         if mode not in ("detect", "always"):
