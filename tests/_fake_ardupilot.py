@@ -16,7 +16,7 @@ Real pymavlink bytes both ways; what it models, from ArduPilot 4.x:
   cm), later ones are ignored; GPS_GLOBAL_ORIGIN is sent when it is set and on
   MAV_CMD_REQUEST_MESSAGE 49 while set (the command is ACCEPTED either way);
   ``answer_origin=False``: an autopilot that never sends it.
-* HEARTBEAT at 1 Hz (``armed`` -> MAV_MODE_FLAG_SAFETY_ARMED), GPS_RAW_INT at 5 Hz.
+* HEARTBEAT at 2 Hz (``armed`` -> MAV_MODE_FLAG_SAFETY_ARMED), GPS_RAW_INT at 5 Hz.
 """
 from __future__ import annotations
 
@@ -54,6 +54,7 @@ class FakeArduPilot(asyncio.DatagramProtocol):
         self.parser.robust_parsing = True
         self.receiver = receiver or (lambda t: b"")
         self.armed = armed
+        self.heartbeats_on = True               # False: a silent link (no HEARTBEAT)
         self.detect_s = detect_s
         self.max_replies = max_replies
         self.origin_e7 = origin_e7
@@ -72,6 +73,7 @@ class FakeArduPilot(asyncio.DatagramProtocol):
         self.last_fix_us = 0
         self.fix_type = 0
         self.driver_timeouts = 0
+        self.uart_overflow = 0                  # receiver bytes lost: nobody read the port in time
         self.detections = 0
         self._scanner = UbxFrameScanner()
         self._tasks = []
@@ -158,9 +160,11 @@ class FakeArduPilot(asyncio.DatagramProtocol):
     async def _heartbeats(self):
         while True:
             base = mav.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
-            self.send(mav.MAVLink_heartbeat_message(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base, 0,
-                                                    mav.MAV_STATE_ACTIVE if self.armed else mav.MAV_STATE_STANDBY, 3))
-            await asyncio.sleep(1.0)
+            if self.heartbeats_on:
+                self.send(mav.MAVLink_heartbeat_message(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base, 0,
+                                                        mav.MAV_STATE_ACTIVE if self.armed else mav.MAV_STATE_STANDBY,
+                                                        3))
+            await asyncio.sleep(0.5 if self.heartbeats_on else 0.05)
 
     async def _gps(self):
         dt = 0.05
@@ -170,6 +174,7 @@ class FakeArduPilot(asyncio.DatagramProtocol):
             t = self.now()
             self.uart_rx += self.receiver(t)
             if len(self.uart_rx) > 4096:
+                self.uart_overflow += len(self.uart_rx) - 4096
                 del self.uart_rx[:len(self.uart_rx) - 4096]
             if k % 2 == 0:
                 self._update_instance(t, 2 * dt)

@@ -71,6 +71,11 @@ UBX_SYNC = b"\xb5\x62"
 UBX_CLASS_RXM, UBX_RXM_RAWX, UBX_RXM_SFRBX = 0x02, 0x15, 0x13
 MIN_RAW_MEASUREMENTS = 4          # a RAWX epoch with fewer cannot give a position: not "flowing"
 UBX_MAX_PAYLOAD = 8192
+# u-blox message classes (NAV RXM INF ACK CFG UPD MON AID TIM ESF MGA LOG SEC HNR NAV2): a sync
+# pattern inside a payload followed by another class is skipped at once instead of making the
+# scanner wait for up to UBX_MAX_PAYLOAD bytes of a frame that is not one
+UBX_CLASSES = frozenset((0x01, 0x02, 0x04, 0x05, 0x06, 0x09, 0x0A, 0x0B, 0x0D, 0x10, 0x13, 0x21, 0x27, 0x28,
+                         0x29))
 RELEASE_REPEATS_S = (0.0, 0.2, 0.5)   # the unlock, repeated: a lost one would leave the GPS locked
 MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE, MAV_SEVERITY_INFO = 4, 5, 6
 
@@ -94,7 +99,8 @@ def cfg_msg_current_port(msg_class: int, msg_id: int, rate: int) -> bytes:
 class UbxFrameScanner:
     """Splits a byte stream into checksum-checked UBX frames ``(class, id, payload)``; everything
     else (NMEA, garbage, a frame cut by a lock change) is skipped.  Bounded: at most one frame
-    (``max_payload`` + 8 bytes) is ever buffered."""
+    (``max_payload`` + 8 bytes) is ever buffered.  Only the u-blox classes (:data:`UBX_CLASSES`)
+    and RXM-RAWX lengths of 16 + 32 n are waited for."""
 
     def __init__(self, max_payload: int = UBX_MAX_PAYLOAD):
         self.max_payload = max_payload
@@ -115,7 +121,8 @@ class UbxFrameScanner:
                 i = j
                 break
             n = buf[j + 4] | (buf[j + 5] << 8)
-            if n > self.max_payload:
+            if n > self.max_payload or buf[j + 2] not in UBX_CLASSES or (
+                    (buf[j + 2], buf[j + 3]) == (UBX_CLASS_RXM, UBX_RXM_RAWX) and (n < 16 or (n - 16) % 32)):
                 self.bad_frames += 1
                 i = j + 2
                 continue
