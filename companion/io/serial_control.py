@@ -22,8 +22,11 @@ hold the port at all.  What ArduPilot does (``GCS_serial_control.cpp``, ``AP_GPS
   and logs the frames).  With 0 it leaves RAWX alone but counts every non-NAV frame it does not
   handle (RXM-SFRBX, and RAWX) as unexpected and, every 256th, sends CFG-MSG rate 0 for it: a
   receiver configured for raw output is slowly silenced while the autopilot reads it.  So the
-  parameter files set ``GPS_RAW_DATA 1`` and, once the port is claimed, the companion switches
-  RXM-SFRBX on (volatile CFG-MSG for the current port, ``gnss.serial_control_enable_sfrbx``).
+  parameter file explains ``GPS_RAW_DATA 1`` (for a raw-capable receiver) and, once the port is
+  claimed, the companion switches RXM-SFRBX on (volatile CFG-MSG for the current port,
+  ``gnss.serial_control_enable_sfrbx``).
+* PX4 (``MavlinkReceiver::handle_message_serial_control``) serves only its shell device: every
+  probe finds nothing and its GPS is never touched.
 
 :class:`PortClaim` (``gnss.serial_control_claim = "detect"``, the default):
 
