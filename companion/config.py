@@ -131,6 +131,22 @@ class GnssConfig:
     serial_control_poll_interval_s: float = _f(0.02, min=0.002, max=1.0,
                                                doc="SERIAL_CONTROL poll period (ArduPilot only answers requests)")
     serial_control_baud: int = _f(0, min=0, max=12_000_000, doc="0 = leave the port's baud rate alone")
+    serial_control_claim: str = _f("detect", choices=("detect", "always"),
+                                   doc="'detect': lock the autopilot's GPS port only for short probes and keep "
+                                   "it only while RXM-RAWX arrives (its GPS driver has it otherwise); "
+                                   "'always': lock it from the start (a port with GPSn_TYPE 0 only)")
+    serial_control_probe_s: float = _f(3.0, min=0.5, max=30.0,
+                                       doc="probe window; ArduPilot re-detects its GPS (~9 s without) "
+                                       "after a lock longer than 4 s")
+    serial_control_release_after_s: float = _f(10.0, min=1.0, max=600.0,
+                                               doc="no RXM-RAWX epoch for this long = give the port back")
+    serial_control_retry_max_s: float = _f(600.0, min=5.0, max=86400.0,
+                                           doc="longest wait between probes (back-off from 5 s, doubling); "
+                                           "each probe freezes the autopilot's GPS for the probe window")
+    serial_control_probe_armed: bool = _f(False, doc="probe while the vehicle is armed (interrupts the "
+                                          "autopilot's GPS for the probe window in flight)")
+    serial_control_enable_sfrbx: bool = _f(True, doc="once claimed, switch UBX RXM-SFRBX on (volatile "
+                                           "CFG-MSG; ArduPilot's driver disables frames it does not parse)")
     serial: SerialPortConfig = field(default_factory=SerialPortConfig)
     lever_arm_b_m: tuple[float, float, float] = _f((0.0, 0.0, 0.0), min=-20.0, max=20.0,
                                                    doc="IMU to antenna phase centre, body FRD, m")

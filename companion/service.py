@@ -3,8 +3,9 @@
 ``Service(config).run()`` runs until SIGINT/SIGTERM (or :meth:`Service.stop`):
 
 * **Supervised tasks** (:meth:`Service._supervise`): ``mavlink`` (link to the autopilot, the
-  SERIAL_CONTROL poller for a receiver on the autopilot's GPS port, the IMU/attitude/time inputs and
-  the estimate outputs), ``gnss-serial`` (a receiver on a local serial port), ``corrections``
+  SERIAL_CONTROL tunnel for a receiver on the autopilot's GPS port -- detect, then claim:
+  :class:`~companion.io.serial_control.PortClaim` takes the port only while RXM-RAWX flows and
+  gives it back on shutdown --, the IMU/attitude/time inputs and the estimate outputs), ``gnss-serial`` (a receiver on a local serial port), ``corrections``
   (NTRIP / serial radio / MQTT / file), ``output`` (EKF origin repeats), ``health`` and
   ``telemetry`` (MQTT).  A task that raises is logged with its traceback, counted and restarted
   after an exponential backoff (0.5 s doubling to 30 s, reset after a minute of good running).
@@ -20,11 +21,13 @@
   and, when the pipeline marks it injectable (status nav/coasting within the configured sigmas),
   sent at once -- no timer, no queue: VISION_POSITION_ESTIMATE (default, ``reset_counter`` =
   number of filter (re)initialisations, time stamp = boot time of the IMU sample the estimate is
-  valid for), ODOMETRY or GPS_INPUT.  Before the first VISION/ODOMETRY output the EKF origin is
-  fixed at the first injectable position, rounded to what SET_GPS_GLOBAL_ORIGIN carries (1e-7 deg,
-  mm), and sent (``output.set_ekf_origin``; repeated once a second for 10 s since UDP may drop
-  it and ArduPilot ignores repeats once set).  State changes of the filter (initialised,
-  re-initialised, injecting / not injecting, tight / loose) are announced with STATUSTEXT.
+  valid for), ODOMETRY or GPS_INPUT.  The EKF origin of VISION/ODOMETRY is read back
+  (:mod:`companion.io.origin`): ours is proposed at the first injectable position, rounded to
+  what SET_GPS_GLOBAL_ORIGIN carries (1e-7 deg, cm), sent (``output.set_ekf_origin``; repeated
+  until GPS_GLOBAL_ORIGIN confirms it) and the outputs use the origin the autopilot reports --
+  ours confirmed, or its own adopted when it already had one (too far: no vision/odometry).
+  State changes of the filter (initialised, re-initialised, injecting / not injecting, tight /
+  loose), of the GPS port claim and of the origin are announced with STATUSTEXT.
 * **Health**: every ``HEALTH_INTERVAL_S`` a one-line summary is logged (inputs and rates, filter
   status and sigmas, outputs, rejections) and the full report (:meth:`health`) is written to the
   field log and MQTT; SIGUSR1 logs the full report at once.
@@ -61,7 +64,7 @@ HEALTH_INTERVAL_S = 5.0
 BACKOFF_INITIAL_S = 0.5
 BACKOFF_MAX_S = 30.0
 BACKOFF_RESET_AFTER_S = 60.0
-ORIGIN_REPEAT_S = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0)
+from .io.origin import ORIGIN_REPEAT_S  # noqa: E402,F401  (SET_GPS_GLOBAL_ORIGIN repeats)
 # kill -9 must lose at most 1 s of field log: data reaches the kernel every fsync interval plus
 # the flusher's period (a quarter of it), so 0.5 s leaves a real margin whatever the config says
 FSYNC_MAX_INTERVAL_S = 0.5
@@ -94,8 +97,15 @@ class Service:
         self.link = None
         self.tunnel = None
         self.telemetry = None
-        self.origin = None
-        self._origin_t0 = None
+        self.port_claim = None                  # PortClaim when gnss.source = mavlink_serial_control
+        self.origin = None                      # the Origin the vision/odometry outputs use
+        self.origin_mgr = None
+        if config.output.mode != "gps_input":
+            from .io.origin import OriginManager
+            self.origin_mgr = OriginManager(send_set=config.output.set_ekf_origin,
+                                            target_system=config.mavlink.target_system,
+                                            target_component=config.mavlink.target_component)
+        self._origin_reboots_seen = 0
         self.counters: Counter = Counter()
         self.restarts: Counter = Counter()
         self.task_errors: dict[str, str] = {}
@@ -251,19 +261,18 @@ class Service:
 
     # ------------------------------------------------------------------ MAVLink
     async def _mavlink_task(self) -> None:
-        from .io.mavlink import SerialControlTunnel, link_from_config
+        from .io.mavlink import link_from_config
         link = link_from_config(self.cfg.mavlink)
+        self._subscribe(link)
         await link.start()
         self.link = link
         children = []
+        claim = None
         try:
             g = self.cfg.gnss
             if g.source == "mavlink_serial_control":
-                from .io.mavlink import SERIAL_CONTROL_DEV_GPS1, SERIAL_CONTROL_DEV_GPS2
-                dev = SERIAL_CONTROL_DEV_GPS1 if g.serial_control_device == "GPS1" else SERIAL_CONTROL_DEV_GPS2
-                self.tunnel = SerialControlTunnel(link, dev, poll_interval_s=g.serial_control_poll_interval_s,
-                                                  baudrate=g.serial_control_baud)
-                children.append(asyncio.create_task(self._tunnel_poll(), name="serial-control-poll"))
+                claim = self._port_claim(link)
+                children.append(asyncio.create_task(claim.run(), name="serial-control-claim"))
                 # the replies reach the pipeline through the logged MAVLink stream; the tunnel's own
                 # copy is discarded
                 children.append(asyncio.create_task(self._drain(self.tunnel), name="serial-control-drain"))
@@ -281,16 +290,35 @@ class Service:
             for c in children:
                 c.cancel()
             await asyncio.gather(*children, return_exceptions=True)
+            if claim is not None:
+                claim.close()          # ArduPilot's lock has no timeout: never leave it held
+                self._announce_events(claim.drain_events())
             self._last_link_health = link.health()
             if self.link is link:
                 self.link = None
             await link.close()
 
-    async def _tunnel_poll(self) -> None:
-        while True:
-            if self.link is not None and self.link.connected:
-                self.tunnel.poll()
-            await asyncio.sleep(self.tunnel.poll_interval_s)
+    def _subscribe(self, link) -> None:
+        """What the service takes from the link besides the logged stream: GPS_GLOBAL_ORIGIN."""
+        if self.origin_mgr is not None:
+            link.subscribe("GPS_GLOBAL_ORIGIN",
+                           lambda msg, t_ns: self.origin_mgr.on_gps_global_origin(msg, time.monotonic()))
+
+    def _port_claim(self, link):
+        """The SERIAL_CONTROL tunnel to the receiver on the autopilot's GPS port and the state
+        machine that decides when to hold that port (companion.io.serial_control)."""
+        from .io.serial_control import PortClaim, SerialControlTunnel
+        from pymavlink.dialects.v20 import ardupilotmega as mav
+        g = self.cfg.gnss
+        dev = mav.SERIAL_CONTROL_DEV_GPS1 if g.serial_control_device == "GPS1" else mav.SERIAL_CONTROL_DEV_GPS2
+        self.tunnel = SerialControlTunnel(link, dev, poll_interval_s=g.serial_control_poll_interval_s,
+                                          baudrate=g.serial_control_baud)
+        self.port_claim = PortClaim(self.tunnel, mode=g.serial_control_claim, probe_s=g.serial_control_probe_s,
+                                    release_after_s=g.serial_control_release_after_s,
+                                    retry_max_s=g.serial_control_retry_max_s,
+                                    probe_when_armed=g.serial_control_probe_armed,
+                                    enable_sfrbx=g.serial_control_enable_sfrbx)
+        return self.port_claim
 
     @staticmethod
     async def _drain(tunnel) -> None:
@@ -370,46 +398,80 @@ class Service:
             msg = mv.gps_input(sol, t_boot_us=t_boot_us, gps_id=o.gps_input_id,
                                geoid_undulation_m=o.geoid_undulation_m)
         else:
-            if self.origin is None:
-                self._set_origin(sol)
+            origin = self._output_origin(sol)
+            if origin is None:
+                return
+            # an origin that moved after estimates went out is a reset for the autopilot
+            reset = sol.reset_counter + self.origin_mgr.epoch
             if o.mode == "odometry":
                 sr = sol.sigma_r_n_m
-                msg = mv.odometry(sol, self.origin, sol.reset_counter, t_boot_us,
+                msg = mv.odometry(sol, origin, reset, t_boot_us,
                                   quality=mv.quality_from_sigma(math.hypot(sr[0], sr[1]), o.max_sigma_h_m),
                                   geoid_undulation_m=o.geoid_undulation_m)
             else:
-                msg = mv.vision_position_estimate(sol, self.origin, sol.reset_counter, t_boot_us,
+                msg = mv.vision_position_estimate(sol, origin, reset, t_boot_us,
                                                   geoid_undulation_m=o.geoid_undulation_m)
         if link.send(msg):
             self.counters[f"sent {msg.get_type()}"] += 1
+            if o.mode != "gps_input":
+                self.origin_mgr.mark_sent()
+                if not self.origin_mgr.confirmed:
+                    self.counters["estimates sent: origin unconfirmed"] += 1
         else:
             self.counters["estimates not sent: send error"] += 1
 
-    def _set_origin(self, sol) -> None:
+    def _output_origin(self, sol):
+        """The origin to send this estimate about (companion.io.origin), or None = not now."""
         from .io.mavlink import Origin
-        o = Origin.from_ecef(sol.r_e, self.cfg.output.geoid_undulation_m)
-        # exactly what SET_GPS_GLOBAL_ORIGIN can carry, so our NED and the autopilot's agree
-        self.origin = Origin(math.radians(o.lat_e7() * 1e-7), math.radians(o.lon_e7() * 1e-7),
-                             round(o.alt_m * 1000.0) / 1000.0)
-        self._origin_t0 = time.monotonic()
-        self._origin_sent = set()
-        self._event({"event": "origin", "lat_e7": o.lat_e7(), "lon_e7": o.lon_e7(), "alt_mm": round(o.alt_m * 1000)})
-        log.info("EKF origin %.7f %.7f %.3f m", math.degrees(self.origin.lat_rad), math.degrees(self.origin.lon_rad),
-                 self.origin.alt_m)
-        self._maybe_send_origin()
+        mgr = self.origin_mgr
+        now = time.monotonic()
+        if mgr.ours is None:
+            o = Origin.from_ecef(sol.r_e, self.cfg.output.geoid_undulation_m)
+            mgr.propose(o, now)
+            p = mgr.ours
+            self._event({"event": "origin proposed", **p.as_dict()})
+            log.info("origin proposed: %.7f %.7f %.2f m (our first injectable position)", p.lat_e7 * 1e-7,
+                     p.lon_e7 * 1e-7, p.alt_mm * 1e-3)
+            self._maybe_send_origin()
+        origin = mgr.output_origin(now)
+        self._announce_events(mgr.drain_events())
+        if origin is None:
+            self.counters["estimates not sent: autopilot origin too far" if mgr.refused
+                          else "estimates held: origin not read back"] += 1
+            return None
+        if origin != self.origin:
+            self.origin = origin
+            u = mgr.used
+            self._event({"event": "origin", **u.as_dict(), "confirmed": mgr.confirmed, "mismatch_m": mgr.mismatch_m,
+                         "epoch": mgr.epoch})
+            log.info("EKF origin %.7f %.7f %.3f m (%s; ours %s m off)", math.degrees(origin.lat_rad),
+                     math.degrees(origin.lon_rad), origin.alt_m,
+                     "read back from the autopilot" if mgr.confirmed else "ours, not confirmed", mgr.mismatch_m)
+        return origin
 
     def _maybe_send_origin(self) -> None:
-        if self.origin is None or not self.cfg.output.set_ekf_origin or self.cfg.output.mode == "gps_input":
+        """SET_GPS_GLOBAL_ORIGIN repeats and GPS_GLOBAL_ORIGIN requests (companion.io.origin)."""
+        mgr = self.origin_mgr
+        if mgr is None or self.link is None:
             return
-        if self.link is None:
-            return
-        from .io.mavlink import set_gps_global_origin_from
-        dt = time.monotonic() - self._origin_t0
-        for i, t in enumerate(ORIGIN_REPEAT_S):
-            if dt >= t and i not in self._origin_sent:
-                self._origin_sent.add(i)
-                self.link.send(set_gps_global_origin_from(self.origin, self.cfg.mavlink.target_system))
-                self.counters["sent SET_GPS_GLOBAL_ORIGIN"] += 1
+        reboots = self.pipeline.counters.get("autopilot reboots", 0)
+        if reboots != self._origin_reboots_seen:
+            self._origin_reboots_seen = reboots
+            mgr.on_autopilot_reboot(time.monotonic())
+        for msg in mgr.tick(time.monotonic(), self.link.connected):
+            if self.link.send(msg):
+                name = msg.get_type() if msg.get_type() != "COMMAND_LONG" else "REQUEST_MESSAGE GPS_GLOBAL_ORIGIN"
+                self.counters[f"sent {name}"] += 1
+        self._announce_events(mgr.drain_events())
+
+    def _announce_events(self, events) -> None:
+        """(MAV_SEVERITY, text) events of the port claim and the origin: field log and STATUSTEXT."""
+        from .io.mavlink import statustext
+        for sev, text in events:
+            self._event({"event": "status", "severity": sev, "text": text})
+            if self.link is not None:
+                self.link.send(statustext(sev, "CC: " + text))
+                self.counters["sent STATUSTEXT"] += 1
 
     def _announce(self) -> None:
         from .io.mavlink import statustext
@@ -436,6 +498,8 @@ class Service:
     async def _output_task(self) -> None:
         while True:
             self._maybe_send_origin()
+            if self.port_claim is not None and self.port_claim.events:
+                self._announce_events(self.port_claim.drain_events())
             if self.pipeline.events:
                 self._announce()
             self._announce_fieldlog()
@@ -532,6 +596,10 @@ class Service:
             out["link"] = self._last_link_health
         if self.tunnel is not None:
             out["serial_control"] = dict(self.tunnel.counters)
+            if self.port_claim is not None:
+                out["serial_control"].update(self.port_claim.health())
+        if self.origin_mgr is not None:
+            out["origin"] = self.origin_mgr.health()
         src = getattr(self, "corrections_source", None)
         if src is not None and hasattr(src, "health"):
             out["corrections_source"] = src.health()
@@ -558,6 +626,11 @@ class Service:
                 f"withheld {h['outputs'].get('estimates withheld', 0)}; rejected {rej}; "
                 f"link {'up' if link.get('connected') else 'down'} bad {link.get('bad_data', 0)} "
                 f"reboots {h['pipeline'].get('autopilot reboots', 0)} restarts {sum(h['task_restarts'].values())}"
+                + ("" if "origin" not in h else "; origin " + (
+                    "refused" if h["origin"]["refused"] else "confirmed" if h["origin"]["confirmed"]
+                    else "unconfirmed" if h["origin"]["ours"] else "none")
+                    + ("" if not h["origin"]["mismatch_m"] else f" (ours {h['origin']['mismatch_m']} m off)"))
+                + ("" if "state" not in h.get("serial_control", {}) else f"; GPS port {h['serial_control']['state']}")
                 + ("" if "imu_cluster" not in h else "; IMUs healthy " + ",".join(
                     name for name, u in h["imu_cluster"]["units"].items() if u["healthy"])))
 

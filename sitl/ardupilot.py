@@ -31,7 +31,7 @@ from .ardupilot_procs import (
     companion_config,
     find_binary,
 )
-from .ardupilot_result import ESTIMATE_TYPES, score
+from .ardupilot_result import ESTIMATE_TYPES, companion_figures, score
 
 DEPLOY = REPO / "deploy"
 PARM_FILES = {"vision": "ardupilot-vision.parm", "odometry": "ardupilot-vision.parm",
@@ -240,6 +240,7 @@ def run(*, duration_s: float = 120.0, output: str = "vision", sitl_bin: str | No
             gcs.close()
         sitl.stop()
         say("SITL and companion stopped")
+    res.update(companion_figures(out / "fieldlog"))
     if gcs is not None:
         res.update(score(gcs.records, gcs.statustext, res, output))
         _save_records(gcs, out / "records.pkl")
@@ -280,7 +281,8 @@ SUMMARY_KEYS = ("armed", "box_completed", "ext_nav_used", "rms_h_m", "ekf_rms_h_
 def format_result(r: dict) -> str:
     lines = ["", "python -m sitl ardupilot: result"]
     for k in SUMMARY_KEYS + ("rms_h_m_ground", "yaw_err_deg_ground_last", "yaw_rms_deg_flight",
-                             "ekf_yaw_rms_deg_ground", "ekf_origin_minus_ours_m", "param_problems"):
+                             "ekf_yaw_rms_deg_ground", "ekf_origin_minus_ours_m", "origin_confirmed",
+                             "origin_mismatch_m", "gps_port", "param_problems"):
         lines.append(f"  {k:24s} {r.get(k)}")
     return "\n".join(lines)
 

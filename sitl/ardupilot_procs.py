@@ -205,12 +205,13 @@ class CompanionProcess:
         return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
 
     def origin(self) -> tuple[float, float, float] | None:
-        """The EKF origin the companion announced (lat deg, lon deg, alt m), from its log."""
+        """The EKF origin the companion's outputs use (lat deg, lon deg, alt m), from its log: the
+        last one announced (it adopts the autopilot's when that differs, companion.io.origin)."""
         try:
-            m = self.ORIGIN_RE.search(self.log_path.read_bytes())
+            found = self.ORIGIN_RE.findall(self.log_path.read_bytes())
         except OSError:
             return None
-        return None if m is None else tuple(float(x) for x in m.groups())
+        return tuple(float(x) for x in found[-1]) if found else None
 
     def tail(self, n_bytes: int = 2000) -> str:
         try:

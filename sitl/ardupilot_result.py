@@ -125,3 +125,31 @@ def ekf_position_figures(records, truth, ref, origin_e7, flight, ground_end) -> 
                                np.array([[m.x, m.y] for _, m in lp]) + shift, truth, ref, flight, ground_end)
         out["ekf_rms_h_m"], out["ekf_max_error_h_m"] = ekf["rms_h_m"], ekf["max_error_h_m"]
     return out
+
+
+def companion_figures(field_log_dir) -> dict:
+    """From the companion's last health record: whether ArduPilot's GPS_GLOBAL_ORIGIN confirmed the
+    origin our outputs use (companion.io.origin) and what its GPS-port probe did
+    (companion.io.serial_control); {} without a field log."""
+    import json
+    from companion.io.fieldlog import read_field_log
+    h = None
+    try:
+        for rec in read_field_log(field_log_dir):
+            if rec.kind == "event":
+                obj = json.loads(rec.payload)
+                if obj.get("event") in ("health", "stop"):
+                    h = obj["health"]
+    except (OSError, ValueError):
+        return {}
+    if h is None:
+        return {}
+    out = {}
+    if "origin" in h:
+        o = h["origin"]
+        out.update({"origin_confirmed": o["confirmed"], "origin_mismatch_m": o["mismatch_m"],
+                    "origin_source": o["source"]})
+    if "serial_control" in h:
+        sc = h["serial_control"]
+        out["gps_port"] = {k: sc.get(k) for k in ("state", "probes", "claims", "raw epochs", "autopilot_gps_back_s")}
+    return out

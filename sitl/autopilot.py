@@ -26,8 +26,12 @@ What it does (ArduPilot-like, system 1 component 1, ``MAV_AUTOPILOT_ARDUPILOTMEG
   more replies while full ones were sent and MULTI is set (ArduPilot ``handle_serial_control``).
   Ephemerides are *not* sent as RXM-SFRBX: the base station's RTCM 1019 (sitl.caster) carries them;
 * TIMESYNC: answers requests (tc1 = boot time in ns);
+* the EKF origin like ArduPilot (``GCS_MAVLINK::set_ekf_origin``): the first SET_GPS_GLOBAL_ORIGIN
+  is kept (altitude in whole cm, ``altitude / 10``), later ones are ignored, GPS_GLOBAL_ORIGIN
+  is sent when it is set and on MAV_CMD_REQUEST_MESSAGE (49) once set; a reboot forgets it;
 * records every VISION_POSITION_ESTIMATE, ODOMETRY, GPS_INPUT, SET_GPS_GLOBAL_ORIGIN and STATUSTEXT
-  it receives with its arrival time (monotonic ns), and the send time of every IMU sample, so the
+  it receives with its arrival time (monotonic ns), every GPS_GLOBAL_ORIGIN it sends (the
+  origin its NED frame has; ``Faults.preset_origin_ned_m``: one it had before the companion), and the send time of every IMU sample, so the
   estimates can be scored against the truth and their latency measured.
 
 Pacing: a :class:`SimClock` maps simulated GPS time to the monotonic clock (``speedup`` x real time).
@@ -162,6 +166,9 @@ class Faults:
     #                                                       carriers move by c * jump_s from then on)
     attitude_yaw_error_deg: float = 0.0                  # the autopilot's ATTITUDE yaw is this far off
     no_attitude: bool = False                            # the autopilot never sends ATTITUDE
+    preset_origin_ned_m: tuple | None = None             # (dn, de, dd) m: the autopilot already has an EKF
+    #                                                      origin (from its own GPS, a GCS) this far from the
+    #                                                      start position; SET_GPS_GLOBAL_ORIGIN is then ignored
 
 
 class EmulatedAutopilot:
@@ -219,6 +226,9 @@ class EmulatedAutopilot:
         self.counters = defaultdict(int)
         self.companion_seen = asyncio.Event()
         self.silent_until_gps = -1e18
+        self.ekf_origin: tuple[int, int, int] | None = None    # lat e7, lon e7, alt mm (cm resolution)
+        if self.faults.preset_origin_ned_m is not None:
+            self.ekf_origin = self._origin_near_start(self.faults.preset_origin_ned_m)
         self._next_due: dict[int, float] = {}
         self._ubx_frames = []
         self._build_receiver_stream()
@@ -377,6 +387,13 @@ class EmulatedAutopilot:
         if mt in ("VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT", "SET_GPS_GLOBAL_ORIGIN", "STATUSTEXT",
                   "GPS_RTCM_DATA", "NAMED_VALUE_FLOAT"):
             self.received.append(Received(t_ns, mt, msg))
+            if mt == "SET_GPS_GLOBAL_ORIGIN" and self.ekf_origin is None:
+                self.ekf_origin = (int(msg.latitude), int(msg.longitude), int(msg.altitude / 10) * 10)
+                self._send_origin()
+        elif mt == "COMMAND_LONG" and msg.command == m.MAV_CMD_REQUEST_MESSAGE:
+            self.send(self.mav.command_ack_encode(msg.command, m.MAV_RESULT_ACCEPTED))
+            if int(msg.param1) == m.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+                self._send_origin()
         elif mt == "COMMAND_LONG" and msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL:
             mid, iv = int(msg.param1), float(msg.param2)
             if iv == 0:
@@ -406,6 +423,22 @@ class EmulatedAutopilot:
                 replies += 1
                 if not (msg.flags & m.SERIAL_CONTROL_FLAG_MULTI and n >= 70 and replies < 16):
                     break
+
+    def _origin_near_start(self, ned_m) -> tuple[int, int, int]:
+        """lat e7, lon e7, alt mm of the truth start position moved by ``ned_m`` (ArduPilot's scaling)."""
+        lat, lon, h = ecef_to_geodetic(self.sim.truth_at(self.t0)[0])
+        k = 0.011131884502145034                   # ArduPilot LOCATION_SCALING_FACTOR, m per 1e-7 deg
+        return (int(round(math.degrees(lat) * 1e7 + ned_m[0] / k)),
+                int(round(math.degrees(lon) * 1e7 + ned_m[1] / (k * math.cos(lat)))),
+                10 * int(round((h - ned_m[2]) * 100.0)))
+
+    def _send_origin(self) -> None:
+        """GPS_GLOBAL_ORIGIN, also recorded: the origin the autopilot's NED frame really has."""
+        if self.ekf_origin is not None:
+            boot_us = int((self.clock.now_gps() - self.boot0_gps) * 1e6) if self.clock.started.is_set() else 0
+            msg = self.mav.gps_global_origin_encode(*self.ekf_origin, max(boot_us, 0))
+            self.send(msg)
+            self.received.append(Received(time.monotonic_ns(), "GPS_GLOBAL_ORIGIN", msg))
 
     # -- the stream --------------------------------------------------------------------------
     async def wait_for_companion(self, timeout_s: float = 30.0) -> bool:
@@ -477,6 +510,7 @@ class EmulatedAutopilot:
                 self.intervals = dict(self.default_intervals)
                 self._next_due.clear()
                 self.gps1.clear()
+                self.ekf_origin = None
                 self.counters["reboots"] += 1
             if jumps and t_rel >= jumps[0][0]:
                 _, j = jumps.pop(0)

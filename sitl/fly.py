@@ -11,7 +11,7 @@
   ``speedup`` once the companion's HEARTBEAT arrives;
 * scores the estimates the autopilot actually received: position error against the truth at the
   GPS time of the IMU sample each estimate is stamped with (VISION_POSITION_ESTIMATE NED is turned
-  back into ECEF with the origin the autopilot received, inverting ArduPilot's spherical
+  back into ECEF with the origin the autopilot has (its GPS_GLOBAL_ORIGIN), inverting ArduPilot's spherical
   ``get_distance_NED``), latency = arrival of the estimate minus the emulator's send time of that
   IMU sample, CPU and RSS of the companion process from ``/proc``.
 
@@ -162,8 +162,9 @@ def ned_to_ecef_ardupilot(ned, origin_lat_e7: int, origin_lon_e7: int, origin_al
 
 
 def _origin_of(r, origin):
-    """The EKF origin after this received message (SET_GPS_GLOBAL_ORIGIN carries it)."""
-    if r.msg_type == "SET_GPS_GLOBAL_ORIGIN":
+    """The autopilot's EKF origin after this record: the GPS_GLOBAL_ORIGIN it sent (what its NED
+    frame has; a SET_GPS_GLOBAL_ORIGIN it ignored does not count)."""
+    if r.msg_type == "GPS_GLOBAL_ORIGIN":
         return (r.msg.latitude, r.msg.longitude, r.msg.altitude)
     return origin
 

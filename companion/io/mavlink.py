@@ -1117,99 +1117,6 @@ class MavlinkLink:
                     None if self.timesync_rtt_ns is None else self.timesync_rtt_ns * 1e-6}
 
 
-# =============================================================================================
-# SERIAL_CONTROL tunnel
-class SerialControlTunnel:
-    """Byte stream to/from the receiver on the autopilot's GPS port, tunnelled in SERIAL_CONTROL.
-
-    ArduPilot only sends receiver bytes in reply to a request, so :meth:`run` polls every
-    ``poll_interval_s`` with a SERIAL_CONTROL request (flags RESPOND | EXCLUSIVE | MULTI, timeout 0;
-    see :func:`serial_control_request`), carrying up to 70 bytes of pending writes (UBX
-    configuration).  Replies (flag REPLY, same device, from the autopilot) are appended, in arrival
-    order, to an internal queue; iterate the tunnel (``async for chunk in tunnel``) to get them and
-    feed a :class:`~companion.io.ubx.UbxDecoder`.  :meth:`release` sends one request without
-    EXCLUSIVE, which hands the port back to the autopilot's own GPS driver.
-
-    Throughput: each reply carries <= 70 bytes; with MULTI ArduPilot keeps replying while data is
-    available (as long as its channel has room), so one poll drains the port.
-    """
-
-    def __init__(self, link: MavlinkLink, device: int = SERIAL_CONTROL_DEV_GPS1, poll_interval_s: float = 0.02,
-                 baudrate: int = 0, exclusive: bool = True, multi: bool = True, max_queue: int = 4096):
-        self.link = link
-        self.device = device
-        self.poll_interval_s = poll_interval_s
-        self.baudrate = baudrate
-        self.flags = m.SERIAL_CONTROL_FLAG_RESPOND
-        if exclusive:
-            self.flags |= m.SERIAL_CONTROL_FLAG_EXCLUSIVE
-        if multi:
-            self.flags |= m.SERIAL_CONTROL_FLAG_MULTI
-        self._tx = bytearray()
-        self._rx: asyncio.Queue = asyncio.Queue(maxsize=max_queue)
-        self.counters: dict[str, int] = {"polls": 0, "replies": 0, "rx_bytes": 0, "tx_bytes": 0,
-                                         "rx_overflow": 0, "foreign_replies": 0}
-        self._baud_sent = False
-        link.subscribe("SERIAL_CONTROL", self._on_serial_control)
-
-    def write(self, data: bytes) -> None:
-        """Queue bytes for the receiver (sent 70 at a time with the next polls)."""
-        self._tx += data
-
-    def _on_serial_control(self, msg, t_ns: int) -> None:
-        if not (msg.flags & m.SERIAL_CONTROL_FLAG_REPLY):
-            return
-        if msg.device != self.device or msg.get_srcSystem() != self.link.target_system:
-            self.counters["foreign_replies"] += 1
-            return
-        n = max(0, min(int(msg.count), SERIAL_CONTROL_DATA_LEN))
-        data = bytes(msg.data[:n])
-        self.counters["replies"] += 1
-        if not data:
-            return
-        self.counters["rx_bytes"] += n
-        try:
-            self._rx.put_nowait(data)
-        except asyncio.QueueFull:
-            self.counters["rx_overflow"] += 1
-
-    def poll(self) -> None:
-        """Send one request (with up to 70 pending bytes)."""
-        chunk = bytes(self._tx[:SERIAL_CONTROL_DATA_LEN])
-        del self._tx[:len(chunk)]
-        baud = self.baudrate if (self.baudrate and not self._baud_sent) else 0
-        self._baud_sent = self._baud_sent or bool(baud)
-        self.link.send(serial_control_request(self.device, chunk, flags=self.flags, baudrate=baud,
-                                              target_system=self.link.target_system,
-                                              target_component=self.link.target_component))
-        self.counters["polls"] += 1
-        self.counters["tx_bytes"] += len(chunk)
-
-    async def run(self) -> None:
-        """Poll forever (cancel to stop)."""
-        while True:
-            self.poll()
-            await asyncio.sleep(self.poll_interval_s if not self._tx else 0.0)
-
-    def release(self) -> None:
-        self.link.send(serial_control_request(self.device, b"", flags=0,
-                                              target_system=self.link.target_system,
-                                              target_component=self.link.target_component))
-
-    def __aiter__(self):
-        return self._iter()
-
-    async def _iter(self):
-        while True:
-            yield await self._rx.get()
-
-    async def read(self, timeout: float | None = None) -> bytes:
-        try:
-            return await asyncio.wait_for(self._rx.get(), timeout)
-        except asyncio.TimeoutError:
-            return b""
-
-
 def message_rates_from_config(cfg) -> dict[str, float]:
     """The stream rates to request for a :class:`companion.config.MavlinkConfig`."""
     rates: dict[str, float] = {}
@@ -1251,3 +1158,5 @@ __all__ = ["BootToGpsTime", "ImuDecoder", "IMU_CLUSTER_STREAMS", "parse_imu_stre
            "link_from_config", "unix_to_gps_s", "gps_to_unix_s", "DEFAULT_LEAP_SECONDS",
            "SERIAL_CONTROL_DEV_GPS1", "SERIAL_CONTROL_DEV_GPS2", "MAV_COMP_ID_ONBOARD_COMPUTER",
            "IMU_AUTO_FALLBACK"]
+
+from .serial_control import SerialControlTunnel  # noqa: E402,F401  (moved; re-exported)
