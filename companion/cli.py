@@ -35,19 +35,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"companion {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_gnss(sub)
-    from . import allan_cli, config_cli, export, run_cli
+    from . import allan_cli, config_cli, export, run_cli, signing_cli
     run_cli.register(sub)
     export.register(sub)
     allan_cli.register(sub)
     config_cli.register(sub)
+    signing_cli.register(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from .journal_log import configure_logging       # <N> syslog priorities when stderr is the journal
+    configure_logging(logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING)
     from .config import ConfigError        # light: the standard library only
     try:
         return int(args.func(args) or 0)

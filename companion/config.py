@@ -107,6 +107,13 @@ class MavlinkConfig:
     link_timeout_s: float = _f(3.0, min=0.5, max=60.0, doc="no autopilot HEARTBEAT for this long = link lost")
     timesync_interval_s: float = _f(1.0, min=0.0, max=60.0, doc="TIMESYNC requests (0 = only answer)")
     interval_retry_s: float = _f(1.0, min=0.1, max=30.0, doc="re-send an unacknowledged SET_MESSAGE_INTERVAL")
+    signing_key_file: str = _f("", doc="MAVLink 2 signing key file (mode 0600): 64 hex characters = the "
+                               "32-byte key of SETUP_SIGNING, other text = a passphrase, key = its SHA-256 "
+                               "(MAVProxy 'signing setup'); `companion signing setup --key-file F` makes one; "
+                               "empty = no signing")
+    signing_required: bool = _f(False, doc="with a key: drop (and count) unsigned input; false = accept it "
+                                "(an autopilot without signing, e.g. PX4 v1.15), still signing ours. Badly "
+                                "signed input is always dropped")
 
 
 @dataclass(frozen=True, slots=True)
@@ -530,6 +537,8 @@ def _build(cls, table: dict, prefix: str, where: str):
 
 
 def _cross_checks(cfg: Config, where: str) -> None:
+    if cfg.mavlink.signing_required and not cfg.mavlink.signing_key_file:
+        raise ConfigError(f"{where}: mavlink.signing_required: needs mavlink.signing_key_file")
     c = cfg.corrections
     if c.source == "ntrip" and not c.ntrip.mountpoint:
         raise ConfigError(f"{where}: corrections.ntrip.mountpoint: required when corrections.source = 'ntrip'")
@@ -661,6 +670,9 @@ def redacted(cfg: Config) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 # writing
 
+_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
 def _toml_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -670,7 +682,10 @@ def _toml_value(v) -> str:
         r = repr(v)
         return r if ("." in r or "e" in r or "inf" in r or "nan" in r) else r + ".0"
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        # a TOML basic string: backslash, quote and every control character escaped (a raw
+        # newline or tab from a multi-line string would make the field log's copy unreadable)
+        return '"' + "".join(_TOML_ESCAPES.get(c) or (f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F else c)
+                             for c in v) + '"'
     if isinstance(v, (tuple, list)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {v!r} as TOML")

@@ -3,8 +3,9 @@
 ``check`` validates a configuration the way ``companion run`` does, without starting anything and
 without importing numpy, scipy or pymavlink, so the answer comes at once (on the board, before a
 flight).  It prints ``FILE: OK`` and exits 0, or prints the error (file and key) to stderr and exits 2;
-it also reports an optional dependency the file needs but the machine lacks, and warns (exit 0) when
-a file holding a password is readable by other users.
+it also reports an optional dependency the file needs but the machine lacks and an unusable
+MAVLink signing key file (exit 2), and warns (exit 0) when a file holding a password, or the
+signing key file, is readable by other users.
 
 ``example`` prints a complete, commented configuration with every key at its default; ``check``
 accepts it, and ``deploy/companion.toml`` holds the same keys and values (tests/test_config.py).
@@ -28,6 +29,15 @@ def cmd_check(args) -> int:
         for msg in problems:
             print(f"error: {msg}", file=sys.stderr)
         warning = secrets_readable_by_others(cfg)
+        if warning:
+            print(f"warning: {warning}", file=sys.stderr)
+        from .io.mavlink_signing import SigningKeyError, signing_preflight
+        try:
+            warning = signing_preflight(cfg)
+        except SigningKeyError as exc:
+            problems.append(str(exc))
+            print(f"error: {exc}", file=sys.stderr)
+            warning = None
         if warning:
             print(f"warning: {warning}", file=sys.stderr)
         if problems:

@@ -27,6 +27,14 @@ def cmd_run(args) -> int:
     warning = secrets_readable_by_others(cfg)
     if warning:
         logging.getLogger("companion").warning("%s", warning)
+    from .io.mavlink_signing import SigningKeyError, signing_preflight
+    try:                                     # no start without the signing key it is configured with
+        warning = signing_preflight(cfg)
+    except SigningKeyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if warning:
+        logging.getLogger("companion").warning("%s", warning)
     import asyncio
 
     from .service import Service
@@ -69,8 +77,8 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from .journal_log import configure_logging       # <N> syslog priorities when stderr is the journal
+    configure_logging(logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING)
     from .extras import MissingExtra
     try:
         return int(args.func(args) or 0)

@@ -124,6 +124,8 @@ class Service:
             self._stop.set()
 
     async def run(self) -> None:
+        from .io.mavlink_signing import signing_preflight
+        key_warning = signing_preflight(self.cfg)      # SigningKeyError: no start without the key
         loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         if self.install_signal_handlers:
@@ -136,6 +138,9 @@ class Service:
             # in the health report too: a warning at start-up scrolls away
             self.counters["config file readable by others"] += 1
             log.warning("%s", exposed)
+        if key_warning:
+            self.counters["signing key file readable by others"] += 1
+            log.warning("%s", key_warning)
         lc = self.cfg.log
         cfg_event = redacted_config_event(self.cfg)
         if lc.enabled:

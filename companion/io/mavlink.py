@@ -749,6 +749,9 @@ class MavlinkLink:
       that type (e.g. the SERIAL_CONTROL tunnel) in addition to the iterator.
     * The receive queue is bounded (``queue_size``); when full the newest message is dropped and
       counted (``rx_queue_overflow``) -- the consumer is too slow, the link keeps running.
+    * ``signing`` (a :class:`~companion.io.mavlink_signing.LinkSigning`): MAVLink 2 signing of what
+      we send and checks of what we receive; a refused frame goes nowhere and is counted there
+      (``signing: ...`` keys in :meth:`health`), not as ``bad_data``.
     """
 
     def __init__(self, connection: str, *, source_system: int = 1,
@@ -758,8 +761,9 @@ class MavlinkLink:
                  timesync_interval_s: float = 1.0, interval_retry_s: float = 1.0,
                  interval_max_retries: int = 10, queue_size: int = 20000,
                  time_map: BootToGpsTime | None = None, fallback_streams: dict[str, str] | None = None,
-                 fallback_after_s: float = STREAM_FALLBACK_AFTER_S):
+                 fallback_after_s: float = STREAM_FALLBACK_AFTER_S, signing=None):
         self.connection = connection
+        self.signing = signing             # LinkSigning (companion.io.mavlink_signing) or None
         self.source_system = source_system
         self.source_component = source_component
         self.target_system = target_system
@@ -811,6 +815,8 @@ class MavlinkLink:
                                                source_component=self.source_component,
                                                dialect="ardupilotmega", autoreconnect=True)
         self.conn.mav.robust_parsing = True
+        if self.signing is not None:
+            self.signing.attach(self.conn)
         if isinstance(self.conn, mavutil.mavudp) and self.conn.udp_server:
             from .udp_peer import UdpPeerLock
             self.peer_lock = UdpPeerLock(self.conn, relock_after_s=max(5.0, 2 * self.link_timeout_s))
@@ -913,6 +919,8 @@ class MavlinkLink:
     def _handle(self, msg, t_ns: int) -> None:
         mtype = msg.get_type()
         if mtype == "BAD_DATA":
+            if self.signing is not None and self.signing.rejected(msg):
+                return                           # refused by signing: counted there, not bad data
             self._bad(str(getattr(msg, "reason", "bad data")))
             return
         if mtype.startswith("UNKNOWN_"):
@@ -1071,6 +1079,8 @@ class MavlinkLink:
             now = time.monotonic()
             if self._fd is None:
                 self._drain()
+            if self.signing is not None:
+                self.signing.tick()
             if now >= next_hb:
                 self.send(heartbeat())
                 next_hb = now + self.heartbeat_interval_s
@@ -1100,6 +1110,7 @@ class MavlinkLink:
 
     def health(self) -> dict:
         return {"connected": self.connected, **self.counters, "bad_data_reasons": dict(self.bad_data_reasons),
+                **({} if self.signing is None else {**self.signing.counters, "signing": self.signing.health()}),
                 "udp_peer": None if self.peer_lock is None else {
                     "peer": self.peer_lock.peer and "%s:%d" % self.peer_lock.peer, **self.peer_lock.counters},
                 "time_map": dict(self.time_map.counters), "timesync_rtt_ms":
@@ -1218,7 +1229,9 @@ def message_rates_from_config(cfg) -> dict[str, float]:
 
 
 def link_from_config(cfg, time_map: BootToGpsTime | None = None) -> MavlinkLink:
-    """A :class:`MavlinkLink` for a :class:`companion.config.MavlinkConfig`."""
+    """A :class:`MavlinkLink` for a :class:`companion.config.MavlinkConfig` (raises
+    :class:`~companion.io.mavlink_signing.SigningKeyError` for an unusable signing key file)."""
+    from .mavlink_signing import signing_from_config
     return MavlinkLink(cfg.connection, source_system=cfg.source_system, source_component=cfg.source_component,
                        target_system=cfg.target_system, target_component=cfg.target_component,
                        message_rates_hz=message_rates_from_config(cfg),
@@ -1226,7 +1239,7 @@ def link_from_config(cfg, time_map: BootToGpsTime | None = None) -> MavlinkLink:
                        timesync_interval_s=cfg.timesync_interval_s, interval_retry_s=cfg.interval_retry_s,
                        time_map=time_map,
                        fallback_streams=IMU_AUTO_FALLBACK if cfg.imu_message == "auto" and not cfg.imu_cluster
-                       else None)
+                       else None, signing=signing_from_config(cfg))
 
 
 __all__ = ["BootToGpsTime", "ImuDecoder", "IMU_CLUSTER_STREAMS", "parse_imu_stream", "imu_from_mavlink",
