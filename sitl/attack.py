@@ -19,12 +19,15 @@ process; in the control it only relays), so the attack is the only difference.  
 * ``slow_header_caster``: the caster's first answer is an endless header, one byte every 0.2 s
   (later connections are served normally); ``corrections_late_10s`` (a *reference*, not judged):
   no attack, the base station is silent for the first 10 s -- the delay the slow header costs,
-  without the caster, to tell the NTRIP client's part from the navigation's;
+  without the caster, to tell the NTRIP client's part from the navigation's (optional: flown with
+  ``--references`` or when named in ``--only``);
 * ``forged_imu_signing_required`` / ``forged_imu_no_signing``: unsigned HIGHRES_IMU frames as
   system 1 component 1 from the autopilot's own address (what anyone on a radio link can do),
-  200 Hz from 5 s on, between the real samples, biased by 3 m/s^2 and 0.3 rad/s; the companion
-  requires signing in the first, and in the second (a *reference*, not judged) it does not, which
-  shows what the forgery does when it gets in.
+  200 Hz from 5 s on, between the real samples, biased by 3 m/s^2 and 0.3 rad/s; in the first the
+  emulated autopilot signs (:mod:`sitl.autopilot`, a fresh key file of ``companion signing setup``'s
+  kind) and the companion requires signing (``mavlink.signing_key_file``, ``signing_required``); in
+  the second (a *reference*, not judged) nobody signs, which shows what the forgery does when it
+  gets in; ``signing_required_no_attack`` (optional reference): signing alone.
 
 Per flight: ``estimate_rate_hz``, ``rms_h_m``, ``latency_ms_p99`` (arrival of an estimate at the
 autopilot minus the autopilot's send time of the IMU sample it is stamped with, as ``sitl fly``),
@@ -74,7 +77,8 @@ class AttackCase:
     side_opts: dict = field(default_factory=dict)
     signing: bool = False                          # the companion requires signed MAVLink 2
     reference: bool = False                        # shows an unprotected effect: reported, not judged
-    needs: str | None = None                       # 'root' (tmpfs), 'signing'
+    needs: str | None = None                       # 'root' (tmpfs)
+    optional: bool = False                         # flown with --references or when named in --only
     fly: dict = field(default_factory=dict)        # extra sitl.fly.fly keyword arguments
 
 
@@ -90,7 +94,7 @@ def attack_cases() -> list[AttackCase]:
         AttackCase("udp_1000_senders", "the second sender plus 1000 addresses sending one HEARTBEAT each",
                    side="udp_stranger", side_opts={"extra_senders": 1000}),
         AttackCase("forged_imu_signing_required", "unsigned HIGHRES_IMU as 1/1 from the autopilot's address, "
-                   "signing required", side="forge_imu", signing=True, needs="signing"),
+                   "signing required", side="forge_imu", signing=True),
         AttackCase("forged_imu_no_signing", "the same forgery, signing off (reference: what it does unprotected)",
                    side="forge_imu", reference=True),
         AttackCase("disk_full_30s", f"field log disk full at {DISK_FULL_AT_S:g} s, space back at "
@@ -101,7 +105,9 @@ def attack_cases() -> list[AttackCase]:
                    caster={"slow_header_connections": 1, "slow_header_byte_s": 0.2}),
         AttackCase(f"corrections_late_{LATE_CORRECTIONS_S:g}s", f"no attack: the base station is silent for the "
                    f"first {LATE_CORRECTIONS_S:g} s (reference: what the slow-header caster's delay costs alone)",
-                   reference=True, fly={"base_outage_s": (0.0, LATE_CORRECTIONS_S)}),
+                   reference=True, optional=True, fly={"base_outage_s": (0.0, LATE_CORRECTIONS_S)}),
+        AttackCase("signing_required_no_attack", "no attack, signing required (reference: what signing costs)",
+                   signing=True, reference=True, optional=True),
     ]
 
 
@@ -249,24 +255,20 @@ def _dir_bytes(d: Path) -> int:
 def _unavailable(case: AttackCase) -> str | None:
     if case.needs == "root" and (os.geteuid() != 0 or shutil.which("mount") is None):
         return "needs root for a tmpfs (mount -t tmpfs); run as root to include it"
-    if case.needs == "signing":
-        return _signing_unavailable()
-    return None
-
-
-def _signing_unavailable() -> str | None:
-    """Why the companion cannot be asked to require MAVLink 2 signing (None: it can)."""
-    import dataclasses
-    from companion.config import MavlinkConfig
-    if not any("sign" in f.name for f in dataclasses.fields(MavlinkConfig)):
-        return "this companion has no MAVLink 2 signing ([mavlink] has no signing keys)"
     return None
 
 
 def _signing_settings(out: Path) -> tuple[dict, dict]:
     """({section: {key: value}} for the companion, extra sitl.fly.fly keyword arguments) of a
-    flight whose companion requires signed MAVLink 2 and whose autopilot signs."""
-    raise NotImplementedError("MAVLink 2 signing settings")
+    flight whose companion requires signed MAVLink 2 and whose autopilot signs (a fresh key file,
+    0600, in the flight's directory: the companion's ``signing setup`` way)."""
+    from companion.io.mavlink_signing import generate_key_file, load_key
+    path = Path(out) / "signing.key"
+    path.unlink(missing_ok=True)
+    generate_key_file(path)
+    key = load_key(path).key
+    return ({"mavlink": {"signing_key_file": str(path.resolve()), "signing_required": True}},
+            {"signing_key": key})
 
 
 async def fly_attack(case: AttackCase, *, duration_s: float, out_dir: Path, seed: int = 0,
@@ -341,15 +343,15 @@ def evidence(health: dict, ap=None) -> dict:
         "udp_peer": link.get("udp_peer"),
         "link_bad_data": link.get("bad_data"),
         "link_bad_data_reasons": link.get("bad_data_reasons"),
-        "signing": {k: v for k, v in link.items() if "sign" in k},
+        "signing": {k: v for k, v in link.items() if k.startswith("signing")},
         "imu_screen": {k: v for k, v in health.get("engine", {}).items() if k.startswith("imu_screen") and v},
         "field_log": health.get("field_log", {}),
         "field_log_counters": {k: v for k, v in health.get("outputs", {}).items() if k.startswith("field log")},
         "task_restarts": health.get("task_restarts", {}),
         "reinitialisations": health.get("pipeline", {}).get("initialisations"),
     }
-    if ap is not None:
-        ev["autopilot_rx_bad"] = ap.counters.get("rx_parse_errors", 0)
+    if ap is not None:        # what the autopilot refused of the companion's (BAD_DATA: e.g. a bad signature)
+        ev["autopilot_rx_bad"] = ap.counters.get("rx_parse_errors", 0) + ap.counters.get("rx_BAD_DATA", 0)
     return ev
 
 
@@ -419,9 +421,14 @@ def _attack_evidence_checks(row: dict) -> list[dict]:
         out.append(_check("peer lock never moved", peer.get("locks"), 1, peer.get("locks") == 1))
     if name == "forged_imu_signing_required":
         sg = ev.get("signing") or {}
-        rejected = max((v for k, v in sg.items() if isinstance(v, int) and "unsigned" in k), default=0)
+        rejected, accepted = sg.get("signing: rejected unsigned", 0), sg.get("signing: accepted unsigned", 0)
         out.append(_check("forged unsigned frames rejected", rejected, f">= 0.9 x {att.get('sent', 0)}",
                           att.get("sent", 0) > 0 and rejected >= 0.9 * att.get("sent", 0), "frames"))
+        out.append(_check("no unsigned frame accepted", accepted, 0, accepted == 0, "frames"))
+        out.append(_check("the autopilot's signed frames verified", sg.get("signing: good", 0), "> 0",
+                          sg.get("signing: good", 0) > 0, "frames"))
+        out.append(_check("the companion's signed frames verified at the autopilot", ev.get("autopilot_rx_bad"), 0,
+                          ev.get("autopilot_rx_bad") == 0, "frames"))
     if name == "disk_full_30s":
         fl = ev.get("field_log", {})
         st = row.get("statustext") or []
@@ -531,6 +538,8 @@ def cmd_attack(args) -> int:
     cases = select_cases(attack_cases(), args.only, what="attack")
     if cases is None:
         return 2
+    if not args.only and not args.references:
+        cases = [c for c in cases if not c.optional]
     if not any(c.name == "control" for c in cases):
         cases.insert(0, attack_cases()[0])           # every figure is judged against a control
     if args.duration < DISK_FREE_AT_S + 5.0 and any(c.side == "disk_full" for c in cases):
@@ -577,6 +586,8 @@ def register(subparsers) -> None:
                                              "judged against the acceptance criteria")
     p.add_argument("--duration", type=float, default=60.0, help="simulated seconds per flight (default 60)")
     p.add_argument("--only", help="comma-separated attack names (the control is always flown)")
+    p.add_argument("--references", action="store_true",
+                   help="also fly the optional reference flights (corrections_late_10s, signing_required_no_attack)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/attack", help="directory for each flight's config and logs")
     p.add_argument("--json", help="write the figures, checks and verdicts as JSON here")

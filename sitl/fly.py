@@ -374,7 +374,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               base_outage_s: tuple[float, float] | None = None, keep_autopilot: dict | None = None,
               extra_config: str = "", named_value_rate_hz: float | None = None,
               max_hpl_m: float | None = None, caster_factory=None, config_keys: dict | None = None,
-              during=None) -> dict:
+              during=None, signing_key: bytes | None = None) -> dict:
     """Fly once; ``progress`` prints set-up steps and status lines to stderr, ``handle_signals`` makes
     the first SIGINT/SIGTERM a clean stop (the result then has ``interrupted`` True and the figures
     of the part that was flown).  ``base_outage_s`` (start, end from the start of the flight): the
@@ -390,7 +390,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     ``config_keys`` ({section: {key: value}}) sets keys in the companion's configuration (replacing
     the harness's own value of a key); ``during`` (``async f(FlightContext)``) runs beside the
     flight from the moment the autopilot starts streaming and is cancelled when the flight ends
-    (an exception of its own fails the flight)."""
+    (an exception of its own fails the flight); ``signing_key`` (32 bytes): the emulated autopilot
+    signs (give the companion the same key with ``config_keys``)."""
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     prog = _Progress(progress)
@@ -447,7 +448,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
         ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
                                leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
                                max_imu_rate_hz=max_imu_rate_hz, moving_baseline_b_m=moving_baseline_b_m,
-                               gps_yaw_sigma_deg=gps_yaw_sigma_deg, system_time_late_s=system_time_late_s)
+                               gps_yaw_sigma_deg=gps_yaw_sigma_deg, system_time_late_s=system_time_late_s,
+                               signing_key=signing_key)
         if not stop.is_set():
             prog.step(f"starting companion run (log {out / 'companion.log'})")
             comp_log = open(out / "companion.log", "wb")
