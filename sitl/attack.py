@@ -63,6 +63,7 @@ ATTACK_START_S = 5.0                     # stranger / forger start (after the pe
 DISK_FULL_AT_S = 30.0
 DISK_FREE_AT_S = 45.0
 TMPFS_MB = 16
+LATENCY_WINDOW_S = 10.0                  # latency_ms_p99_per_window
 LATE_CORRECTIONS_S = 10.0                # when the slow-header caster's corrections begin (10-s header timeout)
 FORGED_ACCEL_BIAS_MPS2 = 3.0
 FORGED_GYRO_BIAS_RADPS = 0.3
@@ -187,22 +188,23 @@ async def disk_full(ctx, report: dict) -> None:
     await ctx.until_flight_s(DISK_FULL_AT_S)
     filler = ctx.log_dir / "filler.bin"
     report.update(filled_at_s=round(ctx.t_flight_s(), 2), filler_bytes=0)
-    block = b"\0" * (1 << 20)
-    with open(filler, "wb", buffering=0) as fh:
-        try:
-            while True:
-                report["filler_bytes"] += fh.write(block)
-        except OSError as exc:
-            report["fill_error"] = exc.strerror
-        # a partial block may still fit
-        try:
-            while True:
-                report["filler_bytes"] += fh.write(b"\0" * 4096)
-        except OSError:
-            pass
+    # in a thread: the emulated autopilot shares this event loop, and its timing is the yardstick
+    await asyncio.to_thread(_fill, filler, report)
+    report["full_after_s"] = round(ctx.t_flight_s(), 2)
     await ctx.until_flight_s(DISK_FREE_AT_S)
     filler.unlink()
     report["freed_at_s"] = round(ctx.t_flight_s(), 2)
+
+
+def _fill(path: Path, report: dict) -> None:
+    """Write zeros to ``path`` until the filesystem is full (1 MB blocks, then 4 kB ones)."""
+    with open(path, "wb", buffering=0) as fh:
+        for block in (b"\0" * (1 << 20), b"\0" * 4096):
+            try:
+                while True:
+                    report["filler_bytes"] += fh.write(block)
+            except OSError as exc:
+                report["fill_error"] = exc.strerror
 
 
 SIDE_TASKS = {"udp_stranger": udp_stranger, "forge_imu": forge_imu, "disk_full": disk_full}
@@ -312,7 +314,7 @@ async def fly_attack(case: AttackCase, *, duration_s: float, out_dir: Path, seed
                         config_keys=keys, during=during, **case.fly, **fly_kw)
         if res["interrupted"]:
             raise KeyboardInterrupt
-        res.pop("_series", None)
+        series = res.pop("_series", None) or {}
         log_bytes = _dir_bytes(log_dir)
         health = final_health(log_dir)
     finally:
@@ -324,9 +326,25 @@ async def fly_attack(case: AttackCase, *, duration_s: float, out_dir: Path, seed
         "companion_rss_mb", "companion_peak_rss_mb", "companion_cpu_pct", "companion_exit_code",
         "first_estimate_s")})
     row.update(field_log_bytes=log_bytes, field_log_cap_bytes=cap, duration_s=res["duration_s"],
+               latency_ms_p99_per_window=latency_p99_per_window(series.get("t_s", []), series.get("latency_ms", [])),
                statustext=res["statustext"][-20:], attacker=report, caster=read_stats(out),
                evidence=evidence(health, ap))
     return row
+
+
+def latency_p99_per_window(t_s, latency_ms, window_s: float = LATENCY_WINDOW_S) -> list[list[float]]:
+    """[window start s, p99 latency ms, estimates] per ``window_s`` of flight time: where in the
+    flight a long latency happened (at the attack's start, or spread like a loaded machine's)."""
+    import numpy as np
+    t, lat = np.asarray(t_s, float), np.asarray(latency_ms, float)
+    out = []
+    if not len(t):
+        return out
+    for w0 in np.arange(0.0, float(t.max()) + 1e-9, window_s):
+        sel = (t >= w0) & (t < w0 + window_s)
+        if sel.any():
+            out.append([round(float(w0), 1), round(float(np.percentile(lat[sel], 99)), 2), int(sel.sum())])
+    return out
 
 
 def evidence(health: dict, ap=None) -> dict:

@@ -178,3 +178,13 @@ def test_frame_splitter_reassembles_any_chunking(cut):
     for i in range(0, len(data), cut):
         out += s.feed(data[i:i + cut])
     assert out == frames and s.skipped == 0
+
+
+def test_latency_p99_per_window_places_a_spike_in_its_window():
+    from sitl.attack import latency_p99_per_window
+    t = [0.1 * k for k in range(300)]                      # 30 s of estimates at 10 Hz
+    lat = [50.0 if 20.0 <= x < 20.5 else 2.0 for x in t]
+    w = latency_p99_per_window(t, lat)
+    assert [x[0] for x in w] == [0.0, 10.0, 20.0]
+    assert w[0][1] == w[1][1] == 2.0 and w[2][1] > 40.0 and w[2][2] == 100
+    assert latency_p99_per_window([], []) == []
