@@ -28,13 +28,11 @@ def cmd_run(args) -> int:
     if warning:
         logging.getLogger("companion").warning("%s", warning)
     from .io.mavlink_signing import SigningKeyError, signing_preflight
-    try:                                     # no start without the signing key it is configured with
-        warning = signing_preflight(cfg)
+    try:                     # no start without the signing key it is configured with (the service
+        signing_preflight(cfg)   # warns about its permissions itself, and counts it)
     except SigningKeyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if warning:
-        logging.getLogger("companion").warning("%s", warning)
     import asyncio
 
     from .service import Service

@@ -20,8 +20,8 @@ from pymavlink import mavutil
 import companion.io.mavlink as M
 from companion.config import loads_config
 from companion.io.mavlink_signing import (DEFAULT_LINK_ID, LinkSigning, SigningKeyError, generate_key_file,
-                                          key_file_warning, key_from_text, load_key, signing_preflight,
-                                          signing_timestamp)
+                                          key_file_warning, key_from_text, load_key, sign_encoder,
+                                          signing_preflight, signing_timestamp)
 
 mav = M.mavlink2
 KEY_HEX = "5c" * 8 + "a1b2c3d4" * 6
@@ -66,10 +66,7 @@ def packed(msg, key: bytes | None = None, timestamp: int | None = None, link_id:
     """Frame bytes as 1/1 made by a separate encoder: unsigned, or signed with ``key``."""
     enc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
     if key is not None:
-        enc.signing.secret_key = key
-        enc.signing.sign_outgoing = True
-        enc.signing.link_id = link_id
-        enc.signing.timestamp = signing_timestamp(time.time()) if timestamp is None else timestamp
+        sign_encoder(enc, key, link_id, timestamp)
     return bytes(msg.pack(enc))
 
 
@@ -485,3 +482,26 @@ def test_signing_setup_command(tmp_path, capsys, takes_key):
     else:
         assert rc == 1 and "did not take it" in out.err
     assert kf.read_text().strip() not in out.out + out.err
+
+
+def test_service_warns_and_counts_a_key_file_readable_by_others(tmp_path, caplog):
+    from companion.service import Service
+    p = key_file(tmp_path, mode=0o644)
+    port = free_udp_port()
+    cfg = loads_config(f"[mavlink]\nconnection = 'udpin:127.0.0.1:{port}'\nsigning_key_file = '{p}'\n"
+                       f"[log]\nenabled = false\n")
+    svc = Service(cfg, install_signal_handlers=False)
+
+    async def run():
+        task = asyncio.create_task(svc.run())
+        await asyncio.sleep(0.3)
+        h = svc.health()
+        svc.stop()
+        await task
+        return h
+    with caplog.at_level(logging.WARNING):
+        h = asyncio.run(asyncio.wait_for(run(), 20))
+    assert svc.counters["signing key file readable by others"] == 1
+    assert any("MAVLink signing key file is readable" in r.getMessage() and str(p) in r.getMessage()
+               for r in caplog.records)
+    assert h["link"]["signing"]["required"] is False and KEY_HEX not in json.dumps(h, default=str)

@@ -167,6 +167,15 @@ def generate_key_file(path: str | os.PathLike) -> bool:
     return True
 
 
+def sign_encoder(mav, key: bytes, link_id: int = 0, timestamp: int | None = None):
+    """Make a bare pymavlink ``MAVLink`` object (a test peer, an emulated autopilot) sign what it
+    packs with ``key`` (timestamp: the wall clock unless given); returns it."""
+    s = mav.signing
+    s.secret_key, s.sign_outgoing, s.link_id = bytes(key), True, int(link_id) & 0xFF
+    s.timestamp = signing_timestamp(time.time()) if timestamp is None else int(timestamp)
+    return mav
+
+
 def signing_preflight(cfg) -> str | None:
     """For a :class:`companion.config.Config`: load the key file if one is configured (raises
     :class:`SigningKeyError`), return a permission warning or None."""
@@ -296,5 +305,5 @@ def signing_from_config(mcfg) -> LinkSigning | None:
 
 
 __all__ = ["LinkSigning", "SigningKey", "SigningKeyError", "load_key", "key_from_text", "key_file_warning",
-           "generate_key_file", "signing_preflight", "signing_from_config", "signing_timestamp",
+           "generate_key_file", "sign_encoder", "signing_preflight", "signing_from_config", "signing_timestamp",
            "DEFAULT_LINK_ID", "KEY_BYTES", "COUNTER_KEYS"]
