@@ -234,12 +234,9 @@ class EmulatedAutopilot:
         """MAVLink 2 signing as ArduPilot after SETUP_SIGNING: everything sent is signed (link id 0,
         timestamp from the wall clock in 10-us units since 2015, +1 per frame), and incoming frames
         must verify (pymavlink's own check; no unsigned ones: they arrive as BAD_DATA)."""
-        ts = max(0, int((time.time() - 1420070400) * 100_000))
-        for mav in (self.mav, self.parser):
-            mav.signing.secret_key = bytes(key)
-            mav.signing.link_id = 0
-            mav.signing.timestamp = ts
-        self.mav.signing.sign_outgoing = True
+        from companion.io.mavlink_signing import sign_encoder
+        sign_encoder(self.mav, key, link_id=0)
+        self.parser.signing.secret_key = bytes(key)
 
     # -- simulated receiver ------------------------------------------------------------------
     def _build_receiver_stream(self) -> None:
