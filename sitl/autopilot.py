@@ -39,6 +39,9 @@ Each IMU sample is sent when the clock reaches it; a late loop sends what is due
 catch-up drift).  Faults for the tests: ``corrupt`` (garbage datagrams and bit-flipped frames),
 ``reboot`` (silence, then boot time restarts from 0 and the stream requests are forgotten),
 ``clock_jump`` (the boot clock steps forward), ``gnss_outage`` (the receiver outputs nothing).
+
+``signing_key`` (32 bytes): MAVLink 2 signing, as an ArduPilot set up with SETUP_SIGNING (signs all
+it sends, verifies what it receives).
 """
 from __future__ import annotations
 
@@ -178,7 +181,7 @@ class EmulatedAutopilot:
                  faults: Faults | None = None, clock: SimClock | None = None, imu_units: int = 1,
                  max_imu_rate_hz: float | None = None, moving_baseline_b_m=None,
                  baseline_sigma_ned_m=(0.005, 0.005, 0.010), gps_yaw_sigma_deg: float | None = None,
-                 system_time_late_s: float = 0.0):
+                 system_time_late_s: float = 0.0, signing_key: bytes | None = None):
         self.sim = sim
         self.addr = ("127.0.0.1", companion_port)
         self.clock = clock or SimClock(speedup)
@@ -208,6 +211,8 @@ class EmulatedAutopilot:
         self.mav = m.MAVLink(None, srcSystem=1, srcComponent=1)
         self.parser = m.MAVLink(None)
         self.parser.robust_parsing = True
+        if signing_key is not None:
+            self._setup_signing(signing_key)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.setblocking(False)
@@ -234,6 +239,14 @@ class EmulatedAutopilot:
         self._build_receiver_stream()
         self._fix_list = self._build_fixes()
         self.done = asyncio.Event()
+
+    def _setup_signing(self, key: bytes) -> None:
+        """MAVLink 2 signing as ArduPilot after SETUP_SIGNING: everything sent is signed (link id 0,
+        timestamp from the wall clock in 10-us units since 2015, +1 per frame), and incoming frames
+        must verify (pymavlink's own check; no unsigned ones: they arrive as BAD_DATA)."""
+        from companion.io.mavlink_signing import sign_encoder
+        sign_encoder(self.mav, key, link_id=0)
+        self.parser.signing.secret_key = bytes(key)
 
     # -- simulated receiver ------------------------------------------------------------------
     def _build_receiver_stream(self) -> None:

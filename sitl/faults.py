@@ -235,38 +235,55 @@ def format_rows(rows: list[dict], summary: dict) -> str:
     return "\n".join(lines)
 
 
+def select_cases(cases: list, only: str | None, what: str = "fault") -> list | None:
+    """The cases named in ``only`` (comma-separated; None/empty: all), in matrix order; None (and
+    a message on stderr) when a name is unknown."""
+    if not only:
+        return list(cases)
+    want = set(only.split(","))
+    unknown = want - {c.name for c in cases}
+    if unknown:
+        print(f"unknown {what}(s): {', '.join(sorted(unknown))}; known: {', '.join(c.name for c in cases)}",
+              file=sys.stderr)
+        return None
+    return [c for c in cases if c.name in want]
+
+
+def run_cases(cases: list, fly_case, describe, what: str = "fault", cmd: str = "sitl faults") -> tuple[list, bool]:
+    """Fly every case (``fly_case(case) -> row``, one ``asyncio.run`` each, so a case cannot leak
+    into the next), with a progress line per case on stderr (``describe(row)`` after it).  Ctrl-C or
+    SIGTERM during a flight (it stops cleanly: KeyboardInterrupt) ends the matrix: (rows flown so
+    far, interrupted)."""
+    rows = []
+    t0 = time.monotonic()
+    try:
+        for i, case in enumerate(cases, 1):
+            print(f"[{time.monotonic() - t0:6.0f} s] {what} {i}/{len(cases)}: {case.name} ({case.what})",
+                  file=sys.stderr, flush=True)
+            row = asyncio.run(fly_case(case))
+            rows.append(row)
+            print(f"         {describe(row)}", file=sys.stderr, flush=True)
+    except KeyboardInterrupt:
+        print(f"{cmd}: interrupted", file=sys.stderr)
+        return rows, True
+    return rows, False
+
+
 def cmd_faults(args) -> int:
-    cases = fault_cases()
-    if args.only:
-        want = set(args.only.split(","))
-        unknown = want - {c.name for c in cases}
-        if unknown:
-            print(f"unknown fault(s): {', '.join(sorted(unknown))}; known: {', '.join(c.name for c in cases)}",
-                  file=sys.stderr)
-            return 2
-        cases = [c for c in cases if c.name in want]
+    cases = select_cases(fault_cases(), args.only)
+    if cases is None:
+        return 2
     short = [c.name for c in cases if args.duration < c.window_s[1] + RECOVERY_WINDOW_S]
     if short:
         need = max(c.window_s[1] for c in cases) + RECOVERY_WINDOW_S
         print(f"--duration {args.duration:g} s is too short for {', '.join(short)}: the fault and its "
               f"{RECOVERY_WINDOW_S:g}-s recovery window need {need:g} s", file=sys.stderr)
         return 2
-    rows = []
-    t0 = time.monotonic()
-    try:
-        for i, case in enumerate(cases, 1):
-            print(f"[{time.monotonic() - t0:6.0f} s] fault {i}/{len(cases)}: {case.name} ({case.what})",
-                  file=sys.stderr, flush=True)
-            row = asyncio.run(_fly_case(case, duration_s=args.duration, speedup=args.speedup,
-                                        out_dir=Path(args.out), seed=args.seed))
-            rows.append(row)
-            print(f"         {row['estimates_received']} estimates, HMI {row['hmi_fraction']:.4f}, max error "
-                  f"{row['max_injected_error_h_m']} m, recovered {row['recovered']}", file=sys.stderr, flush=True)
-    except KeyboardInterrupt:
-        print("sitl faults: interrupted", file=sys.stderr)
-        interrupted = True
-    else:
-        interrupted = False
+    rows, interrupted = run_cases(
+        cases, lambda case: _fly_case(case, duration_s=args.duration, speedup=args.speedup,
+                                      out_dir=Path(args.out), seed=args.seed),
+        lambda row: (f"{row['estimates_received']} estimates, HMI {row['hmi_fraction']:.4f}, max error "
+                     f"{row['max_injected_error_h_m']} m, recovered {row['recovered']}"))
     summary = summarise(rows)
     print(format_rows(rows, summary))
     if args.json:

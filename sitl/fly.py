@@ -117,6 +117,54 @@ def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: 
     return "\n".join(lines) + "\n"
 
 
+def set_config_keys(cfg_text: str, keys: dict) -> str:
+    """``cfg_text`` (the harness's TOML, one ``[section]`` header per table) with ``keys``
+    ({section: {key: value}}) set: a key the section already has gets the new value, others are
+    added at the section's end, a missing section is appended."""
+    from companion.config import _toml_value
+    lines = cfg_text.rstrip("\n").split("\n")
+    for section, kv in keys.items():
+        head = f"[{section}]"
+        if head not in lines:
+            lines += ["", head]
+        start = lines.index(head) + 1
+        end = start
+        while end < len(lines) and not lines[end].startswith("["):
+            end += 1
+        for k, v in kv.items():
+            line = f"{k} = {_toml_value(v)}"
+            for i in range(start, end):
+                if lines[i].split("=", 1)[0].strip() == k:
+                    lines[i] = line
+                    break
+            else:
+                while end > start and not lines[end - 1].strip():
+                    end -= 1
+                lines.insert(end, line)
+                end += 1
+    return "\n".join(lines) + "\n"
+
+
+@dataclasses.dataclass
+class FlightContext:
+    """What a ``during`` task of :func:`fly` gets: the emulated autopilot (its socket, ``addr`` =
+    the companion's MAVLink port, ``clock``, ``t0``), the companion's process and directories."""
+    ap: object
+    sim: object
+    proc: subprocess.Popen
+    clock: object
+    out_dir: Path
+    log_dir: Path
+    udp_port: int
+
+    def t_flight_s(self) -> float:
+        """Simulated seconds since the start of the flight."""
+        return self.clock.now_gps() - self.ap.t0
+
+    async def until_flight_s(self, t_s: float) -> None:
+        await self.clock.sleep_until(self.ap.t0 + t_s)
+
+
 def _tuning_lines(t) -> list[str]:
     """Every [filter] key the scenario's tuning (sitl.tuning) sets, in TOML."""
     from companion.config import FilterConfig, _toml_value
@@ -326,7 +374,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               system_time_late_s: float = 0.0, progress: bool = False, handle_signals: bool = False,
               base_outage_s: tuple[float, float] | None = None, keep_autopilot: dict | None = None,
               extra_config: str = "", named_value_rate_hz: float | None = None,
-              max_hpl_m: float | None = None) -> dict:
+              max_hpl_m: float | None = None, caster_factory=None, config_keys: dict | None = None,
+              during=None, signing_key: bytes | None = None) -> dict:
     """Fly once; ``progress`` prints set-up steps and status lines to stderr, ``handle_signals`` makes
     the first SIGINT/SIGTERM a clean stop (the result then has ``interrupted`` True and the figures
     of the part that was flown).  ``base_outage_s`` (start, end from the start of the flight): the
@@ -335,7 +384,15 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     appended to the companion's configuration (e.g. an ``[nmea]`` output).  ``named_value_rate_hz``:
     the companion's NAMED_VALUE_FLOAT rate (default: its configuration's), e.g. to score against
     the protection level it sends (CC_HPL); ``max_hpl_m``: its protection-level injection gate
-    (default: its configuration's, ``output.max_hpl_m``)."""
+    (default: its configuration's, ``output.max_hpl_m``).
+
+    Hooks for ``python -m sitl attack``: ``caster_factory`` (``async f(source_port, out_dir) ->
+    sitl.caster.Caster``) replaces :func:`sitl.caster.start_caster` in front of the base station;
+    ``config_keys`` ({section: {key: value}}) sets keys in the companion's configuration (replacing
+    the harness's own value of a key); ``during`` (``async f(FlightContext)``) runs beside the
+    flight from the moment the autopilot starts streaming and is cancelled when the flight ends
+    (an exception of its own fails the flight); ``signing_key`` (32 bytes): the emulated autopilot
+    signs (give the companion the same key with ``config_keys``)."""
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     prog = _Progress(progress)
@@ -358,6 +415,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     rss = hwm = float("nan")
     setup_s = None
     udp_port = free_udp_port()
+    side = None
     log_dir = out / "fieldlog"
     try:
         if use_caster and not stop.is_set():
@@ -369,7 +427,10 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                                if not base_outage_s[0] <= e.t_gps - t_b0 < base_outage_s[1]]
             src = RtcmSource(base_epochs, sim.ephemerides, sim.base, clock)
             src_port = await src.start()
-            caster = await start_caster(src_port, log_path=str(out / "str2str.log"))
+            if caster_factory is not None:
+                caster = await caster_factory(src_port, out)
+            else:
+                caster = await start_caster(src_port, log_path=str(out / "str2str.log"))
             prog.step(f"caster: {caster.kind} on 127.0.0.1:{caster.port}")
         if log_dir.exists():
             for f in log_dir.glob("*.cflog"):
@@ -381,12 +442,15 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                                          moving_baseline_b_m=moving_baseline_b_m,
                                          gps_yaw_sigma_deg=gps_yaw_sigma_deg,
                                          named_value_rate_hz=named_value_rate_hz, max_hpl_m=max_hpl_m)
+        if config_keys:
+            cfg_text = set_config_keys(cfg_text, config_keys)
         cfg_path = out / "companion.toml"
         cfg_path.write_text(cfg_text + ("\n" + extra_config if extra_config else ""))
         ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
                                leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
                                max_imu_rate_hz=max_imu_rate_hz, moving_baseline_b_m=moving_baseline_b_m,
-                               gps_yaw_sigma_deg=gps_yaw_sigma_deg, system_time_late_s=system_time_late_s)
+                               gps_yaw_sigma_deg=gps_yaw_sigma_deg, system_time_late_s=system_time_late_s,
+                               signing_key=signing_key)
         if not stop.is_set():
             prog.step(f"starting companion run (log {out / 'companion.log'})")
             comp_log = open(out / "companion.log", "wb")
@@ -402,6 +466,11 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
             setup_s = time.monotonic() - t_setup
             prog.step(f"set up in {setup_s:.1f} s; flying {duration_s:g} s at x{speedup:g}")
             tasks.append(asyncio.create_task(prog.follow(ap, sim, duration_s, proc)))
+            if during is not None:
+                side = asyncio.create_task(during(FlightContext(ap=ap, sim=sim, proc=proc, clock=clock,
+                                                                out_dir=out, log_dir=log_dir,
+                                                                udp_port=udp_port)))
+                tasks.append(side)
             if proc.poll() is None:
                 cpu0, wall0 = _proc_cpu_s(proc.pid), time.monotonic()
             await _until(stop, tasks[0])
@@ -412,6 +481,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
         for t in tasks:
             t.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        if side is not None and side.done() and not side.cancelled() and side.exception() is not None:
+            raise side.exception()
         if not interrupted:
             await asyncio.sleep(0.3)
     except asyncio.CancelledError:
