@@ -447,8 +447,13 @@ class NavPipeline:
         for msg in msgs:
             if isinstance(msg, GnssEpoch):
                 if msg.source == "base":
+                    self.engine.process(msg)       # counts an epoch it cannot use yet
+                    if self.engine.base is None:
+                        # joining a running caster: observations before the station position
+                        # (1005/1006) are not corrections yet; taking them for a base flipped the
+                        # mode tight/loose/tight and the filter diverged (sitl attack, slow header)
+                        continue
                     self.base_seen = True
-                    self.engine.process(msg)
                     self._base_times = (self._base_times + [msg.t_gps])[-10:]
                     self._release_held()
                 else:
