@@ -314,6 +314,7 @@ def _start_companion(out: Path, port: int, output: str, overrides, gnss_source: 
                                 overrides={**(source_keys or {}), **(overrides or {})})
     cfg_path = out / "companion.toml"
     cfg_path.write_text(cfg_text)
+    cfg_path.chmod(0o600)          # it may hold the caster's password (the companion warns otherwise)
     companion = CompanionProcess(cfg_path, out / "companion.log")
     say(f"starting companion run --config {cfg_path} on SERIAL2 (tcp:127.0.0.1:{port})")
     companion.start()
