@@ -246,10 +246,13 @@ def run(*, duration_s: float = 120.0, output: str = "vision", sitl_bin: str | No
         flight = Flight(gcs, companion, output, receiver)
         gcs.pump(3.0)
         cpu0, t_cpu0 = companion.cpu_s(), time.monotonic()
+        rx_cpu0 = receiver.cpu_s() if receiver is not None else None
         flight.ground(duration_s)
         gcs.request_message("GPS_GLOBAL_ORIGIN")
         res["armed"], res["box_completed"] = flight.mission(alt_m, side_m, speed_mps, legs)
         cpu1, t_cpu1 = companion.cpu_s(), time.monotonic()
+        if rx_cpu0 is not None and receiver.cpu_s() is not None:
+            res["gnss_receiver_cpu_pct"] = round(100.0 * (receiver.cpu_s() - rx_cpu0) / (t_cpu1 - t_cpu0), 1)
         res["corners_reached"] = flight.corners_reached
         res["companion_cpu_pct"] = (round(100.0 * (cpu1 - cpu0) / (t_cpu1 - t_cpu0), 1)
                                     if cpu0 is not None and cpu1 is not None else None)

@@ -262,11 +262,9 @@ class RtcmSource(RtcmServer):
         super().__init__(host=host, port=port)
         self.epochs = sorted(base_epochs, key=lambda e: e.t_gps)
         self.ephemerides = list(ephemerides)
-        self.base = base
-        self.clock = clock
+        self.base, self.clock = base, clock
         self.latency_s = latency_s
-        self.station_interval_s = station_interval_s
-        self.ephemeris_interval_s = ephemeris_interval_s
+        self.station_interval_s, self.ephemeris_interval_s = station_interval_s, ephemeris_interval_s
         self.enc = Rtcm1004Encoder(base.station_id)
         self.paused = False          # fault injection: corrections outage
 
