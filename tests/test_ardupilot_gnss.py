@@ -284,6 +284,7 @@ class _FakeSitlPort:
 
     def _run(self):
         conn, _ = self.sock.accept()
+        self.sock.close()
         conn.settimeout(0.01)
         enc, parser = mav.MAVLink(None, srcSystem=1, srcComponent=1), mav.MAVLink(None)
         sitl = _Sitl()
