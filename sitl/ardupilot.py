@@ -4,8 +4,13 @@
    (``ardupilot-vision.parm``; ``ardupilot-gps-input.parm`` for ``--output gps_input``), and
    checks every parameter of it back;
 2. runs ``companion run`` as its own process on SERIAL2 with ``deploy/companion.toml`` changed only
-   in its connection, log directory, GNSS source ("none": GPS_RAW_INT, loosely coupled, since
-   SITL's u-blox sends no raw observations) and output mode;
+   in its connection, log directory, GNSS source and output mode.  GNSS source: ``--gnss
+   gps_raw_int`` (default) "none", GPS_RAW_INT, loosely coupled, since SITL's u-blox sends no raw
+   observations; ``--gnss raw`` "serial" on the pseudo-terminal of our simulated receiver
+   (:mod:`sitl.ardupilot_gnss`: it follows SITL's truth on SERIAL1 and emits UBX RXM-RAWX/SFRBX,
+   its base station RTCM MSM4 + 1005 through an NTRIP caster), with the corrections source set to
+   that caster: tightly coupled DGPS + TDCP.  SITL then starts with ``--start-time`` (its GPS
+   clock is that plus its boot time, which the receiver's time tags follow);
 3. waits on the ground (``--duration``), arms, takes off in GUIDED, flies a box, lands;
 4. scores, from SITL's truth (SIMSTATE) and what the autopilot reports on SERIAL0: our estimates
    (routed there by ArduPilot), its own LOCAL_POSITION_NED, EKF_STATUS_REPORT and STATUSTEXT.
@@ -27,6 +32,7 @@ from .ardupilot_procs import (
     REPO,
     ArduCopterSitl,
     CompanionProcess,
+    GnssReceiverProcess,
     binary_problem,
     companion_config,
     find_binary,
@@ -36,6 +42,9 @@ from .ardupilot_result import ESTIMATE_TYPES, companion_figures, score
 DEPLOY = REPO / "deploy"
 PARM_FILES = {"vision": "ardupilot-vision.parm", "odometry": "ardupilot-vision.parm",
               "gps_input": "ardupilot-gps-input.parm"}
+MODE_NAMES_COMPANION = {0: "init", 1: "tight", 2: "loose"}      # CC_MODE (companion.io.gcs_values)
+GNSS_SOURCES = {"gps_raw_int": "none", "raw": "serial"}           # --gnss -> gnss.source
+SCENARIO_MARGIN_S = 900.0      # the receiver's epochs cover the ground wait plus this (arming, the box, landing)
 EKF_FLAG_NAMES = ("att", "vel_h", "vel_v", "pos_h_rel", "pos_h_abs", "pos_v_abs", "pos_v_agl", "const_pos",
                   "pred_pos_h_rel", "pred_pos_h_abs", "uninitialized", "gps_glitch")
 
@@ -75,18 +84,19 @@ def check_params(gcs: Gcs, wanted: dict[str, float], timeout_s: float = 2.0) -> 
 class Flight:
     """The ground wait and the flight, driven through :class:`Gcs`; events in host monotonic time."""
 
-    def __init__(self, gcs: Gcs, companion: CompanionProcess, output: str):
+    def __init__(self, gcs: Gcs, companion: CompanionProcess, output: str, receiver: GnssReceiverProcess | None = None):
         self.gcs = gcs
         self.companion = companion
+        self.receiver = receiver
         self.output = output
         self.events: dict[str, float] = {}
         self.corners_reached = 0
         self.arm_attempts = 0
 
     def _check_companion(self) -> None:
-        if not self.companion.alive():
-            raise RuntimeError(f"companion exited (code {self.companion.proc.returncode}):\n"
-                               f"{self.companion.tail()}")
+        for child in (self.companion, self.receiver):
+            if child is not None and not child.alive():
+                raise RuntimeError(f"{child.name} exited (code {child.proc.returncode}):\n{child.tail()}")
 
     def ground(self, duration_s: float, progress_every_s: float = 15.0) -> None:
         say(f"on the ground for {duration_s:.0f} s")
@@ -106,7 +116,9 @@ class Flight:
         if sim is not None and est is not None and self.output != "gps_input":
             ours = est.yaw if self.output == "vision" else S.quat_yaw(est.q)
             yaw = f", yaw error {math.degrees(float(S.wrap_pi(ours - sim.yaw))):+.1f} deg"
-        return (f"estimates {n_est}{yaw}, EKF flags {'+'.join(flags) or '-'}, "
+        mode = g.named_value("CC_MODE")
+        mode = "" if mode is None else f", ours {MODE_NAMES_COMPANION.get(int(mode), mode)}"
+        return (f"estimates {n_est}{yaw}{mode}, EKF flags {'+'.join(flags) or '-'}, "
                 f"mode {MODE_NAMES.get(g.custom_mode, g.custom_mode)}, {'armed' if g.armed else 'disarmed'}")
 
     def arm(self, timeout_s: float = 90.0) -> bool:
@@ -195,7 +207,8 @@ class Flight:
 
 def run(*, duration_s: float = 120.0, output: str = "vision", sitl_bin: str | None = None,
         out_dir: str = "out/ardupilot", alt_m: float = 10.0, side_m: float = 20.0, speed_mps: float = 5.0,
-        legs: int = 4, overrides: dict[str, str] | None = None) -> dict:
+        legs: int = 4, overrides: dict[str, str] | None = None, gnss: str = "gps_raw_int",
+        gnss_rate_hz: float = 1.0) -> dict:
     binary = find_binary(sitl_bin)
     problem = binary_problem(binary)
     if problem:
@@ -203,11 +216,12 @@ def run(*, duration_s: float = 120.0, output: str = "vision", sitl_bin: str | No
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     parm = DEPLOY / PARM_FILES[output]
-    sitl = ArduCopterSitl(binary, [parm], out / "sitl")
-    companion = None
+    start_unix = int(time.time()) if gnss == "raw" else None
+    sitl = ArduCopterSitl(binary, [parm], out / "sitl", start_time_unix_s=start_unix)
+    companion = receiver = None
     gcs = None
-    res: dict = {"output": output, "parm_file": str(parm), "sitl_bin": str(binary),
-                 "config_overrides": dict(overrides or {}), "ground_s": duration_s}
+    res: dict = {"output": output, "gnss": gnss, "parm_file": str(parm), "sitl_bin": str(binary),
+                 "config_overrides": dict(overrides or {}), "ground_s": duration_s, "sitl_start_time_unix_s": start_unix}
     try:
         say(f"starting ArduCopter SITL {binary} with {parm.name} (instance {sitl.instance})")
         sitl.start()
@@ -217,14 +231,28 @@ def run(*, duration_s: float = 120.0, output: str = "vision", sitl_bin: str | No
         for name, why in res["param_problems"].items():
             say(f"  parameter {name} {why}")
         gcs.request_streams()
-        companion = _start_companion(out, sitl.port(2), output, overrides)
-        flight = Flight(gcs, companion, output)
+        source = {}
+        if gnss == "raw":
+            receiver = GnssReceiverProcess(out / "gnss", sitl_port=sitl.port(1), start_time_unix_s=start_unix,
+                                           duration_s=duration_s + SCENARIO_MARGIN_S, rate_hz=gnss_rate_hz)
+            say(f"starting the GNSS receiver (truth from SERIAL1, tcp:127.0.0.1:{sitl.port(1)})")
+            ready = receiver.start()
+            res["gnss_receiver"] = {k: ready[k] for k in ("satellites", "sky", "rate_hz", "t0_gps")}
+            say(f"  UBX on {receiver.slave_path}, RTCM via {ready['caster']['kind']} on "
+                f"127.0.0.1:{ready['caster']['port']}/{ready['caster']['mountpoint']}, "
+                f"{len(ready['satellites'])} GPS satellites")
+            source = raw_gnss_keys(receiver.slave_path, ready["caster"])
+        companion = _start_companion(out, sitl.port(2), output, overrides, GNSS_SOURCES[gnss], source)
+        flight = Flight(gcs, companion, output, receiver)
         gcs.pump(3.0)
         cpu0, t_cpu0 = companion.cpu_s(), time.monotonic()
+        rx_cpu0 = receiver.cpu_s() if receiver is not None else None
         flight.ground(duration_s)
         gcs.request_message("GPS_GLOBAL_ORIGIN")
         res["armed"], res["box_completed"] = flight.mission(alt_m, side_m, speed_mps, legs)
         cpu1, t_cpu1 = companion.cpu_s(), time.monotonic()
+        if rx_cpu0 is not None and receiver.cpu_s() is not None:
+            res["gnss_receiver_cpu_pct"] = round(100.0 * (receiver.cpu_s() - rx_cpu0) / (t_cpu1 - t_cpu0), 1)
         res["corners_reached"] = flight.corners_reached
         res["companion_cpu_pct"] = (round(100.0 * (cpu1 - cpu0) / (t_cpu1 - t_cpu0), 1)
                                     if cpu0 is not None and cpu1 is not None else None)
@@ -236,6 +264,9 @@ def run(*, duration_s: float = 120.0, output: str = "vision", sitl_bin: str | No
     finally:
         if companion is not None:
             res["companion_exit_code"] = companion.stop()
+        if receiver is not None:
+            res["gnss_receiver_exit_code"] = receiver.stop()
+            res.setdefault("gnss_receiver", {}).update(receiver.result() or {})
         if gcs is not None:
             gcs.close()
         sitl.stop()
@@ -244,18 +275,50 @@ def run(*, duration_s: float = 120.0, output: str = "vision", sitl_bin: str | No
     if gcs is not None:
         res.update(score(gcs.records, gcs.statustext, res, output))
         _save_records(gcs, out / "records.pkl")
+    if gnss == "raw":
+        res.update(companion_health(out / "fieldlog"))
     res["companion_log"] = str(out / "companion.log")
     res["sitl_log"] = str(sitl.log_path)
     return res
 
 
-def _start_companion(out: Path, port: int, output: str, overrides) -> CompanionProcess:
-    """``companion run`` on SITL's SERIAL2 with deploy/companion.toml, changed only where it must be."""
+def raw_gnss_keys(pty_path: str, caster: dict) -> dict[str, str]:
+    """The GNSS source's and the corrections source's keys for ``--gnss raw``: the receiver's
+    pseudo-terminal, the caster (NTRIP revision and everything else as shipped)."""
+    q = json.dumps
+    return {"gnss.serial.port": q(pty_path), "corrections.source": q("ntrip"),
+            "corrections.ntrip.host": q("127.0.0.1"), "corrections.ntrip.port": str(int(caster["port"])),
+            "corrections.ntrip.mountpoint": q(caster["mountpoint"]), "corrections.ntrip.user": q(caster["user"]),
+            "corrections.ntrip.password": q(caster["password"])}
+
+
+def companion_health(fieldlog_dir: Path) -> dict:
+    """What the companion's field log says at the end (its last health record): the mode, the
+    IMU time offset it estimated and its GNSS counters, for the JSON's details."""
+    from companion.io.fieldlog import read_field_log
+    last = None
+    try:
+        for rec in read_field_log(fieldlog_dir):
+            if rec.kind == "event":
+                obj = json.loads(rec.payload)
+                if obj.get("event") in ("health", "stop") and "health" in obj:
+                    last = obj["health"]
+    except (OSError, ValueError) as exc:
+        return {"companion_health_error": str(exc)}
+    return {} if last is None else {"companion_health": last}
+
+
+def _start_companion(out: Path, port: int, output: str, overrides, gnss_source: str = "none",
+                     source_keys: dict[str, str] | None = None) -> CompanionProcess:
+    """``companion run`` on SITL's SERIAL2 with deploy/companion.toml, changed only where it must be:
+    connection, log directory, GNSS source (and, for raw GNSS, its port and the corrections
+    caster), output mode; ``overrides`` are the experiments of ``--set``."""
     cfg_text = companion_config((DEPLOY / "companion.toml").read_text(), connection=f"tcp:127.0.0.1:{port}",
-                                log_dir=str(out / "fieldlog"), gnss_source="none", output_mode=output,
-                                overrides=overrides)
+                                log_dir=str(out / "fieldlog"), gnss_source=gnss_source, output_mode=output,
+                                overrides={**(source_keys or {}), **(overrides or {})})
     cfg_path = out / "companion.toml"
     cfg_path.write_text(cfg_text)
+    cfg_path.chmod(0o600)          # it may hold the caster's password (the companion warns otherwise)
     companion = CompanionProcess(cfg_path, out / "companion.log")
     say(f"starting companion run --config {cfg_path} on SERIAL2 (tcp:127.0.0.1:{port})")
     companion.start()
@@ -296,7 +359,8 @@ def cmd_ardupilot(args) -> int:
     try:
         res = run(duration_s=args.duration, output=args.output, sitl_bin=args.sitl_bin, out_dir=args.out,
                   legs=args.legs, side_m=args.side, alt_m=args.alt, speed_mps=args.speed,
-                  overrides=dict(kv.split("=", 1) for kv in args.set or ()))
+                  overrides=dict(kv.split("=", 1) for kv in args.set or ()), gnss=args.gnss,
+                  gnss_rate_hz=args.gnss_rate)
     except RuntimeError as exc:
         print(f"sitl ardupilot: {exc}", file=sys.stderr)
         return 2
@@ -324,6 +388,13 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("ardupilot", help="ArduCopter SITL flies a box on the companion's estimate, scored")
     p.add_argument("--duration", type=float, default=120.0, help="seconds on the ground before arming (default 120)")
     p.add_argument("--output", default="vision", choices=tuple(PARM_FILES))
+    p.add_argument("--gnss", default="gps_raw_int", choices=tuple(GNSS_SOURCES),
+                   help="gps_raw_int: the autopilot's GPS_RAW_INT, loosely coupled (default); raw: our simulated "
+                        "receiver on SITL's truth (UBX RXM-RAWX/SFRBX on a pseudo-terminal) and base station "
+                        "(RTCM MSM4 + 1005 through an NTRIP caster): tightly coupled DGPS + TDCP")
+    p.add_argument("--gnss-rate", type=float, default=1.0, metavar="HZ",
+                   help="--gnss raw: epochs per second of the receiver and the base (default 1, a u-blox "
+                        "receiver's default; 5 and 10 work too)")
     p.add_argument("--json", help="write the figures as JSON here")
     p.add_argument("--sitl-bin", help="ArduCopter SITL binary (default $COMPANION_ARDUPILOT_BIN, "
                                       "else <repo>/../shared/ardupilot/arducopter)")

@@ -26,7 +26,7 @@ STREAMS_HZ = {"SIMSTATE": 50.0, "SIM_STATE": 10.0, "LOCAL_POSITION_NED": 25.0, "
               "EXTENDED_SYS_STATE": 2.0}
 RECORDED = ("SIMSTATE", "SIM_STATE", "LOCAL_POSITION_NED", "ATTITUDE", "EKF_STATUS_REPORT",
             "VISION_POSITION_ESTIMATE", "ODOMETRY", "GPS_INPUT", "GPS_RAW_INT", "GPS2_RAW",
-            "GPS_GLOBAL_ORIGIN", "EXTENDED_SYS_STATE")
+            "GPS_GLOBAL_ORIGIN", "EXTENDED_SYS_STATE", "NAMED_VALUE_FLOAT")
 
 
 class Gcs:
@@ -85,6 +85,13 @@ class Gcs:
             self.acks.append((t, msg.command, msg.result))
         elif mtype in self.recorded:
             self.records[mtype].append((t, msg))
+
+    def named_value(self, name: str) -> float | None:
+        """The latest NAMED_VALUE_FLOAT ``name`` (the companion's CC_* values), or None."""
+        for _, m in reversed(self.records.get("NAMED_VALUE_FLOAT", ())):
+            if m.name.rstrip("\x00") == name:
+                return m.value
+        return None
 
     def last(self, mtype: str):
         r = self.records.get(mtype)

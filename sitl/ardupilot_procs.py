@@ -1,11 +1,13 @@
-"""Processes of ``python -m sitl ardupilot``: the ArduCopter SITL binary and ``companion run``.
+"""Processes of ``python -m sitl ardupilot``: the ArduCopter SITL binary, ``companion run`` and,
+with ``--gnss raw``, the raw GNSS receiver (:mod:`sitl.ardupilot_gnss`).
 
-Both are started in their own session, so a Ctrl-C in the terminal reaches only the harness,
+All are started in their own session, so a Ctrl-C in the terminal reaches only the harness,
 which then stops them in order (SIGTERM, then SIGKILL after a grace period).  SITL also exits by
 itself when its parent dies.
 """
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -88,7 +90,11 @@ class ArduCopterSitl:
     starts), SERIAL1 ``+2``, SERIAL2 ``+3``.
     """
 
-    def __init__(self, binary: Path, parm_files: list[Path], run_dir: Path, instance: int | None = None):
+    def __init__(self, binary: Path, parm_files: list[Path], run_dir: Path, instance: int | None = None,
+                 start_time_unix_s: int | None = None):
+        """``start_time_unix_s``: SITL's ``--start-time`` (its clock, and so its GPS time, is this
+        plus its boot time); None = SITL's own default (the host's clock at start)."""
+        self.start_time_unix_s = start_time_unix_s
         self.binary = Path(binary)
         self.parm_files = [Path(p).resolve() for p in parm_files]
         self.run_dir = Path(run_dir)
@@ -110,6 +116,8 @@ class ArduCopterSitl:
         args = [str(self.binary), "--model", "+", "--speedup", "1", "--home", HOME, f"-I{self.instance}",
                 "--defaults", ",".join(str(p) for p in defaults), "--sim-address", "127.0.0.1",
                 "--serial0", "tcp:0", "-w"]
+        if self.start_time_unix_s is not None:
+            args += ["--start-time", str(int(self.start_time_unix_s))]
         self._log = open(self.log_path, "wb")
         self.proc = subprocess.Popen(args, cwd=str(self.run_dir), stdout=self._log, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, start_new_session=True)
@@ -172,23 +180,21 @@ def companion_config(deploy_toml: str, *, connection: str, log_dir: str, gnss_so
     return "\n".join(out) + "\n"
 
 
-class CompanionProcess:
-    """``python -m companion.run_cli -v run --config PATH`` with its output in ``log_path``."""
+class _Child:
+    """A harness child process in its own session with its output in ``log_path``."""
 
-    ORIGIN_RE = re.compile(rb"EKF origin (-?\d+\.\d+) (-?\d+\.\d+) (-?\d+\.\d+) m")
+    name = "child"
 
-    def __init__(self, config_path: Path, log_path: Path):
-        self.config_path = Path(config_path)
+    def __init__(self, log_path: Path):
         self.log_path = Path(log_path)
         self.proc: subprocess.Popen | None = None
         self._log = None
 
-    def start(self) -> None:
+    def _popen(self, args: list[str], **kw) -> None:
         self._log = open(self.log_path, "wb")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen([sys.executable, "-m", "companion.run_cli", "-v", "run", "--config",
-                                      str(self.config_path)], stdout=self._log, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, env=env, cwd=str(REPO), start_new_session=True)
+        self.proc = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     env=env, cwd=str(REPO), start_new_session=True, **kw)
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -204,6 +210,33 @@ class CompanionProcess:
             return None
         return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
 
+    def tail(self, n_bytes: int = 2000) -> str:
+        try:
+            return self.log_path.read_bytes()[-n_bytes:].decode(errors="replace")
+        except OSError:
+            return ""
+
+    def stop(self) -> int | None:
+        code = stop_process(self.proc, self.name, grace_s=10.0)
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        return code
+
+
+class CompanionProcess(_Child):
+    """``python -m companion.run_cli -v run --config PATH`` with its output in ``log_path``."""
+
+    name = "companion"
+    ORIGIN_RE = re.compile(rb"EKF origin (-?\d+\.\d+) (-?\d+\.\d+) (-?\d+\.\d+) m")
+
+    def __init__(self, config_path: Path, log_path: Path):
+        super().__init__(log_path)
+        self.config_path = Path(config_path)
+
+    def start(self) -> None:
+        self._popen([sys.executable, "-m", "companion.run_cli", "-v", "run", "--config", str(self.config_path)])
+
     def origin(self) -> tuple[float, float, float] | None:
         """The EKF origin the companion's outputs use (lat deg, lon deg, alt m), from its log: the
         last one announced (it adopts the autopilot's when that differs, companion.io.origin)."""
@@ -213,15 +246,61 @@ class CompanionProcess:
             return None
         return tuple(float(x) for x in found[-1]) if found else None
 
-    def tail(self, n_bytes: int = 2000) -> str:
+
+class GnssReceiverProcess(_Child):
+    """``python -m sitl.ardupilot_gnss`` (:mod:`sitl.ardupilot_gnss`): the raw GNSS receiver on a
+    pseudo-terminal, the base station and its NTRIP caster, following SITL's truth on
+    ``sitl_port``.  The harness makes the pseudo-terminal (raw mode, so the line discipline leaves
+    the UBX bytes alone), hands the master side to the process and keeps the slave side open
+    until the end; the companion opens the slave by name (:attr:`slave_path`)."""
+
+    name = "GNSS receiver"
+
+    def __init__(self, out_dir: Path, *, sitl_port: int, start_time_unix_s: int, duration_s: float,
+                 home: str = HOME, rate_hz: float = 1.0, seed: int = 0):
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        super().__init__(self.out_dir / "receiver.log")
+        self.args = ["--sitl-port", str(sitl_port), "--start-unix", str(int(start_time_unix_s)), f"--home={home}",
+                     "--duration", f"{duration_s:g}", "--rate", f"{rate_hz:g}", "--seed", str(seed),
+                     "--out", str(self.out_dir)]
+        self.slave_path: str | None = None
+        self.ready: dict | None = None
+        self._slave: int | None = None
+
+    def start(self, timeout_s: float = 60.0) -> dict:
+        import tty
+        for stale in ("ready.json", "receiver.json"):
+            (self.out_dir / stale).unlink(missing_ok=True)
+        master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.slave_path = os.ttyname(self._slave)
         try:
-            return self.log_path.read_bytes()[-n_bytes:].decode(errors="replace")
-        except OSError:
-            return ""
+            self._popen([sys.executable, "-m", "sitl.ardupilot_gnss", "--pty-fd", str(master), *self.args],
+                        pass_fds=(master,))
+        finally:
+            os.close(master)
+        ready = self.out_dir / "ready.json"
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            if ready.exists():
+                self.ready = json.loads(ready.read_text())
+                return self.ready
+            if not self.alive():
+                break
+            time.sleep(0.1)
+        raise RuntimeError(f"GNSS receiver not ready within {timeout_s:.0f} s:\n{self.tail()}")
+
+    def result(self) -> dict | None:
+        """Its counters (``receiver.json``, written when it stops)."""
+        try:
+            return json.loads((self.out_dir / "receiver.json").read_text())
+        except (OSError, ValueError):
+            return None
 
     def stop(self) -> int | None:
-        code = stop_process(self.proc, "companion", grace_s=10.0)
-        if self._log is not None:
-            self._log.close()
-            self._log = None
+        code = super().stop()
+        if self._slave is not None:
+            os.close(self._slave)
+            self._slave = None
         return code

@@ -106,7 +106,18 @@ def score(records, statustext, res: dict, output: str) -> dict:
     out["ekf_yaw_rms_deg_ground"] = ekf_yaw["yaw_rms_deg_ground"]
     out["ekf_yaw_rms_deg_ground_per_min"] = ekf_yaw["yaw_rms_deg_ground_per_min"]
     out.update(ekf_position_figures(records, truth, ref, origin_e7, flight, ground_end))
+    out["companion_mode_flight"] = companion_modes(records, res.get("events_mono_s", {}))
     return out
+
+
+def companion_modes(records, events_mono: dict) -> dict:
+    """Fractions of the companion's CC_MODE reports (1 tight, 2 loose, 0 none) in flight (takeoff
+    to disarm, receive times), {} without reports."""
+    a, b = events_mono.get("takeoff"), events_mono.get("disarmed")
+    modes = [m.value for t, m in records.get("NAMED_VALUE_FLOAT", ())
+             if m.name.rstrip("\x00") == "CC_MODE" and a is not None and b is not None and a <= t <= b]
+    names = {1.0: "tight", 2.0: "loose", 0.0: "none"}
+    return {names.get(v, str(v)): round(modes.count(v) / len(modes), 3) for v in sorted(set(modes))} if modes else {}
 
 
 def ekf_position_figures(records, truth, ref, origin_e7, flight, ground_end) -> dict:

@@ -110,12 +110,41 @@ def lock_indicator_df013(lock_s: float) -> int:
     return best
 
 
+class CarrierReference:
+    """The integer cycles taken off each satellite's carrier so that what an RTCM message carries,
+    phase range minus a reference range, fits its field: chosen at the first epoch of a lock (the
+    carrier brought next to the reference) and kept while the satellite stays locked, so the
+    time-differenced carrier is exact; chosen again (a new lock) when the difference drifts out of
+    ``limit_m``.  ``reference(o, ref_m)`` -> (cycles, why a new reference was taken: None, "lock"
+    (a new lock of the signal) or "range" (out of range inside a lock: the encoder must report a
+    new lock)); :meth:`forget` the satellites of an epoch that were not seen."""
+
+    def __init__(self, limit_m: float):
+        self.limit_m = limit_m
+        self._cycles: dict[str, tuple[int, float]] = {}     # sat -> (cycles, last lock time)
+
+    def reference(self, o, ref_m: float) -> tuple[int, str | None]:
+        lam = o.wavelength_m
+        lock = o.lock_time_s if math.isfinite(o.lock_time_s) else 0.0
+        prev = self._cycles.get(o.sat)
+        why = "lock" if prev is None or o.loss_of_lock or lock < prev[1] else None
+        k = round((o.carrier_cycles * lam - ref_m) / lam) if why else prev[0]
+        if abs((o.carrier_cycles - k) * lam - ref_m) >= self.limit_m:     # drifted out of range
+            k, why = round((o.carrier_cycles * lam - ref_m) / lam), why or "range"
+        self._cycles[o.sat] = (k, lock)
+        return k, why
+
+    def forget(self, seen) -> None:
+        for sat in [s for s in self._cycles if s not in seen]:
+            del self._cycles[sat]
+
+
 class Rtcm1004Encoder:
     """Stateful 1004 encoder (keeps each satellite's carrier cycle offset while it stays locked)."""
 
     def __init__(self, station_id: int):
         self.station_id = station_id
-        self._cycle_offset: dict[str, tuple[int, float]] = {}   # sat -> (cycles, last lock time)
+        self._carrier = CarrierReference(limit_m=262.0)        # DF012 spans +-262 m
 
     def encode(self, epoch: GnssEpoch, more_follow: bool = False) -> bytes:
         obs = [o for o in epoch.observations if o.sat.startswith("G") and o.signal == "L1C"
@@ -134,29 +163,17 @@ class Rtcm1004Encoder:
             if df011 >= (1 << 24) - 1:
                 amb, df011 = amb + 1, 0
             pr_q = amb * LIGHT_MS_M + df011 * 0.02
-            lam = o.wavelength_m
             df012 = -(1 << 19)                         # 0x80000: no valid phase
             if math.isfinite(o.carrier_cycles):
-                lock = o.lock_time_s if math.isfinite(o.lock_time_s) else 0.0
-                prev = self._cycle_offset.get(o.sat)
-                if prev is None or o.loss_of_lock or lock < prev[1]:
-                    k = round((o.carrier_cycles * lam - pr_q) / lam)
-                else:
-                    k = prev[0]
-                ppr = (o.carrier_cycles - k) * lam - pr_q
-                if abs(ppr) >= 262.0:                  # drifted out of range: re-reference
-                    k = round((o.carrier_cycles * lam - pr_q) / lam)
-                    ppr = (o.carrier_cycles - k) * lam - pr_q
-                self._cycle_offset[o.sat] = (k, lock)
-                df012 = round(ppr / 0.0005)
+                k, _ = self._carrier.reference(o, pr_q)
+                df012 = round(((o.carrier_cycles - k) * o.wavelength_m - pr_q) / 0.0005)
                 seen.add(o.sat)
             lock_ind = lock_indicator_df013(o.lock_time_s)
             cnr = o.cn0_dbhz if math.isfinite(o.cn0_dbhz) else 0.0
             w.u(6, prn).u(1, 0).u(24, df011).s(20, df012).u(7, lock_ind).u(8, amb)
             w.u(8, max(0, min(255, round(cnr / 0.25))))
             w.u(2, 0).s(14, -(1 << 13)).s(20, -(1 << 19)).u(7, 0).u(8, 0)   # L2 invalid
-        for sat in [s for s in self._cycle_offset if s not in seen]:
-            del self._cycle_offset[sat]
+        self._carrier.forget(seen)
         return frame(w.to_bytes())
 
 
@@ -194,25 +211,15 @@ class _Client:
     writer: asyncio.StreamWriter
 
 
-class RtcmSource:
-    """TCP server streaming the base station's RTCM at simulated time (see module docstring)."""
+class RtcmServer:
+    """asyncio TCP server (127.0.0.1) that writes RTCM frames to every connected client: the
+    stream an NTRIP caster relays (see :func:`start_caster`)."""
 
-    def __init__(self, base_epochs: list[GnssEpoch], ephemerides: list[GpsEphemeris], base: BaseStationPosition,
-                 clock, *, host: str = "127.0.0.1", port: int = 0, latency_s: float = 0.15,
-                 station_interval_s: float = 5.0, ephemeris_interval_s: float = 10.0):
-        self.epochs = sorted(base_epochs, key=lambda e: e.t_gps)
-        self.ephemerides = list(ephemerides)
-        self.base = base
-        self.clock = clock
+    def __init__(self, *, host: str = "127.0.0.1", port: int = 0):
         self.host, self.port = host, port
-        self.latency_s = latency_s
-        self.station_interval_s = station_interval_s
-        self.ephemeris_interval_s = ephemeris_interval_s
-        self.enc = Rtcm1004Encoder(base.station_id)
         self.clients: list[_Client] = []
         self.counters = {"frames": 0, "bytes": 0, "clients": 0, "epochs": 0}
         self._server = None
-        self.paused = False          # fault injection: corrections outage
 
     async def start(self) -> int:
         self._server = await asyncio.start_server(self._on_client, self.host, self.port)
@@ -235,6 +242,31 @@ class RtcmSource:
             except Exception:
                 self.clients.remove(c)
         self.counters["bytes"] += len(data) * max(1, len(self.clients))
+
+    async def close(self) -> None:
+        for c in self.clients:
+            try:
+                c.writer.close()
+            except Exception:
+                pass
+        if self._server is not None:
+            self._server.close()
+
+
+class RtcmSource(RtcmServer):
+    """The base station's simulated epochs at simulated time (see module docstring)."""
+
+    def __init__(self, base_epochs: list[GnssEpoch], ephemerides: list[GpsEphemeris], base: BaseStationPosition,
+                 clock, *, host: str = "127.0.0.1", port: int = 0, latency_s: float = 0.15,
+                 station_interval_s: float = 5.0, ephemeris_interval_s: float = 10.0):
+        super().__init__(host=host, port=port)
+        self.epochs = sorted(base_epochs, key=lambda e: e.t_gps)
+        self.ephemerides = list(ephemerides)
+        self.base, self.clock = base, clock
+        self.latency_s = latency_s
+        self.station_interval_s, self.ephemeris_interval_s = station_interval_s, ephemeris_interval_s
+        self.enc = Rtcm1004Encoder(base.station_id)
+        self.paused = False          # fault injection: corrections outage
 
     async def run(self, t_end_gps: float | None = None) -> None:
         """Stream every base epoch at its simulated availability time."""
@@ -262,15 +294,6 @@ class RtcmSource:
             self.counters["frames"] += 1
             self.counters["epochs"] += 1
             self._send(bytes(out))
-
-    async def close(self) -> None:
-        for c in self.clients:
-            try:
-                c.writer.close()
-            except Exception:
-                pass
-        if self._server is not None:
-            self._server.close()
 
 
 class MiniNtripCaster:
@@ -401,5 +424,6 @@ async def start_caster(source_port: int, *, mountpoint: str = "SITL", user: str 
     return Caster("mini", port, mountpoint, user, password, mini=mini)
 
 
-__all__ = ["BitWriter", "frame", "encode_1005", "encode_1019", "Rtcm1004Encoder", "RtcmSource",
+__all__ = ["BitWriter", "frame", "encode_1005", "encode_1019", "CarrierReference", "Rtcm1004Encoder",
+           "RtcmServer", "RtcmSource",
            "MiniNtripCaster", "start_caster", "Caster", "lock_indicator_df013"]

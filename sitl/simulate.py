@@ -223,75 +223,85 @@ _COMPONENTS = ("geometric_m", "sat_clock_brdc_m", "iono_m", "tropo_m", "orbit_m"
                "ambiguity_cycles")
 
 
-def _receiver(scn: Scenario, seed: int, who: str, tr: Truth, atmo: _Atmosphere,
-              ephs: list[GpsEphemeris], lever_b: np.ndarray):
-    rover = who == "rover"
-    rx = scn.rover_rx if rover else scn.base_rx
-    clk_model = scn.rover_clock if rover else scn.base_clock
-    dt_ep = 1.0 / scn.gnss_rate_hz
-    t_end = scn.t0_gps + scn.duration_s
-    k0 = math.ceil(scn.t0_gps / dt_ep)
-    k1 = math.floor(t_end / dt_ep)
-    T_rx = np.arange(k0, k1 + 1) * dt_ep          # receiver time tags (integer seconds)
-    K, S = len(T_rx), len(ephs)
-    sats = [e.sat for e in ephs]
+class ReceiverModel:
+    """One receiver's observations, epoch by epoch: the batch simulation and a live trajectory
+    (``sitl.ardupilot_gnss``: ArduPilot SITL's truth followed in real time) share this model.
 
-    b, d = sensors.clock_process(np.random.default_rng([seed, _S_CLK_ROVER if rover else _S_CLK_BASE]),
-                                 clk_model, K, dt_ep)
-    t_true = T_rx - b / C
+    Every random process is drawn up front for the scenario's epoch grid (receiver time tags
+    ``T_rx = k / gnss_rate_hz`` over ``[t0_gps, t0_gps + duration_s]``, the same streams in the same
+    order as always), so :meth:`epoch` ``k`` depends on nothing but the antenna position it is
+    given.  Ask for epochs in increasing ``k``; a ``k`` not asked for is a gap in tracking (a
+    satellite seen again after it gets a new ambiguity and loss of lock).  ``antenna(t)``: the
+    antenna phase centre (ECEF, m) at true GPS time ``t``; a base receiver ignores it (its
+    position is ``scn.base_r_e``)."""
 
-    rs = np.random.default_rng([seed, _S_SITE[who]])
-    code_mp = sensors.gm1(rs, K, dt_ep, rx.code_mp_tau_s, rx.code_mp_m, S)
-    car_mp = sensors.gm1(rs, K, dt_ep, rx.carrier_mp_tau_s, rx.carrier_mp_m, S)
-    code_n = rs.standard_normal((K, S)) * rx.code_noise_m
-    car_n = rs.standard_normal((K, S)) * rx.carrier_noise_m
-    dop_n = rs.standard_normal((K, S)) * rx.doppler_noise_mps / LAMBDA
-    r_amb = np.random.default_rng([seed, _S_AMB[who]])
+    def __init__(self, scn: Scenario, seed: int, who: str, atmo: _Atmosphere, ephs: list[GpsEphemeris]):
+        self.scn, self.who, self.atmo, self.ephs = scn, who, atmo, ephs
+        self.rover = rover = who == "rover"
+        rx = self.rx = scn.rover_rx if rover else scn.base_rx
+        clk_model = scn.rover_clock if rover else scn.base_clock
+        dt_ep = 1.0 / scn.gnss_rate_hz
+        t_end = scn.t0_gps + scn.duration_s
+        k0 = math.ceil(scn.t0_gps / dt_ep)
+        k1 = math.floor(t_end / dt_ep)
+        self.T_rx = T_rx = np.arange(k0, k1 + 1) * dt_ep          # receiver time tags (integer seconds)
+        K, S = len(T_rx), len(ephs)
 
-    errs = {c: np.full((K, S), np.nan) for c in _COMPONENTS}
-    keep = np.ones(K, bool)
-    if rover:
-        for a, z in scn.rover_outages:
-            keep &= ~((t_true >= a) & (t_true < z))
-    slips = sorted(scn.cycle_slips) if rover else []
-    slip_used = [False] * len(slips)
+        self.b, self.d = sensors.clock_process(
+            np.random.default_rng([seed, _S_CLK_ROVER if rover else _S_CLK_BASE]), clk_model, K, dt_ep)
+        self.t_true = T_rx - self.b / C
 
-    def antenna(t):
-        if not rover:
-            return scn.base_r_e
-        r, _, Cbe = _truth_at(scn, tr, t)
-        return r + Cbe @ lever_b
+        rs = np.random.default_rng([seed, _S_SITE[who]])
+        self.code_mp = sensors.gm1(rs, K, dt_ep, rx.code_mp_tau_s, rx.code_mp_m, S)
+        self.car_mp = sensors.gm1(rs, K, dt_ep, rx.carrier_mp_tau_s, rx.carrier_mp_m, S)
+        self.code_n = rs.standard_normal((K, S)) * rx.code_noise_m
+        self.car_n = rs.standard_normal((K, S)) * rx.carrier_noise_m
+        self.dop_n = rs.standard_normal((K, S)) * rx.doppler_noise_mps / LAMBDA
+        self.r_amb = np.random.default_rng([seed, _S_AMB[who]])
 
-    def phase_range(eph, t, r_ant, tau_guess, iters, slow, i):
+        self.errs = {c: np.full((K, S), np.nan) for c in _COMPONENTS}
+        self.keep = np.ones(K, bool)
+        if rover:
+            for a, z in scn.rover_outages:
+                self.keep &= ~((self.t_true >= a) & (self.t_true < z))
+        self.slips = sorted(scn.cycle_slips) if rover else []
+        self.slip_used = [False] * len(self.slips)
+        self.amb: dict[str, int] = {}
+        self.lock_start: dict[str, float] = {}
+        self.last_seen: dict[str, int] = {}
+        self.first_epoch = True
+
+    def _phase_range(self, eph, t, r_ant, tau_guess, iters, slow, i):
         """Noise-free carrier-phase range terms except the receiver clock (m) and its parts."""
         rho, tau, r_s, v_s, clk, _ = light_time_range(eph, t, r_ant, tau_guess, iters)
         el, az = elevation_azimuth(r_ant, r_s)
-        comp = atmo.components(eph.sat, slow, i, t, rover, r_ant, el, az, r_s, v_s)
+        comp = self.atmo.components(eph.sat, slow, i, t, self.rover, r_ant, el, az, r_s, v_s)
         brdc = C * (clk - eph.tgd_s)
         phi = (rho - brdc + comp["sat_clock_err_m"] + comp["sa_m"] - comp["iono_m"]
                + comp["tropo_m"] + comp["orbit_m"])
         return phi, rho, tau, el, az, brdc, comp
 
-    epochs: list[GnssEpoch] = []
-    amb = {}
-    lock_start = {}
-    last_seen = {}
-    first_epoch = True
-    h = DOPPLER_STEP_S
-    for k in range(K):
-        if not keep[k]:
-            continue
-        t = float(t_true[k])
+    def epoch(self, k: int, antenna=None) -> GnssEpoch | None:
+        """Epoch ``k`` of the grid (None in a rover outage)."""
+        if not self.keep[k]:
+            return None
+        scn, rx, T_rx, b, d = self.scn, self.rx, self.T_rx, self.b, self.d
+        if not self.rover:
+            def antenna(_t):
+                return scn.base_r_e
+        h = DOPPLER_STEP_S
+        t = float(self.t_true[k])
         r_c = antenna(t)
         r_m, r_p = antenna(t - h), antenna(t + h)
-        slow = atmo.slow_at(np.array([t - h, t, t + h]) - scn.t0_gps)
+        slow = self.atmo.slow_at(np.array([t - h, t, t + h]) - scn.t0_gps)
+        amb, lock_start, last_seen, slips, e = self.amb, self.lock_start, self.last_seen, self.slips, self.errs
         obs = []
-        for j, eph in enumerate(ephs):
-            phi, rho, tau, el, az, brdc, comp = phase_range(eph, t, r_c, 0.075, 3, slow, 1)
+        for j, eph in enumerate(self.ephs):
+            phi, rho, tau, el, az, brdc, comp = self._phase_range(eph, t, r_c, 0.075, 3, slow, 1)
             if el < math.radians(scn.mask_deg):
                 continue
-            phi_m = phase_range(eph, t - h, r_m, tau, 2, slow, 0)[0]
-            phi_p = phase_range(eph, t + h, r_p, tau, 2, slow, 2)[0]
+            phi_m = self._phase_range(eph, t - h, r_m, tau, 2, slow, 0)[0]
+            phi_p = self._phase_range(eph, t + h, r_p, tau, 2, slow, 2)[0]
             rate = (phi_p - phi_m) / (2.0 * h) + d[k]
             sat = eph.sat
             lol = False
@@ -299,44 +309,57 @@ def _receiver(scn: Scenario, seed: int, who: str, tr: Truth, atmo: _Atmosphere,
             if prev is None or prev != k - 1:     # not tracked at the previous epoch
                 if sat in amb:
                     lol = True                 # re-acquisition after a gap: new ambiguity
-                amb[sat] = int(r_amb.integers(-2 ** 20, 2 ** 20 + 1))
+                amb[sat] = int(self.r_amb.integers(-2 ** 20, 2 ** 20 + 1))
                 lock_start[sat] = T_rx[k]
             for i, (ts, ss, cyc) in enumerate(slips):
-                if not slip_used[i] and ss == sat and ts <= T_rx[k]:
-                    slip_used[i] = True
+                if not self.slip_used[i] and ss == sat and ts <= T_rx[k]:
+                    self.slip_used[i] = True
                     amb[sat] += int(cyc)
                     lock_start[sat] = T_rx[k]
                     lol = True
             last_seen[sat] = k
             f_el = float(sensors.elevation_factor(el, rx.el_scaling))
-            mp_c, n_c = code_mp[k, j] * f_el, code_n[k, j] * f_el
-            mp_p, n_p = car_mp[k, j] * f_el, car_n[k, j] * f_el
+            mp_c, n_c = self.code_mp[k, j] * f_el, self.code_n[k, j] * f_el
+            mp_p, n_p = self.car_mp[k, j] * f_el, self.car_n[k, j] * f_el
             common = rho + b[k] - brdc + comp["sat_clock_err_m"] + comp["sa_m"] + comp["tropo_m"] \
                 + comp["orbit_m"]
             pr = common + comp["iono_m"] + mp_c + n_c
             cp = (common - comp["iono_m"] + mp_p + n_p) / LAMBDA + amb[sat]
-            dop = -rate / LAMBDA + dop_n[k, j]
+            dop = -rate / LAMBDA + self.dop_n[k, j]
             obs.append(SatObservation(sat=sat, pseudorange_m=float(pr), carrier_cycles=float(cp),
                                       doppler_hz=float(dop),
                                       cn0_dbhz=float(sensors.cn0_dbhz(el)),
                                       lock_time_s=float(T_rx[k] - lock_start[sat]),
-                                      loss_of_lock=lol and not first_epoch))
-            e = errs
+                                      loss_of_lock=lol and not self.first_epoch))
             e["geometric_m"][k, j] = rho
             e["sat_clock_brdc_m"][k, j] = brdc
             for c in ("iono_m", "tropo_m", "orbit_m", "sat_clock_err_m", "sa_m"):
                 e[c][k, j] = comp[c]
             e["code_mp_m"][k, j], e["code_noise_m"][k, j] = mp_c, n_c
             e["carrier_mp_m"][k, j], e["carrier_noise_m"][k, j] = mp_p, n_p
-            e["doppler_noise_hz"][k, j] = dop_n[k, j]
+            e["doppler_noise_hz"][k, j] = self.dop_n[k, j]
             e["range_rate_mps"][k, j] = rate
             e["elevation_rad"][k, j], e["azimuth_rad"][k, j] = el, az
             e["ambiguity_cycles"][k, j] = amb[sat]
-        first_epoch = False
-        epochs.append(GnssEpoch(t_gps=float(T_rx[k]), observations=tuple(obs), source=who))
-    errs.update({"sats": sats, "t_rx_gps": T_rx, "t_gps": t_true, "emitted": keep,
-                 "rx_clock_m": b, "rx_clock_drift_mps": d})
-    return epochs, errs
+        self.first_epoch = False
+        return GnssEpoch(t_gps=float(T_rx[k]), observations=tuple(obs), source=self.who)
+
+    def errors(self) -> dict:
+        """Every error component per epoch and satellite (NaN where not observed), and the clock."""
+        return {**self.errs, "sats": [e.sat for e in self.ephs], "t_rx_gps": self.T_rx, "t_gps": self.t_true,
+                "emitted": self.keep, "rx_clock_m": self.b, "rx_clock_drift_mps": self.d}
+
+
+def _receiver(scn: Scenario, seed: int, who: str, tr: Truth, atmo: _Atmosphere,
+              ephs: list[GpsEphemeris], lever_b: np.ndarray):
+    model = ReceiverModel(scn, seed, who, atmo, ephs)
+
+    def antenna(t):
+        r, _, Cbe = _truth_at(scn, tr, t)
+        return r + Cbe @ lever_b
+
+    epochs = [ep for ep in (model.epoch(k, antenna) for k in range(len(model.T_rx))) if ep is not None]
+    return epochs, model.errors()
 
 
 def simulate(scenario: Scenario, seed: int | None = None) -> SimData:

@@ -173,3 +173,26 @@ def test_arducopter_sitl_arms_hovers_and_flies_a_leg_on_our_estimate(tmp_path):
     assert r["rms_h_m"] < 0.6 and r["max_error_h_m"] < 1.5
     assert r["ekf_rms_h_m"] < 0.8
     assert r["companion_exit_code"] == 0
+
+
+@pytest.mark.slow
+def test_arducopter_sitl_flies_on_tightly_coupled_raw_gnss(tmp_path):
+    """Short variant of ``python -m sitl ardupilot --gnss raw``: our receiver on SITL's truth (UBX
+    on a pseudo-terminal) and base station (RTCM through the NTRIP caster), 40 s on the ground
+    (SFRBX brings every ephemeris within 36 s of the first epoch), one 10-m leg at 5 m (~80 s)."""
+    problem = binary_problem(find_binary())
+    if problem:
+        pytest.skip(problem)
+    from sitl.ardupilot import run
+    r = run(duration_s=40.0, output="vision", out_dir=str(tmp_path), side_m=10.0, legs=1, alt_m=5.0, gnss="raw")
+    assert r["armed"] and r["box_completed"] and r["ext_nav_used"], r.get("statustext")
+    assert r["failsafes"] == []
+    assert r["companion_mode_flight"] == {"tight": 1.0}     # CC_MODE: tightly coupled all the flight
+    h = r["companion_health"]
+    assert h["ubx"]["rawx"] > 30 and h["ubx"]["ephemerides"] >= 6 and h["rtcm"]["msm4"] > 30
+    assert h["engine"]["tdcp base-corrected epochs"] > 0 and h["engine"]["pseudorange used"] > 0
+    assert h["filter"]["reset_counter"] == 1                # never re-initialised
+    rx = r["gnss_receiver"]
+    assert rx["receiver"]["rover_epochs_without_truth"] == 0 and rx["truth"]["paired"] > 1000
+    assert r["rms_h_m"] < 0.5 and r["ekf_rms_h_m"] < 0.6
+    assert r["companion_exit_code"] == 0 and r["gnss_receiver_exit_code"] == 0

@@ -1,0 +1,100 @@
+"""RTCM 3 MSM4 (GPS: message 1074) from a simulated base epoch, RTCM 10403.3 3.5.12.
+
+MSM4 is what a u-blox base sends by default (with 1005): pseudorange, carrier phase range, lock
+time and C/N0 per satellite and signal, no Doppler.  Written with :class:`sitl.caster.BitWriter`
+(pyrtcm only parses) and cross-checked by decoding it back with pyrtcm and with the companion's
+:class:`companion.io.rtcm.RtcmDecoder` (tests):
+
+* header: DF002, DF003, DF004 (GPS ms of week), DF393 (multiple message: 0, one system), DF409
+  IODS 0, 7 reserved bits, DF411 clock steering 1 (the simulated receivers steer their clocks),
+  DF412 0, DF417 0, DF418 0, DF394 satellite mask, DF395 signal mask (GPS L1 C/A = signal 2),
+  DF396 cell mask (all 1: every satellite has its one signal);
+* satellite data: DF397 rough range in whole milliseconds, DF398 its 1/1024 ms part (the
+  pseudorange rounded to 2^-10 ms);
+* signal data: DF400 fine pseudorange (2^-24 ms, 1.8 cm), DF401 fine phase range (2^-29 ms,
+  0.56 mm), DF402 lock time indicator, DF420 half-cycle ambiguity 0, DF403 C/N0 (1 dB-Hz).
+
+The carrier is referenced to the rough range with :class:`sitl.caster.CarrierReference`: DF401
+spans +-2^-8 ms (+-1171 m), so its integer cycles are chosen at the first epoch of a lock and
+kept; when the code-carrier divergence runs out of that range the lock time restarts at 0 (the
+decoder then sees the new reference as a new lock, as it must).
+"""
+from __future__ import annotations
+
+import math
+
+from companion.io.rtcm import lock_time_df402
+from companion.messages import SECONDS_PER_WEEK, GnssEpoch
+
+from .caster import LIGHT_MS_M, BitWriter, CarrierReference, frame
+
+GPS_L1CA_SIGNAL_ID = 2
+FINE_PR_LSB_MS = 2.0 ** -24
+FINE_PH_LSB_MS = 2.0 ** -29
+ROUGH_LSB_MS = 2.0 ** -10
+
+
+def lock_indicator_df402(lock_s: float) -> int:
+    """Largest DF402 indicator whose minimum lock time does not exceed ``lock_s``."""
+    if not math.isfinite(lock_s) or lock_s <= 0:
+        return 0
+    return max((i for i in range(16) if lock_time_df402(i) <= lock_s), default=0)
+
+
+class Msm4Encoder:
+    """Stateful GPS MSM4 (1074) encoder: keeps each satellite's carrier reference while locked."""
+
+    def __init__(self, station_id: int):
+        self.station_id = station_id
+        self._carrier = CarrierReference(limit_m=2.0 ** -8 * LIGHT_MS_M * 0.999)
+        self._lock_restart: dict[str, float] = {}      # sat -> its lock time when the reference was last taken
+
+    def encode(self, epoch: GnssEpoch) -> bytes:
+        obs = sorted((o for o in epoch.observations if o.sat.startswith("G") and o.signal == "L1C"
+                      and math.isfinite(o.pseudorange_m) and 1 <= int(o.sat[1:]) <= 32),
+                     key=lambda o: int(o.sat[1:]))
+        week = int(epoch.t_gps // SECONDS_PER_WEEK)
+        tow_ms = round((epoch.t_gps - week * SECONDS_PER_WEEK) * 1000.0)
+        w = BitWriter()
+        w.u(12, 1074).u(12, self.station_id).u(30, tow_ms).u(1, 0).u(3, 0).u(7, 0).u(2, 1).u(2, 0).u(1, 0).u(3, 0)
+        sat_mask = sum(1 << (64 - int(o.sat[1:])) for o in obs)
+        w.u(64, sat_mask).u(32, 1 << (32 - GPS_L1CA_SIGNAL_ID))
+        w.u(len(obs), (1 << len(obs)) - 1)                # one signal per satellite: every cell
+        rough, cells = [], []
+        seen = set()
+        for o in obs:
+            r_ms = round(o.pseudorange_m / LIGHT_MS_M / ROUGH_LSB_MS) * ROUGH_LSB_MS
+            rough.append(r_ms)
+            fine_pr = round((o.pseudorange_m / LIGHT_MS_M - r_ms) / FINE_PR_LSB_MS)
+            fine_ph, lock = -(1 << 21), 0.0               # DF401 "invalid"
+            if math.isfinite(o.carrier_cycles):
+                k, why = self._carrier.reference(o, r_ms * LIGHT_MS_M)
+                lock = o.lock_time_s if math.isfinite(o.lock_time_s) else 0.0
+                if why is not None:               # "range": re-referenced inside a lock, reported as a new lock
+                    self._lock_restart[o.sat] = lock if why == "range" else 0.0
+                lock -= self._lock_restart[o.sat]
+                fine_ph = round(((o.carrier_cycles - k) * o.wavelength_m / LIGHT_MS_M - r_ms) / FINE_PH_LSB_MS)
+                seen.add(o.sat)
+            cnr = o.cn0_dbhz if math.isfinite(o.cn0_dbhz) else 0.0
+            cells.append((fine_pr, fine_ph, lock_indicator_df402(lock), max(0, min(63, round(cnr)))))
+        self._carrier.forget(seen)
+        for sat in [s for s in self._lock_restart if s not in seen]:
+            del self._lock_restart[sat]
+        for r_ms in rough:
+            w.u(8, int(r_ms))
+        for r_ms in rough:
+            w.u(10, round((r_ms - int(r_ms)) / ROUGH_LSB_MS))
+        for c in cells:
+            w.s(15, c[0])
+        for c in cells:
+            w.s(22, c[1])
+        for c in cells:
+            w.u(4, c[2])
+        for _ in cells:
+            w.u(1, 0)
+        for c in cells:
+            w.u(6, c[3])
+        return frame(w.to_bytes())
+
+
+__all__ = ["Msm4Encoder", "lock_indicator_df402"]
