@@ -618,11 +618,17 @@ class NavEngine:
                     t_prev = max(p.t_gps for p in self._phase.values())
                     corr = self._base_tdcp_corrections(t_prev, epoch.t_gps) or None
                     self.counters["tdcp base-corrected epochs" if corr else "tdcp uncorrected epochs"] += 1
-                batches.append(tdcp_batch(ins, prep, self._phase, self.lever_arm_b, cfg.sigma_phase_m,
-                                          cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s,
-                                          phase_correction_m=corr,
-                                          elevation_scaling=cfg.sigma_phase_elevation_scaling,
-                                          specific_force_e=self._mean_specific_force_e(ins)))
+                tdcp = tdcp_batch(ins, prep, self._phase, self.lever_arm_b, cfg.sigma_phase_m,
+                                  cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s,
+                                  phase_correction_m=corr,
+                                  elevation_scaling=cfg.sigma_phase_elevation_scaling,
+                                  specific_force_e=self._mean_specific_force_e(ins))
+                if len(tdcp) and float(ins.v_e @ ins.v_e) < cfg.zupt_max_speed_mps ** 2:
+                    # at rest the dt_imu column is the INS's own velocity-error growth along the
+                    # line of sight: the offset is unobservable, and it walked 0 -> -0.30 s in 390 s
+                    # at rest on ArduCopter SITL (then "diverged" on its prior)
+                    tdcp.H[:, LAYOUT.toff] = 0.0
+                batches.append(tdcp)
         batches = [b for b in batches if len(b)]
         if cfg.measurement_form == "single_difference" and batches and len(prep.sats):
             # reference: the highest satellite that every GNSS batch contains
