@@ -477,3 +477,25 @@ def test_serial_control_tunnel_round_trip_real_ubx():
             await link.close()
 
     asyncio.run(asyncio.wait_for(main(), 60))
+
+
+def test_timesync_offset_follows_a_drifting_autopilot_clock():
+    """PX4 SITL's lockstep boot clock runs ~1.3 % slower than ours: the lowest-RTT exchange of
+    the window may be 15 s old, i.e. 0.2 s off, and PX4 resets its synchroniser after answers
+    more than 0.1 s from its estimate.  Fed TIMESYNC replies directly (the exchange's arithmetic;
+    the socket path is covered above), the offset is carried at the drift rate."""
+    from types import SimpleNamespace
+    from companion.io.mavlink import MavlinkLink
+    link = MavlinkLink("udpin:127.0.0.1:0")
+    link.send = lambda msg: True
+    rate = -0.013
+    boot_ns = lambda t_ns: int(5e9 + (1.0 + rate) * t_ns)        # the autopilot's clock
+    rtts = [8_000_000] * 20 + [1_000_000] + [8_000_000] * 15      # the window's best is its oldest
+    t = 10_000_000_000
+    for k, rtt in enumerate(rtts):
+        link._ts_sent[k + 1] = t
+        mid = t + rtt // 2
+        link._on_timesync(SimpleNamespace(tc1=boot_ns(mid), ts1=k + 1), t + rtt)
+        t += 1_000_000_000
+    err_ms = abs(link.mono_to_boot_us(t) * 1000 - boot_ns(t)) / 1e6
+    assert err_ms < 5.0, err_ms

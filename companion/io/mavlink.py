@@ -710,6 +710,19 @@ class _PendingInterval:
     result: int | None = None
 
 
+def _offset_rate(samples, max_rate: float = 0.05) -> float:
+    """Least-squares slope of the TIMESYNC offsets against our time (>= 3 samples over >= 2 s),
+    clamped to +-``max_rate``; 0 otherwise."""
+    if len(samples) < 3 or samples[-1][2] - samples[0][2] < 2_000_000_000:
+        return 0.0
+    n = len(samples)
+    mt = sum(s[2] for s in samples) / n
+    mo = sum(s[1] for s in samples) / n
+    stt = sum((s[2] - mt) ** 2 for s in samples)
+    slope = sum((s[2] - mt) * (s[1] - mo) for s in samples) / stt
+    return min(max(slope, -max_rate), max_rate)
+
+
 class MavlinkLink:
     """Asyncio MAVLink link to one autopilot.
 
@@ -789,7 +802,9 @@ class MavlinkLink:
         self.autopilot_autopilot: int | None = None
         self.timesync_rtt_ns: int | None = None
         self.timesync_offset_ns: int | None = None
-        self._ts_samples: deque = deque(maxlen=16)
+        self._ts_samples: deque = deque(maxlen=16)     # (rtt, offset, our mid-point time), ns
+        self._ts_rate = 0.0                             # d(offset)/d(our time)
+        self._ts_best = (0, 0, 0)
         self._ts_sent: dict[int, int] = {}
         self._queue: asyncio.Queue | None = None
         self._queue_size = queue_size
@@ -980,7 +995,7 @@ class MavlinkLink:
 
     def _on_timesync(self, msg, t_ns: int) -> None:
         if msg.tc1 == 0:
-            ours_ns = t_ns if self.timesync_offset_ns is None else t_ns + self.timesync_offset_ns
+            ours_ns = t_ns if self.timesync_offset_ns is None else t_ns + self._timesync_offset_at(t_ns)
             reply = _ENC.timesync_encode(ours_ns, msg.ts1)
             if hasattr(reply, "target_system"):
                 reply.target_system = msg.get_srcSystem()
@@ -995,15 +1010,25 @@ class MavlinkLink:
         self.counters["timesync_replies"] += 1
         # autopilot time tc1 (ns since its boot) corresponds to our mid-point
         offset = int(msg.tc1) - (sent + rtt // 2)
-        self._ts_samples.append((rtt, offset))
-        best = min(self._ts_samples)
-        self.timesync_rtt_ns, self.timesync_offset_ns = rtt, best[1]
+        self._ts_samples.append((rtt, offset, sent + rtt // 2))
+        self._ts_rate = _offset_rate(self._ts_samples)
+        self._ts_best = min(self._ts_samples)
+        self.timesync_rtt_ns = rtt
+        self.timesync_offset_ns = self._timesync_offset_at(t_ns)
+
+    def _timesync_offset_at(self, t_ns: int) -> int:
+        """The lowest-RTT offset of the window, carried to ``t_ns`` at the offset's drift rate: PX4
+        SITL's lockstep boot clock runs ~1.3 % slow, so a 16-s-old best sample is 0.2 s off, and
+        PX4 resets its time synchroniser after 5 answers more than 0.1 s from its estimate ("time
+        jump detected"), converting our estimates' stamps wrongly meanwhile (EKF2 lost our vision)."""
+        _, off, t_ref = self._ts_best
+        return int(off + self._ts_rate * (t_ns - t_ref))
 
     def mono_to_boot_us(self, t_mono_ns: int) -> int | None:
         """Our monotonic time -> autopilot boot time (us), from TIMESYNC; None before a reply."""
         if self.timesync_offset_ns is None:
             return None
-        return (t_mono_ns + self.timesync_offset_ns) // 1000
+        return (t_mono_ns + self._timesync_offset_at(t_mono_ns)) // 1000
 
     def _on_command_ack(self, msg) -> None:
         if msg.command != m.MAV_CMD_SET_MESSAGE_INTERVAL:
