@@ -78,14 +78,34 @@ class GnssEpoch:
     source: str = "rover"             # 'rover' or 'base'
 
 
+#: system time minus GPS time is constant per system: t_gps = t_system + SYSTEM_TO_GPS_S[letter];
+#: BeiDou time (BDT) started at 2006-01-01 00:00:00 UTC, 14 s behind GPS time; Galileo system
+#: time (GST) and QZSS time are steered to GPS time (their few-ns offsets are below code noise)
+SYSTEM_TO_GPS_S = {"G": 0.0, "E": 0.0, "J": 0.0, "C": 14.0}
+#: the system's week 0 in GPS weeks (GST week 0 = GPS week 1024, BDT week 0 = GPS week 1356)
+SYSTEM_WEEK_TO_GPS_WEEK = {"G": 0, "E": 1024, "J": 0, "C": 1356}
+
+
 @dataclass(frozen=True, slots=True)
 class GpsEphemeris:
-    """GPS LNAV broadcast ephemeris and clock (IS-GPS-200 20.3.3).  Angles in radians (not semicircles)."""
+    """Keplerian broadcast ephemeris and clock of one GPS, Galileo, BeiDou or QZSS satellite
+    (IS-GPS-200 20.3.3, Galileo OS SIS ICD 5.1, BeiDou ICD B1I 5.2.4, IS-QZSS-PNT).  Angles in
+    radians (not semicircles).  ``BroadcastEphemeris`` is the same class.
 
-    sat: str              # 'G05'
-    week: int             # full GPS week of toe (no 1024 roll-over)
-    toe_s: float          # time of ephemeris, s of week
-    toc_s: float          # time of clock, s of week
+    Times of week are in the satellite's **own system time** (BDT for BeiDou): the orbit's
+    longitude of the node uses them.  ``week`` is counted in **GPS weeks** (a decoder adds
+    ``SYSTEM_WEEK_TO_GPS_WEEK``), so ``t_oe_gps`` / ``t_oc_gps`` are continuous GPS seconds.
+
+    Group delays: ``tgd_s`` is what a single-frequency user of the system's primary signal
+    subtracts (GPS/QZSS TGD for L1 C/A; Galileo BGD(E1,E5b) of I/NAV or BGD(E1,E5a) of F/NAV for
+    E1; BeiDou TGD1 for B1I, its clock referring to B3I); ``tgd2_s`` is BeiDou TGD2 (B2I) or the
+    Galileo BGD(E1,E5b) when ``tgd_s`` came from F/NAV, else 0.  ``iode``: GPS/QZSS IODE, Galileo
+    IODnav, BeiDou AODE (the same value from every source, so base and rover match)."""
+
+    sat: str              # 'G05', 'E11', 'C30', 'J02'
+    week: int             # week of toe in GPS weeks (no roll-over)
+    toe_s: float          # time of ephemeris, s of the system's week
+    toc_s: float          # time of clock, s of the system's week
     sqrt_a: float         # sqrt(m)
     e: float
     i0_rad: float
@@ -111,13 +131,22 @@ class GpsEphemeris:
     ura_m: float = 2.0
     fit_interval_h: float = 4.0
 
+    tgd2_s: float = 0.0
+
+    @property
+    def system(self) -> str:
+        return self.sat[0]
+
     @property
     def t_oe_gps(self) -> float:
-        return self.week * SECONDS_PER_WEEK + self.toe_s
+        return self.week * SECONDS_PER_WEEK + self.toe_s + SYSTEM_TO_GPS_S.get(self.sat[0], 0.0)
 
     @property
     def t_oc_gps(self) -> float:
-        return self.week * SECONDS_PER_WEEK + self.toc_s
+        return self.week * SECONDS_PER_WEEK + self.toc_s + SYSTEM_TO_GPS_S.get(self.sat[0], 0.0)
+
+
+BroadcastEphemeris = GpsEphemeris
 
 
 @dataclass(frozen=True, slots=True, eq=False)

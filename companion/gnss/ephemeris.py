@@ -1,4 +1,9 @@
-"""GPS broadcast ephemeris (IS-GPS-200 20.3.3.4.3): satellite position, velocity and clock.
+"""Keplerian broadcast ephemerides (GPS IS-GPS-200 20.3.3.4.3, Galileo OS SIS ICD 5.1.1, BeiDou
+B1I ICD 5.2.4.12, QZSS IS-QZSS-PNT): satellite position, velocity and clock.
+
+Each system has its own gravitational constant and earth rotation rate in the orbit equations
+(RTKLIB's eph2pos does the same); BeiDou GEO satellites (C01-C05, C59-C63) have their node computed
+in an inertial frame and rotated by -5 deg about x, then by the earth rotation since toe.
 
 All times are continuous GPS seconds (see :mod:`companion.messages`).  Positions are ECEF (WGS-84)
 at the given transmit time, in the ECEF frame *of that same instant*; rotating them into the
@@ -16,6 +21,22 @@ from ..nav.earth import GM_M3PS2, OMEGA_IE_RADPS
 
 # Relativistic clock term constant F = -2 sqrt(mu) / c^2  (IS-GPS-200 20.3.3.3.3.1)
 REL_F = -4.442807633e-10
+# (GM m^3/s^2, earth rotation rad/s) of each system's orbit equations
+_GM_OMEGA = {
+    "G": (GM_M3PS2, OMEGA_IE_RADPS),
+    "J": (GM_M3PS2, OMEGA_IE_RADPS),
+    "E": (3.986004418e14, 7.2921151467e-5),
+    "C": (3.986004418e14, 7.292115e-5),        # CGCS2000
+}
+_BDS_GEO_TILT_RAD = math.radians(-5.0)
+
+
+def is_beidou_geo(sat: str) -> bool:
+    """BeiDou GEO satellites: PRN 1-5 (BDS-2) and 59-63 (BDS-3)."""
+    if sat[0] != "C":
+        return False
+    prn = int(sat[1:])
+    return prn <= 5 or 59 <= prn <= 63
 
 
 def _wrap_week(dt_s: float) -> float:
@@ -41,7 +62,8 @@ def satellite_clock(eph: GpsEphemeris, t_gps: float, e_anomaly_rad: float | None
 
 def _eccentric_anomaly(eph: GpsEphemeris, tk: float) -> tuple[float, float]:
     a = eph.sqrt_a * eph.sqrt_a
-    n = math.sqrt(GM_M3PS2 / (a * a * a)) + eph.delta_n_radps
+    gm = _GM_OMEGA.get(eph.sat[0], _GM_OMEGA["G"])[0]
+    n = math.sqrt(gm / (a * a * a)) + eph.delta_n_radps
     m = eph.m0_rad + n * tk
     e_anom = m
     for _ in range(30):
@@ -61,6 +83,7 @@ def satellite_state(eph: GpsEphemeris, t_gps: float):
     tk = _wrap_week(t_gps - eph.t_oe_gps)
     a = eph.sqrt_a * eph.sqrt_a
     e = eph.e
+    omega_e = _GM_OMEGA.get(eph.sat[0], _GM_OMEGA["G"])[1]
     e_anom, n = _eccentric_anomaly(eph, tk)
     sin_e, cos_e = math.sin(e_anom), math.cos(e_anom)
     one_m_ecos = 1.0 - e * cos_e
@@ -82,8 +105,13 @@ def satellite_state(eph: GpsEphemeris, t_gps: float):
     x_orb, y_orb = r * math.cos(u), r * math.sin(u)
     x_orb_dot = r_dot * math.cos(u) - y_orb * u_dot
     y_orb_dot = r_dot * math.sin(u) + x_orb * u_dot
-    omega = eph.omega0_rad + (eph.omega_dot_radps - OMEGA_IE_RADPS) * tk - OMEGA_IE_RADPS * eph.toe_s
-    omega_dot = eph.omega_dot_radps - OMEGA_IE_RADPS
+    geo = is_beidou_geo(eph.sat)
+    if geo:   # node in the inertial frame of toe; the earth rotation is applied after the tilt
+        omega = eph.omega0_rad + eph.omega_dot_radps * tk - omega_e * eph.toe_s
+        omega_dot = eph.omega_dot_radps
+    else:
+        omega = eph.omega0_rad + (eph.omega_dot_radps - omega_e) * tk - omega_e * eph.toe_s
+        omega_dot = eph.omega_dot_radps - omega_e
     so, co = math.sin(omega), math.cos(omega)
     si, ci = math.sin(i), math.cos(i)
     x = x_orb * co - y_orb * ci * so
@@ -92,10 +120,27 @@ def satellite_state(eph: GpsEphemeris, t_gps: float):
     vx = x_orb_dot * co - y_orb_dot * ci * so + y_orb * si * so * i_dot - y * omega_dot
     vy = x_orb_dot * so + y_orb_dot * ci * co - y_orb * si * co * i_dot + x * omega_dot
     vz = y_orb_dot * si + y_orb * ci * i_dot
+    r_e, v_e = np.array([x, y, z]), np.array([vx, vy, vz])
+    if geo:
+        r_e, v_e = _beidou_geo_to_ecef(r_e, v_e, omega_e * tk, omega_e)
     bias, drift = satellite_clock(eph, t_gps, e_anom)
     # derivative of the relativistic term, for a consistent drift
     drift += REL_F * e * eph.sqrt_a * cos_e * e_dot
-    return np.array([x, y, z]), np.array([vx, vy, vz]), bias, drift
+    return r_e, v_e, bias, drift
+
+
+def _beidou_geo_to_ecef(r_g: np.ndarray, v_g: np.ndarray, angle_rad: float, omega_e: float):
+    """BeiDou GEO: rotate by -5 deg about x, then by the earth's rotation angle about z
+    (B1I ICD table 5-11).  v_g is the inertial-frame derivative; the rotating frame adds
+    -omega_e x r."""
+    ct, st = math.cos(_BDS_GEO_TILT_RAD), math.sin(_BDS_GEO_TILT_RAD)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, ct, st], [0.0, -st, ct]])
+    cz, sz = math.cos(angle_rad), math.sin(angle_rad)
+    rz = np.array([[cz, sz, 0.0], [-sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    rot = rz @ rx
+    r_e = rot @ r_g
+    v_e = rot @ v_g + np.array([omega_e * r_e[1], -omega_e * r_e[0], 0.0])
+    return r_e, v_e
 
 
 def rotate_to_reception_frame(r_e: np.ndarray, v_e: np.ndarray, travel_time_s: float):
