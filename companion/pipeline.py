@@ -116,6 +116,7 @@ RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GP
 ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used to initialise
 BASE_WAIT_S = 0.8             # hold a rover epoch (IMU time) until the base epoch of the same time
                               # arrived (DGPS without extrapolation, base-corrected TDCP), at most this
+GSF_CONFIRM_SIGMA_RAD = math.radians(20.0)   # a yaw from motion this narrow may confirm an ATTITUDE heading
 GSF_AGREE_SIGMAS = 3.0        # our heading and the yaw from motion agree within this x their combined sigma
 GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a row: reset our heading
                               # (the GSF's convergence took several already; at 1 Hz a wrong heading
@@ -653,6 +654,7 @@ class NavPipeline:
         g, eng = self.gsf, self.engine
         if not (eng.initialized and g.converged):
             self._gsf_disagreements = 0
+            self._confirm_attitude_heading()
             return
         heading, sigma = eng.heading_and_sigma()
         unknown = sigma > self.max_sigma_yaw_rad and g.yaw_sigma_rad < sigma     # started without a heading
@@ -694,6 +696,23 @@ class NavPipeline:
             self._heading_from_attitude = False
         self._event(m.MAV_SEVERITY_WARNING, f"heading reset {math.degrees(delta):+.0f} deg onto the yaw from "
                                             f"motion (sigma {math.degrees(g.yaw_sigma_rad):.1f} deg)")
+
+    def _confirm_attitude_heading(self) -> None:
+        """A heading taken from the autopilot's ATTITUDE is confirmed in motion by a yaw from motion
+        that is not converged yet (sigma below GSF_CONFIRM_SIGMA_RAD after one velocity in motion,
+        not 10 deg after two) but agrees with it: two independent sources agreeing.  A 180-deg wrong
+        autopilot heading disagrees with any bank that narrow.  Waiting for convergence withheld
+        the output for 1.3 s at the start of PX4 SIH's first leg (its 0.4-m/s velocity sigma
+        slows the bank down) and EKF2 dropped our position."""
+        g, eng = self.gsf, self.engine
+        if self.heading_confirmed or not (self._heading_from_attitude and self.attitude_yaw_trusted):
+            return
+        if g.n_moving_fusions < 1 or g.yaw_sigma_rad > GSF_CONFIRM_SIGMA_RAD:
+            return
+        heading, sigma = eng.heading_and_sigma()
+        if sigma <= self.max_sigma_yaw_rad and not self._gsf_disagrees(heading, sigma):
+            self.heading_confirmed = True
+            self.counters["heading from ATTITUDE confirmed by the yaw from motion (not yet converged)"] += 1
 
     def _position_gnss_bound(self) -> bool:
         """Over the last integrity window a position source (pseudoranges, GNSS fixes) was fused

@@ -72,14 +72,13 @@ class YawGsfConfig:
     observed_fraction: float = 0.01
     observed_within_s: float = 5.0
     moving_speed_mps: float = 0.5
-    # in motion (heading matters): moving as above, or a horizontal specific force (levelled by the
-    # AHRS, low-passed) above this -- seen at IMU rate, before a 1-Hz GNSS velocity shows the speed --
-    # and above accelerating_noise_sigmas of the low-passed accelerometer noise and vibration as
-    # measured (PX4 SIH at rest: 1.2 m/s^2 per 125-Hz sample, up to 0.42 m/s^2 after the low-pass,
-    # which a fixed 0.3 took for motion 164 times in 20 s)
-    accelerating_mps2: float = 0.3
-    accelerating_noise_sigmas: float = 5.0
-    vibration_window_s: float = 5.0         # time constant of the accelerometer scatter estimate
+    # in motion (heading matters) is judged on the speed the INS may have reached since the last
+    # GNSS velocity (see in_motion), not on the specific force itself: a hover's wobble and PX4
+    # SIH's IMU noise (1.2 m/s^2 per 125-Hz sample) exceed any useful acceleration threshold
+    # (0.3 m/s^2 flapped 164 times in 20 s at rest; 5 sigma of the measured scatter still took a
+    # vertical take-off for motion and withheld 1.3 s of output, EKF2 lost our position) while
+    # their velocity change between two GNSS velocities stays centimetres per second
+    motion_start_dv_mps: float = 0.25       # half of moving_speed_mps: a start from rest shows before the speed does
     # a complementary filter carries no covariance: the 1-sigma tilt error stated for it (MEMS IMU,
     # 5-s correction time constant; the tests measure < 1 deg on a multirotor and a car)
     tilt_sigma_rad: float = math.radians(2.0)
@@ -128,13 +127,7 @@ class YawGsf:
         self.t_last_vel = -math.inf
         self.moving = False                  # the last GNSS velocity showed horizontal motion
         self.t_yaw_observed = -math.inf      # last fusion that shrank the yaw variance
-        self.horizontal_accel_mps2 = 0.0     # |horizontal specific force| in the AHRS's level frame
-        self.f_scatter_var_b = np.zeros(3)   # variance of the specific force about its low-pass (body)
-        self.w_lp_b = np.zeros(3)            # low-passed rate and the variance about it (body)
-        self.w_scatter_var_b = np.zeros(3)
-        self._step_dt = 0.0
-        self._lp_var_gain = 0.0              # low-passed noise variance / input noise variance
-        self._n_scatter = 0
+        self.dv_since_velocity_n = np.zeros(2)   # horizontal delta velocity since the last GNSS velocity, AHRS level frame
         self._v_hist: deque = deque(maxlen=64)   # (t, v_n, v_e) of the GNSS velocities
         self.kinematic_accel_mps2 = 0.0
         self._acc = [0.0] * 7                # summed dtheta (3), dv (3), dt: plain floats at IMU rate
@@ -198,21 +191,11 @@ class YawGsf:
                 self.aligned = True
             return
         a = dt / (cfg.accel_lowpass_s + dt)
-        r = f_b - self.f_lp_b
-        self._n_scatter += 1                   # a plain mean until the window is full
-        b = max(dt / (cfg.vibration_window_s + dt), 1.0 / self._n_scatter)
-        self.f_scatter_var_b += b * (r * r - self.f_scatter_var_b)
-        self._lp_var_gain = a / (2.0 - a)      # steady-state output/input variance of the low-pass
-        self.f_lp_b += a * r
-        rw = dth / dt - self.w_lp_b
-        self.w_scatter_var_b += b * (rw * rw - self.w_scatter_var_b)
-        self.w_lp_b += a * rw
-        self._step_dt = dt
+        self.f_lp_b += a * (f_b - self.f_lp_b)
         C0 = self.C_b_n
         yaw0 = math.atan2(C0[1, 0], C0[0, 0])
         # tilt correction: rotate the nav frame so that the measured specific force points up
         f_n = C0 @ self.f_lp_b
-        self.horizontal_accel_mps2 = math.hypot(f_n[0], f_n[1])
         norm = float(np.linalg.norm(f_n))
         w = max(0.0, 1.0 - abs(norm / G0_MPS2 - 1.0) / cfg.accel_norm_tolerance)
         w *= max(0.0, 1.0 - self.kinematic_accel_mps2 / cfg.kinematic_accel_limit_mps2)
@@ -237,6 +220,7 @@ class YawGsf:
             return
         # each model's delta velocity: the shared one turned by the model's yaw offset
         dv_n = C0 @ dv
+        self.dv_since_velocity_n += dv_n[0:2]
         c = self.x[:, 2] - yaw0
         cs, sn = np.cos(c), np.sin(c)
         dvn = cs * dv_n[0] - sn * dv_n[1]
@@ -268,6 +252,7 @@ class YawGsf:
         if not (self.aligned and np.all(np.isfinite(v)) and math.isfinite(sigma_mps) and sigma_mps > 0.0):
             return False
         cfg = self.cfg
+        self.dv_since_velocity_n[:] = 0.0
         self._update_kinematic_accel(t_gps, v, sigma_mps)
         r = sigma_mps ** 2
         if self.vel_initialised and t_gps - self.t_last_vel > cfg.velocity_gap_s:
@@ -370,24 +355,17 @@ class YawGsf:
         return self.settled and self.t_last_vel - self.t_yaw_observed <= self.cfg.observed_within_s
 
     @property
-    def accelerating_threshold_mps2(self) -> float:
-        """Horizontal low-passed specific force that counts as accelerating: the configured floor,
-        or ``accelerating_noise_sigmas`` of what the noise makes of it at rest, as measured: the
-        accelerometer's scatter (vibration can be metres per second squared) after the low-pass,
-        plus g times the AHRS's tilt noise (the gyro's scatter as a random walk the tilt correction
-        holds: variance ARW^2 / (2 tilt_gain)), on the noisier horizontal axis."""
-        C = self.C_b_n
-        C2 = C * C                                        # diag(C diag(var) C^T) = C2 @ var
-        var_f_n = C2 @ self.f_scatter_var_b * self._lp_var_gain
-        var_tilt_n = C2 @ self.w_scatter_var_b * self._step_dt / (2.0 * self.cfg.tilt_gain_per_s)
-        var = max(float(var_f_n[0]), float(var_f_n[1])) + G0_MPS2 ** 2 * max(float(var_tilt_n[0]),
-                                                                               float(var_tilt_n[1]))
-        return max(self.cfg.accelerating_mps2, self.cfg.accelerating_noise_sigmas * math.sqrt(var))
+    def dv_since_velocity_mps(self) -> float:
+        """|horizontal delta velocity| the IMU measured since the last GNSS velocity (any heading)."""
+        d = self.dv_since_velocity_n
+        return math.hypot(float(d[0]), float(d[1]))
 
     @property
     def in_motion(self) -> bool:
-        """Moving or accelerating horizontally: a wrong heading now corrupts an INS."""
-        return self.moving or (self.aligned and self.horizontal_accel_mps2 > self.accelerating_threshold_mps2)
+        """Moving horizontally, or starting to: the IMU measured a horizontal velocity change of
+        ``motion_start_dv_mps`` since the last GNSS velocity (seen at IMU rate, before a 1-Hz GNSS
+        velocity shows the speed).  A wrong heading now corrupts an INS."""
+        return self.moving or (self.vel_initialised and self.dv_since_velocity_mps > self.cfg.motion_start_dv_mps)
 
     @property
     def roll_rad(self) -> float:
