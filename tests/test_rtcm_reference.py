@@ -315,3 +315,31 @@ def test_pseudoranges_fit_the_station_with_every_systems_ephemerides(ours):
     print("code residuals per system (n, max |m|):", spread)
     for sys_, (n, worst) in spread.items():
         assert n >= 6 and worst < 30.0, (sys_, n, worst)
+
+
+@pytest.mark.parametrize("name, path, week, leap, start, bds_shift_s, n_min", [
+    # Emlid Reach (u-blox M8T + RTKLIB): 1002 GPS L1 + MSM7 Galileo/QZSS/BeiDou, SBAS in 1002
+    ("hiroshima 2019", "qzsl6tool-hiroshima-rtcm3-ubx/20190529hiroshima.rtcm", 2055, 18, "2019/05/29", 0.0, 1500),
+    # 2012 pre-standard BeiDou MSM stamped in GPS time: convbin (RTKLIB 2.4.3) files BeiDou 14 s late
+    # and writes no GPS/GLONASS/QZSS of this stream; we adopt the offset after three sets
+    ("GEONET GMSD 2012", "rtklib-testdata-geonet-2005/rcvraw/GMSD7_20121014.rtcm3", 1709, 16, "2012/10/14", 14.0, 12000),
+])
+def test_other_streams_observations_equal_convbin(tmp_path, name, path, week, leap, start, bds_shift_s, n_min):
+    src = DATA_DIR / path
+    obs = tmp_path / "x.obs"
+    subprocess.run(["convbin", "-r", "rtcm3", "-tr", start, "00:00:00", "-v", "3.04", "-od", "-o", str(obs),
+                    str(src)], check=True, capture_output=True, timeout=120)
+    ref, _ = read_rinex3_obs(obs)
+    msgs, dec = decode_rtcm_file(str(src), week_hint=week, leap_seconds=leap)
+    n = 0
+    for ep in (m for m in msgs if isinstance(m, GnssEpoch)):
+        for o in ep.observations:
+            rx = ref.get(ep.t_gps + (bds_shift_s if o.sat[0] == "C" else 0.0), {})
+            for kind, value in (("C", o.pseudorange_m), ("L", o.carrier_cycles), ("D", o.doppler_hz)):
+                key = (o.sat, kind + o.signal[1:])
+                if math.isfinite(value) and key in rx:
+                    tol = 5e-4 + 1e-6 + (abs(value) * 2.0 ** -23 if kind == "D" else 0.0)
+                    assert abs(value - rx[key]) <= tol, (name, ep.t_gps, key, value, rx[key])
+                    n += 1
+    assert n >= n_min, n
+    assert dec.counters.get("system_time_offset_adopted", 0) == (1 if bds_shift_s else 0)

@@ -11,18 +11,24 @@
     antenna height, informational: DF025-027 already are the ARP);
   - :class:`~companion.messages.GnssEpoch` (``source='base'``) from legacy 1004 (GPS L1/L2) and
     from MSM4-MSM7 of GPS (107x), GLONASS (108x), Galileo (109x), SBAS (110x), QZSS (111x),
-    BeiDou (112x) and NavIC (113x).  All MSM messages of one epoch (multiple-message bit
-    DF393) are merged into one GnssEpoch;
-  - :class:`~companion.messages.GpsEphemeris` from 1019 (once per new IODE/toe per satellite).
-  - 1020 (GLONASS ephemeris) is used only for the satellites' FDMA frequency channels.
+    BeiDou (112x) and NavIC (113x), with RINEX 3 signal codes (pyrtcm's tables, RTKLIB's: BeiDou
+    B1I 'L2I', Galileo E1 'L1C', E5a 'L5Q', E5b 'L7Q').  All messages of one epoch are merged into
+    one GnssEpoch by :class:`~companion.io.rtcm_epoch.EpochAssembler` (lost frames, late flushes,
+    whole-second system offsets: see there);
+  - :class:`~companion.messages.GpsEphemeris` from 1019 (GPS), 1044 (QZSS), 1042 (BeiDou) and
+    1045/1046 (Galileo F/NAV, I/NAV; ``galileo_nav`` chooses), once per new issue per satellite
+    (:mod:`companion.io.rtcm_eph`: the field scaling, checked against convbin).
+  - 1020 (GLONASS ephemeris) gives the satellites' FDMA frequency channels and
+    ``glonass_ephemerides`` (held, not emitted: no GLONASS orbits in the navigation yet).
 
 Times: RTCM carries time of week (GPS, Galileo, QZSS, SBAS, NavIC: GPS TOW in ms; BeiDou: BDT =
-GPS - 14 s; GLONASS: day of week + Moscow time of day, converted with ``leap_seconds``).  The full
-week is resolved against ``week_hint``: an int GPS week, or a callable returning the current GPS
-time estimate (e.g. :func:`companion.io.ubx.system_clock_gps_time` for a live link, or the nav
-engine's time).  After the first epoch the decoder tracks its own time, so week roll-overs during a
-session are handled.  Without any hint, observation epochs and ephemerides are dropped and counted
-(``no_time_reference``): a replay must say what week it is.
+GPS - 14 s; GLONASS: day of week + Moscow time of day, converted with ``leap_seconds``; once the
+decoder tracks time the GLONASS day is the one nearest it, the day-of-week field only places the
+first epoch).  The full week is resolved against ``week_hint``: an int GPS week, or a callable
+returning the current GPS time estimate (e.g. :func:`companion.io.ubx.system_clock_gps_time` for a
+live link, or the nav engine's time).  After the first epoch the decoder tracks its own time, so
+week roll-overs during a session are handled.  Without any hint, observation epochs and
+ephemerides are dropped and counted (``no_time_reference``): a replay must say what week it is.
 
 Observation conventions are those of :class:`~companion.messages.SatObservation`: pseudorange and
 carrier (cycles, RINEX sign) from rough + fine ranges; Doppler (MSM5/7) = -range rate / lambda;
@@ -707,6 +713,6 @@ def decode_rtcm_file(path: str, week_hint: WeekHint = None, chunk_size: int = 40
     return out, dec
 
 
-__all__ = ["MAX_FRAME", "known_message_number", "RtcmFramer", "RtcmDecoder", "GpsRtcmDataFragmenter", "rtcm_to_gps_rtcm_data_fragments",
+__all__ = ["MAX_FRAME", "known_message_number", "RtcmFramer", "RtcmDecoder", "GlonassEphemeris", "GpsRtcmDataFragmenter", "rtcm_to_gps_rtcm_data_fragments",
            "crc24q", "frame_message_type", "decode_rtcm_file", "lock_time_df013", "lock_time_df402",
            "lock_time_df407"]
