@@ -203,7 +203,7 @@ def test_fnav_ephemerides_equal_convbin(convbin_files):
     # the two clocks differ (E1/E5a vs E1/E5b), by decimetres once each BGD is applied
     d_m = [abs((e.af0_s - e.tgd_s) - (inav[e.sat].af0_s - inav[e.sat].tgd_s)) * SPEED_OF_LIGHT_MPS
            for e in gal]
-    assert 0.0 < max(d_m) < 3.0
+    assert 0.1 < max(d_m) < 1.0          # 0.19-0.31 m on this stream
 
 
 def test_satellite_positions_from_our_and_convbin_ephemerides_agree_to_a_millimetre(ours, convbin_files):
@@ -224,6 +224,7 @@ def test_satellite_positions_from_our_and_convbin_ephemerides_agree_to_a_millime
             r2, _, b2, _ = satellite_state(ref, t)
             worst = max(worst, float(np.linalg.norm(r1 - r2)), abs(b1 - b2) * SPEED_OF_LIGHT_MPS)
             n += 1
+    print(f"satellite position/clock, ours vs convbin records: {n} cases, worst {worst * 1e3:.2e} mm")
     assert n == 44 * 3 and worst < 1e-3
 
 
