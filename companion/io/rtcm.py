@@ -11,18 +11,24 @@
     antenna height, informational: DF025-027 already are the ARP);
   - :class:`~companion.messages.GnssEpoch` (``source='base'``) from legacy 1004 (GPS L1/L2) and
     from MSM4-MSM7 of GPS (107x), GLONASS (108x), Galileo (109x), SBAS (110x), QZSS (111x),
-    BeiDou (112x) and NavIC (113x).  All MSM messages of one epoch (multiple-message bit
-    DF393) are merged into one GnssEpoch;
-  - :class:`~companion.messages.GpsEphemeris` from 1019 (once per new IODE/toe per satellite).
-  - 1020 (GLONASS ephemeris) is used only for the satellites' FDMA frequency channels.
+    BeiDou (112x) and NavIC (113x), with RINEX 3 signal codes (pyrtcm's tables, RTKLIB's: BeiDou
+    B1I 'L2I', Galileo E1 'L1C', E5a 'L5Q', E5b 'L7Q').  All messages of one epoch are merged into
+    one GnssEpoch by :class:`~companion.io.rtcm_epoch.EpochAssembler` (lost frames, late flushes,
+    whole-second system offsets: see there);
+  - :class:`~companion.messages.GpsEphemeris` from 1019 (GPS), 1044 (QZSS), 1042 (BeiDou) and
+    1045/1046 (Galileo F/NAV, I/NAV; ``galileo_nav`` chooses), once per new issue per satellite
+    (:mod:`companion.io.rtcm_eph`: the field scaling, checked against convbin).
+  - 1020 (GLONASS ephemeris) gives the satellites' FDMA frequency channels and
+    ``glonass_ephemerides`` (held, not emitted: no GLONASS orbits in the navigation yet).
 
 Times: RTCM carries time of week (GPS, Galileo, QZSS, SBAS, NavIC: GPS TOW in ms; BeiDou: BDT =
-GPS - 14 s; GLONASS: day of week + Moscow time of day, converted with ``leap_seconds``).  The full
-week is resolved against ``week_hint``: an int GPS week, or a callable returning the current GPS
-time estimate (e.g. :func:`companion.io.ubx.system_clock_gps_time` for a live link, or the nav
-engine's time).  After the first epoch the decoder tracks its own time, so week roll-overs during a
-session are handled.  Without any hint, observation epochs and ephemerides are dropped and counted
-(``no_time_reference``): a replay must say what week it is.
+GPS - 14 s; GLONASS: day of week + Moscow time of day, converted with ``leap_seconds``; once the
+decoder tracks time the GLONASS day is the one nearest it, the day-of-week field only places the
+first epoch).  The full week is resolved against ``week_hint``: an int GPS week, or a callable
+returning the current GPS time estimate (e.g. :func:`companion.io.ubx.system_clock_gps_time` for a
+live link, or the nav engine's time).  After the first epoch the decoder tracks its own time, so
+week roll-overs during a session are handled.  Without any hint, observation epochs and
+ephemerides are dropped and counted (``no_time_reference``): a replay must say what week it is.
 
 Observation conventions are those of :class:`~companion.messages.SatObservation`: pseudorange and
 carrier (cycles, RINEX sign) from rough + fine ranges; Doppler (MSM5/7) = -range rate / lambda;
@@ -33,16 +39,16 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
 from typing import Union
 
 import numpy as np
 from pyrtcm import RTCMReader
 
-from ..gnss.lnav import URA_M, fit_interval_h
-from ..messages import (SECONDS_PER_WEEK, BaseStationPosition, GnssEpoch, GpsEphemeris,
-                        SatObservation)
+from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GnssEpoch, GpsEphemeris, SatObservation
 from .crc24q import crc24q
+from .rtcm_epoch import EpochAssembler
+from .rtcm_eph import (GALILEO_FNAV, GALILEO_INAV, GlonassEphemeris, beidou_ephemeris, galileo_ephemeris,
+                       glonass_ephemeris, gps_ephemeris, qzss_ephemeris)
 from .ubx import (DEFAULT_LEAP_SECONDS, RateLimitedLog, TimeReference, WeekHint,
                   wavelength_m)
 
@@ -52,7 +58,6 @@ RtcmMessage = Union[GnssEpoch, GpsEphemeris, BaseStationPosition]
 
 PREAMBLE = 0xD3
 MS_TO_M = 299792.458          # light travel in one millisecond, m
-PI_GPS = 3.1415926535898
 
 # --------------------------------------------------------------------------------------------
 # Framing.  The CRC lives in crc24q.py (C speed when anycrc is installed).
@@ -311,34 +316,43 @@ class _TimeReference(TimeReference):
         return super().reference()
 
 
-@dataclass
-class _PendingEpoch:
-    t_gps: float
-    observations: list = field(default_factory=list)
-    more_follow: bool = True
-    systems: set = field(default_factory=set)
-
-
 class RtcmDecoder:
     """Incremental RTCM 3 decoder; see the module docstring.
 
-    ``feed(data)`` frames and decodes; ``decode_frame(frame)`` decodes one already framed message
-    (use this when the same frames are also forwarded).  ``flush()`` returns a pending epoch whose
-    closing message never came (end of file).  ``counters`` merges the framer's and the decoder's.
+    ``feed(data, t_rx_s)`` frames and decodes; ``decode_frame(frame, t_rx_s)`` decodes one already
+    framed message (use this when the same frames are also forwarded).  ``t_rx_s`` (optional: any
+    monotonic receive clock, s) lets an open epoch whose last frames were lost be closed
+    ``rtcm_epoch.TIMEOUT_S`` after its last frame (``poll(t_rx_s)`` does it without data); without
+    it, epochs close on their last frame, on the next epoch's first frame, or on a non-observation
+    frame (see :mod:`companion.io.rtcm_epoch`).  ``flush()`` returns what is open (end of file).
+    ``counters`` merges the framer's and the decoder's.
+
+    ``galileo_nav``: which Galileo navigation message feeds the ephemerides: ``'inav'`` (default:
+    1046, what u-blox SFRBX and E1/E5b receivers use; a 1045 is held until the next observation
+    message and dropped if that satellite's 1046 came meanwhile or ever before, so an F/NAV-only
+    caster still works), ``'fnav'`` (the mirror image) or ``'both'``.  GLONASS 1020 ephemerides are
+    decoded into ``glonass_ephemerides`` (latest per satellite), not emitted.
     """
 
     def __init__(self, week_hint: WeekHint = None, leap_seconds: int = DEFAULT_LEAP_SECONDS,
-                 log_interval_s: float = 10.0):
+                 log_interval_s: float = 10.0, galileo_nav: str = GALILEO_INAV):
+        if galileo_nav not in (GALILEO_INAV, GALILEO_FNAV, "both"):
+            raise ValueError(f"galileo_nav must be 'inav', 'fnav' or 'both', not {galileo_nav!r}")
         self.framer = RtcmFramer(log_interval_s)
         self.leap_seconds = leap_seconds
+        self.galileo_nav = galileo_nav
         self._counters: dict[str, int] = {}
         self._rlog = RateLimitedLog(log, log_interval_s)
         self.time_ref = _TimeReference(week_hint, self._count, self._rlog)
-        self._pending: _PendingEpoch | None = None
+        self.epochs = EpochAssembler(self._count)
         self._lock: dict[tuple[str, str], float] = {}
         self._cp_adj: dict[tuple[str, str], float] = {}
         self._glo_channel: dict[int, int] = {}
-        self._eph_last: dict[str, tuple] = {}
+        self._eph_last: dict[tuple[str, str], tuple] = {}
+        self._gal_seen: dict[str, set[str]] = {GALILEO_INAV: set(), GALILEO_FNAV: set()}
+        self._gal_held: dict[str, GpsEphemeris] = {}
+        self.glonass_ephemerides: dict[str, GlonassEphemeris] = {}
+        self._t_rx: float | None = None
 
     @property
     def counters(self) -> dict[str, int]:
@@ -356,25 +370,30 @@ class RtcmDecoder:
         self._rlog.warn(f"RTCM {reason}", self._counters[reason], detail)
 
     # -- entry points ------------------------------------------------------------------------
-    def feed(self, data: bytes) -> list[RtcmMessage]:
-        out: list[RtcmMessage] = []
+    def feed(self, data: bytes, t_rx_s: float | None = None) -> list[RtcmMessage]:
+        out: list[RtcmMessage] = self.poll(t_rx_s) if t_rx_s is not None else []
         for frame in self.framer.feed(data):
-            out.extend(self.decode_frame(frame))
+            out.extend(self.decode_frame(frame, t_rx_s))
         return out
 
-    def flush(self) -> list[RtcmMessage]:
-        if self._pending is None:
-            return []
-        p, self._pending = self._pending, None
-        return [self._make_epoch(p)]
+    def poll(self, t_rx_s: float) -> list[RtcmMessage]:
+        """Close an open epoch whose last frame arrived more than the timeout before ``t_rx_s``."""
+        return list(self.epochs.poll(t_rx_s))
 
-    def decode_frame(self, frame: bytes) -> list[RtcmMessage]:
+    def flush(self) -> list[RtcmMessage]:
+        return [*self.epochs.flush(), *self._release_held()]
+
+    def decode_frame(self, frame: bytes, t_rx_s: float | None = None) -> list[RtcmMessage]:
         mtype = frame_message_type(frame)
+        self._t_rx = t_rx_s
+        out: list[RtcmMessage] = []
+        if not _is_observation(mtype):
+            out += self.epochs.other_frame(t_rx_s)   # the open set ended before this frame
         try:
-            return self._decode(mtype, frame)
+            return out + self._decode(mtype, frame)
         except Exception as exc:  # malformed content in a CRC-valid frame: never raise
             self._reject("bad_payload", f"type {mtype}: {exc!r}")
-            return []
+            return out
 
     # -- dispatch ----------------------------------------------------------------------------
     def _decode(self, mtype: int, frame: bytes) -> list[RtcmMessage]:
@@ -409,54 +428,32 @@ class RtcmDecoder:
                 t_gps = self._resolve(msg.DF004 * 1e-3)
                 sys_ = "G"
             else:
-                t_gps = self._resolve(self._glonass_tod_to_tow(int(msg.DF034) * 1e-3, self.leap_seconds), 86400.0)
+                t_gps = self._glonass_time(int(msg.DF034) * 1e-3, None)
                 sys_ = "R"
             return [] if t_gps is None else self._add_observations(t_gps, [], bool(msg.DF005), sys_)
-        if mtype == 1019:
-            msg = RTCMReader.parse(frame, validate=0)
-            eph = self._gps_eph(msg)
-            return [eph] if eph is not None else []
+        if mtype in _EPHEMERIS_TYPES:
+            return self._ephemeris(mtype, RTCMReader.parse(frame, validate=0))
         if mtype == 1020:
             msg = RTCMReader.parse(frame, validate=0)
             self._glo_channel[int(msg.DF038)] = int(msg.DF040) - 7
             self._count("glonass_channel")
+            ref = self.time_ref.reference()
+            if ref is not None:
+                eph = glonass_ephemeris(msg, ref, self.leap_seconds)
+                self.glonass_ephemerides[eph.sat] = eph
             return []
         self._count(f"ignored_{mtype}")
         return []
 
     # -- epochs ------------------------------------------------------------------------------
-    def _make_epoch(self, p: _PendingEpoch) -> GnssEpoch:
-        self._count("epochs")
-        return GnssEpoch(t_gps=p.t_gps, observations=tuple(p.observations), source="base")
-
     def _add_observations(self, t_gps: float, obs: list[SatObservation], more_follow: bool,
                           system: str) -> list[RtcmMessage]:
         out: list[RtcmMessage] = []
-        p = self._pending
-        if (p is not None and p.more_follow and system not in p.systems
-                and abs(t_gps - p.t_gps) > 1e-6):
-            # A message announced as part of the pending epoch (DF393/DF005 of the previous
-            # message), from a system not yet in it, whose time differs by whole seconds: a
-            # GLONASS leap-second or BeiDou BDT/GPST mismatch of the sender or of
-            # ``leap_seconds``.  Keep the epoch together and count it.
-            d = t_gps - p.t_gps
-            if abs(d - round(d)) < 1e-6 and abs(round(d)) <= 30:
-                self._reject("epoch_time_mismatch", f"{system} {d:+.0f} s")
-                t_gps = p.t_gps
-        if p is not None and abs(p.t_gps - t_gps) > 1e-6:
-            if p.more_follow:
-                self._count("epoch_incomplete")
-            out.append(self._make_epoch(p))
-            p = self._pending = None
-        if p is None:
-            p = self._pending = _PendingEpoch(t_gps)
-        p.observations.extend(obs)
-        p.systems.add(system)
-        p.more_follow = more_follow
-        self.time_ref.update(t_gps)
-        if not more_follow:
-            out.append(self._make_epoch(p))
-            self._pending = None
+        closed, t_filed = self.epochs.add(t_gps, system, obs, more_follow, self._t_rx)
+        out += closed
+        if t_filed is not None:
+            self.time_ref.update(t_filed)
+        out += self._release_held()
         return out
 
     def _resolve(self, tow_s: float, period_s: float = SECONDS_PER_WEEK) -> float | None:
@@ -493,12 +490,18 @@ class RtcmDecoder:
                                ("L1C", "L1P"), ("L2X", "L2P", "L2D", "L2W"))
         return self._add_observations(t_gps, obs, bool(msg.DF005), "G")
 
-    @staticmethod
-    def _glonass_tod_to_tow(tod_s: float, leap_seconds: int = DEFAULT_LEAP_SECONDS) -> float:
-        return (tod_s - 3 * 3600.0 + leap_seconds) % 86400.0
+    def _glonass_time(self, tod_msk_s: float, dow: int | None) -> float | None:
+        """GPS time from GLONASS time of day (Moscow = UTC + 3 h) and day of week (7 or None: not
+        given).  Once the decoder tracks time, the day is the one nearest that time (RTKLIB's
+        adjday_glot): a wrong or missing day of week cannot fool it; before, the day of week
+        places the first epoch against a week-number hint."""
+        tod_gps = tod_msk_s - 3 * 3600.0 + self.leap_seconds
+        if dow is not None and dow != 7 and self.time_ref.t_last is None:
+            return self._resolve((dow * 86400.0 + tod_gps) % SECONDS_PER_WEEK)
+        return self._resolve(tod_gps % 86400.0, 86400.0)
 
     def _legacy_glonass(self, msg) -> list[RtcmMessage]:
-        t_gps = self._resolve(self._glonass_tod_to_tow(int(msg.DF034) * 1e-3, self.leap_seconds), 86400.0)
+        t_gps = self._glonass_time(int(msg.DF034) * 1e-3, None)
         if t_gps is None:
             return []
         self._count(f"obs_{msg.identity}")
@@ -563,11 +566,7 @@ class RtcmDecoder:
     # -- MSM4..7 -----------------------------------------------------------------------------
     def _msm_time(self, msg, system: str) -> float | None:
         if system == "R":
-            dow = int(msg.DF416)
-            tod_s = int(msg.DF034) * 1e-3 - 3 * 3600.0 + self.leap_seconds
-            if dow == 7:
-                return self._resolve(tod_s % 86400.0, 86400.0)
-            return self._resolve((dow * 86400.0 + tod_s) % SECONDS_PER_WEEK)
+            return self._glonass_time(int(msg.DF034) * 1e-3, int(msg.DF416))
         tow_s = int(getattr(msg, _MSM_TIME_FIELD[system])) * 1e-3
         if system == "C":
             tow_s = (tow_s + 14.0) % SECONDS_PER_WEEK
@@ -641,44 +640,65 @@ class RtcmDecoder:
                 signal=signal, wavelength_m=lam))
         return self._add_observations(t_gps, obs, bool(msg.DF393), system)
 
-    # -- 1019 --------------------------------------------------------------------------------
-    def _gps_eph(self, msg) -> GpsEphemeris | None:
+    # -- ephemerides -------------------------------------------------------------------------
+    def _ephemeris(self, mtype: int, msg) -> list[RtcmMessage]:
         ref = self.time_ref.reference()
         if ref is None:
             self._reject("no_time_reference", "pass week_hint to RtcmDecoder")
-            return None
-        prn = int(msg.DF009)
-        week = int(msg.DF076)
-        week = week + 1024 * round((ref / SECONDS_PER_WEEK - week) / 1024)
-        toe = float(msg.DF093)
-        # week of toe: within half a week of the reference time (RTKLIB's rule)
-        dt = week * SECONDS_PER_WEEK + toe - ref
-        if dt < -SECONDS_PER_WEEK / 2:
-            week += 1
-        elif dt >= SECONDS_PER_WEEK / 2:
-            week -= 1
-        pi = PI_GPS
-        iodc = int(msg.DF085)
-        iode = int(msg.DF071)
-        ura_index = int(msg.DF077) & 0x0F
-        eph = GpsEphemeris(
-            sat=f"G{prn:02d}", week=week, toe_s=toe, toc_s=float(msg.DF081),
-            sqrt_a=float(msg.DF092), e=float(msg.DF090), i0_rad=float(msg.DF097) * pi,
-            omega0_rad=float(msg.DF095) * pi, omega_rad=float(msg.DF099) * pi,
-            m0_rad=float(msg.DF088) * pi, delta_n_radps=float(msg.DF087) * pi,
-            idot_radps=float(msg.DF079) * pi, omega_dot_radps=float(msg.DF100) * pi,
-            cuc_rad=float(msg.DF089), cus_rad=float(msg.DF091), crc_m=float(msg.DF098),
-            crs_m=float(msg.DF086), cic_rad=float(msg.DF094), cis_rad=float(msg.DF096),
-            af0_s=float(msg.DF084), af1_sps=float(msg.DF083), af2_sps2=float(msg.DF082),
-            tgd_s=float(msg.DF101), iode=iode, iodc=iodc, health=int(msg.DF102),
-            ura_m=URA_M[ura_index], fit_interval_h=fit_interval_h(int(msg.DF137), iodc))
+            return []
+        kind = "lnav"
+        if mtype == 1019:
+            eph = gps_ephemeris(msg, ref)
+        elif mtype == 1044:
+            eph = qzss_ephemeris(msg, ref)
+        elif mtype == 1042:
+            eph = beidou_ephemeris(msg, ref)
+        else:
+            eph, kind = galileo_ephemeris(msg, ref)
         key = (eph.iode, eph.week, eph.toe_s)
-        if self._eph_last.get(eph.sat) == key:
+        if self._eph_last.get((eph.sat, kind)) == key:
             self._count("ephemeris_repeat")
-            return None
-        self._eph_last[eph.sat] = key
+            return []
+        self._eph_last[(eph.sat, kind)] = key
+        if kind in self._gal_seen:
+            return self._galileo(eph, kind)
         self._count("ephemerides")
-        return eph
+        return [eph]
+
+    def _galileo(self, eph: GpsEphemeris, kind: str) -> list[RtcmMessage]:
+        """Galileo I/NAV and F/NAV carry the same orbit with different clocks: one of them feeds
+        the ephemeris store (``galileo_nav``); the other only where the preferred never came."""
+        self._gal_seen[kind].add(eph.sat)
+        if self.galileo_nav == "both" or kind == self.galileo_nav:
+            held = self._gal_held.pop(eph.sat, None)
+            if held is not None and held.iode == eph.iode:
+                self._count("ephemeris_galileo_superseded")
+            elif held is not None:
+                self._count("ephemerides", 2)
+                return [held, eph]
+            self._count("ephemerides")
+            return [eph]
+        if eph.sat in self._gal_seen[self.galileo_nav]:
+            self._count("ephemeris_galileo_other_nav")
+            return []
+        self._gal_held[eph.sat] = eph                  # until the next observation message
+        return []
+
+    def _release_held(self) -> list[RtcmMessage]:
+        if not self._gal_held:
+            return []
+        out = list(self._gal_held.values())
+        self._gal_held.clear()
+        self._count("ephemerides", len(out))
+        return out
+
+
+_EPHEMERIS_TYPES = (1019, 1042, 1044, 1045, 1046)
+
+
+def _is_observation(mtype: int) -> bool:
+    family, sub = divmod(mtype, 10)
+    return (family in _MSM_SYSTEMS and 1 <= sub <= 7) or 1001 <= mtype <= 1004 or 1009 <= mtype <= 1012
 
 
 def decode_rtcm_file(path: str, week_hint: WeekHint = None, chunk_size: int = 4096,
@@ -693,6 +713,6 @@ def decode_rtcm_file(path: str, week_hint: WeekHint = None, chunk_size: int = 40
     return out, dec
 
 
-__all__ = ["MAX_FRAME", "known_message_number", "RtcmFramer", "RtcmDecoder", "GpsRtcmDataFragmenter", "rtcm_to_gps_rtcm_data_fragments",
+__all__ = ["MAX_FRAME", "known_message_number", "RtcmFramer", "RtcmDecoder", "GlonassEphemeris", "GpsRtcmDataFragmenter", "rtcm_to_gps_rtcm_data_fragments",
            "crc24q", "frame_message_type", "decode_rtcm_file", "lock_time_df013", "lock_time_df402",
            "lock_time_df407"]

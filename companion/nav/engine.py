@@ -343,19 +343,24 @@ class NavEngine:
             hist.append((prep.t_gps, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]),
                          float(rho[j]), float(prep.sat_clock_bias_m[i])))
 
-    def _base_tdcp_corrections(self, t_a: float, t_b: float, tol_s: float = 0.005) -> dict[str, float]:
+    def _base_tdcp_corrections(self, t_a: float, t_b: float, tol_s: float = 0.05) -> dict[str, float]:
         """Per-satellite correction (m) of a rover TDCP over (t_a, t_b) from the base's TDCP over the
         same interval: minus the base's unexplained carrier change, with the base clock change (the
-        mean over satellites) removed, so only per-satellite common errors are taken out."""
+        mean over satellites) removed, so only per-satellite common errors are taken out.
+
+        Each end takes the base epoch nearest to it within ``tol_s``: real rovers tag x.987-x.992 s
+        (u-blox M8P, clock bias -8 to -13 ms) while the base tags x.000; 50 ms is below half the
+        interval of a 10-Hz base, so the pairing stays unambiguous.  The base carrier needs no
+        shift to the rover's instants although the range changes by ~10 m in 13 ms: the residual is
+        formed against geometric ranges and clocks at the base's own epochs, so what remains is the
+        slow per-satellite error rate times the difference of the two ends' offsets (0.1 mm for
+        2 cm/s and 5 ms; tests/test_engine_tdcp_pairing.py)."""
         resid = {}
         for sat, hist in self._base_phase.items():
-            a = b = None
-            for rec in hist:
-                if abs(rec[0] - t_a) <= tol_s:
-                    a = rec
-                elif abs(rec[0] - t_b) <= tol_s:
-                    b = rec
-            if a is None or b is None or a[2] != b[2]:
+            a = min(hist, key=lambda rec: abs(rec[0] - t_a), default=None)
+            b = min(hist, key=lambda rec: abs(rec[0] - t_b), default=None)
+            if (a is None or a is b or abs(a[0] - t_a) > tol_s or abs(b[0] - t_b) > tol_s
+                    or a[2] != b[2]):
                 continue
             resid[sat] = b[2] * (b[1] - a[1]) + (b[4] - a[4]) - (b[3] - a[3])
         if len(resid) < 2:
