@@ -3,7 +3,8 @@
 For each satellite i seen by the base (same signal as the rover will use)::
 
     raw_i = |r_sat,i - r_base| (Sagnac-rotated) - (P_base,i + c dt_sat,i)
-    base_clock_s = robust weighted mean of raw_i over the satellites of system s  (weights 1/sigma_i^2
+    base_clock_s = robust weighted mean of raw_i over the satellites of clock group s (each system,
+                 QZSS with GPS: :func:`companion.gnss.signals.clock_group`, as the rover's SPP) (weights 1/sigma_i^2
                  from elevation; iteratively drop values more than max(3 x 1.4826 MAD, 3 m) from the
                  weighted mean; this value is -c x base receiver clock of system s, inter-system bias
                  included, plus the atmosphere common to its satellites)
@@ -32,6 +33,7 @@ import numpy as np
 from ..messages import BaseStationPosition, GnssEpoch
 from .ephemeris_store import EphemerisStore
 from .prepare import prepare_epoch
+from .signals import clock_group
 
 BASE_ELEVATION_MASK_RAD = math.radians(5.0)   # corrections are produced down to this elevation
 CLOCK_MIN_ELEVATION_RAD = math.radians(10.0)  # satellites used for the base clock estimate
@@ -51,7 +53,7 @@ class DgpsCorrector:
         self.rrc_window_s = rrc_window_s
         self.t_base_gps: float | None = None
         self.base_clock_m: float = float("nan")      # of the first system (GPS when present)
-        self.base_clocks_m: dict[str, float] = {}   # system -> its clock term
+        self.base_clocks_m: dict[str, float] = {}   # clock group ('G' for GPS and QZSS) -> its clock term
         self._prc: dict[str, tuple[float, float, float, int]] = {}   # sat -> (t, prc, rrc, iode)
         self._hist: dict[str, deque] = {}
         self._phase: dict[str, tuple[float, float, float]] = {}
@@ -81,7 +83,7 @@ class DgpsCorrector:
         rho = np.linalg.norm(prep.r_sat_e - r_base, axis=1)
         raw = rho - prep.pseudorange_m
         w = 1.0 / prep.sigma_pseudorange_m ** 2
-        sys_of = np.array([sat[0] for sat in prep.sats])
+        sys_of = np.array([clock_group(sat) for sat in prep.sats])
         raw_now = {sat: float(raw[i]) for i, sat in enumerate(prep.sats) if ok[i]}
         continuing = self.t_base_gps is not None and 0.0 < t - self.t_base_gps <= CLOCK_MAX_GAP_S
         clocks: dict[str, float] = {}
@@ -96,7 +98,7 @@ class DgpsCorrector:
         for i, sat in enumerate(prep.sats):
             if not ok[i]:
                 continue
-            prc = float(raw[i] - clocks[sat[0]])
+            prc = float(raw[i] - clocks[clock_group(sat)])
             iode = int(prep.iode[i])
             h = self._hist.get(sat)
             if h is None or (h and (h[-1][2] != iode or prep.loss_of_lock[i])):
@@ -137,7 +139,7 @@ class DgpsCorrector:
                 break
             use = new_use
         prev = self._raw_prev
-        common = [sat for sat in raw_now if sat in prev and sat[0] == sys_]
+        common = [sat for sat in raw_now if sat in prev and clock_group(sat) == sys_]
         last = self.base_clocks_m.get(sys_, float("nan"))
         if len(common) >= 2 and continuing and math.isfinite(last):
             step = median([raw_now[sat] - prev[sat] for sat in common])

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .ephemeris_store import MIN_FIT_INTERVAL_H
 from .signals import FREQUENCY_HZ
 from ..messages import (SPEED_OF_LIGHT_MPS, SYSTEM_TO_GPS_S, SYSTEM_WEEK_TO_GPS_WEEK, GnssEpoch, GpsEphemeris,
                         SatObservation)
@@ -118,7 +119,7 @@ def read_rinex_nav_header_iono(path) -> tuple[np.ndarray, np.ndarray] | None:
 
 #: validity of a broadcast ephemeris, hours either side of toe x 2 (RTKLIB MAXDTOE_*: GPS and QZSS
 #: 2 h, Galileo 4 h, BeiDou 6 h); the store accepts |t - toe| <= fit_interval_h / 2
-FIT_INTERVAL_H = {"G": 4.0, "J": 4.0, "E": 8.0, "C": 12.0}
+FIT_INTERVAL_H = {"G": 4.0, "J": 4.0, **MIN_FIT_INTERVAL_H}
 #: Galileo data-source bits (RINEX 3 field 'Data sources'): I/NAV E1-B (0), E5b-I (2), clock for E5b,E1
 #: (9); F/NAV E5a-I (1), clock for E5a,E1 (8)
 GAL_INAV_BITS = (1 << 0) | (1 << 2) | (1 << 9)

@@ -28,17 +28,13 @@ from ..nav.earth import C_n_e, ecef_to_geodetic
 from .ephemeris_store import EphemerisStore
 from .prepare import PreparedEpoch, prepare_epoch
 from .signals import SUPPORTED_SYSTEMS as SYSTEM_ORDER
+from .signals import clock_group
 
 RAIM_P_FA = 1e-3              # false-alarm probability of the global chi-square test
 MAX_ITER = 12
 CONVERGED_M = 1e-4
 MAX_GDOP = 30.0
 DOPPLER_SIGMA_MPS = 0.1       # range-rate noise from Doppler at zenith (scaled by 1/sin E)
-#: systems whose pseudoranges share another system's receiver clock.  QZSS transmits the same L1 C/A
-#: and L2C signals as GPS, on a time steered to GPS time (a few ns), so the receiver sees no
-#: inter-system bias worth a column (RTKLIB's pntpos does the same): measured -0.4 m on L1 C/A and
-#: -0.1 m iono-free on the NovAtel OEM729 base of tests/test_spp_multignss.py
-CLOCK_GROUPS = {"J": "G"}
 
 
 @dataclass
@@ -59,11 +55,11 @@ class SppSolution:
     n_iter: int
     chi2: float = float("nan")
     chi2_threshold: float = float("nan")
-    raim_ok: bool | None = None          # None: not testable (n < 4 + number of systems)
+    raim_ok: bool | None = None          # None: not testable (n < 4 + number of clock groups)
     cov_r_e: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
-    clock_system: str = "G"              # system whose clock is clock_bias_m (the first of G, E, C, J used)
+    clock_system: str = "G"              # clock group of clock_bias_m: the first of G (GPS and QZSS), E, C used
     n_sats_by_system: dict[str, int] = field(default_factory=dict)   # satellites used per system
-    isb_m: dict[str, float] = field(default_factory=dict)  # system -> clock minus clock_system's, m
+    isb_m: dict[str, float] = field(default_factory=dict)  # clock group -> its clock minus clock_system's, m
 
     @property
     def n_sats(self) -> int:
@@ -101,12 +97,6 @@ def _wls(r_sat, pr, w, x0, sys_col, max_iter=MAX_ITER):
     rho, h = _design(r_sat, x, sys_col)
     v = pr - (rho + h[:, 3:] @ x[3:])
     return x, v, h, it
-
-
-def clock_group(sat: str) -> str:
-    """The receiver clock a satellite's pseudorange refers to: its system's, except QZSS, which
-    shares GPS's (:data:`CLOCK_GROUPS`)."""
-    return CLOCK_GROUPS.get(sat[0], sat[0])
 
 
 def _system_columns(sats: list[str], idx: list[int], excluded: dict[str, str]) -> tuple[list[int], list[str]]:
