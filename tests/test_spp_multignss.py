@@ -171,7 +171,7 @@ def test_iono_free_residuals_at_the_arp(files):
         for c in spread:
             r = res[[i for i, s in enumerate(p.sats) if s[0] == c]]
             spread[c].append(np.max(np.abs(r - np.median(r))))
-    worst = {c: max(v) for c, v in spread.items()}
+    worst = {c: float(max(v)) for c, v in spread.items()}
     print("\niono-free residual at the ARP, worst |res - system median| [m]:",
           {c: round(v, 2) for c, v in worst.items()})
     assert all(v < 6.0 for v in worst.values()), worst
