@@ -17,12 +17,18 @@ def _add_gnss(sub) -> None:
     p = sub.add_parser("gnss", help="post-process RINEX observations (SPP, DGPS or RTK), RTKLIB-style")
     p.add_argument("--rover", required=True, help="rover RINEX observation file (2.x or 3.x)")
     p.add_argument("--nav", required=True, action="append",
-                   help="RINEX navigation file (GPS broadcast ephemeris); may be repeated")
+                   help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides); may be repeated")
     p.add_argument("--base", help="base station RINEX observation file (for --mode dgps and rtk)")
     p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header)")
     p.add_argument("--mode", choices=["spp", "dgps", "rtk"], default="spp",
                    help="rtk: L1+L2 carrier phase, integer ambiguities (LAMBDA), fix-and-hold")
     p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
+    p.add_argument("--sys", default="auto",
+                   help="constellations for spp/dgps, e.g. G,E,C,J (GPS, Galileo, BeiDou, QZSS) or 'all'; "
+                        "default: every one with observations and ephemerides in the files")
+    p.add_argument("--freq", choices=["l1", "if"], default="l1",
+                   help="spp/dgps: l1 = each system's single-frequency code (GPS/QZSS L1 C/A, Galileo E1, "
+                        "BeiDou B1I) with Klobuchar; if = dual-frequency iono-free per system")
     p.add_argument("--elevation-mask-deg", type=float, default=10.0)
     p.add_argument("--json", help="write statistics and per-epoch solutions as JSON here")
     p.add_argument("--pos", help="write per-epoch solutions in RTKLIB's .pos format here (rtkplot, pos2kml)")

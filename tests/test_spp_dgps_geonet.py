@@ -135,13 +135,13 @@ def test_prepare_rejections_phase_only_and_speed(data):
     store, truth = data["store"], data["truth"]
     ep = max(data["rover"], key=lambda e: len(e.observations))
     extra = (SatObservation(sat="G31", pseudorange_m=2.2e7),                         # no ephemeris
-             SatObservation(sat="E11", pseudorange_m=2.4e7))                         # other system
+             SatObservation(sat="E11", pseudorange_m=2.4e7))                         # a system not selected
     obs = list(ep.observations) + list(extra)
     # make one satellite phase-only
     victim = next(o for o in obs if o.signal == "L1C")
     obs = [dataclasses.replace(o, pseudorange_m=float("nan")) if o is victim else o for o in obs]
     p = prepare_epoch(GnssEpoch(ep.t_gps, tuple(obs)), store, truth, klobuchar=data["klob"], elevation_mask_rad=0.0)
-    assert p.rejected["G31"] == "no ephemeris" and p.rejected["E11"] == "unsupported system"
+    assert p.rejected["G31"] == "no ephemeris" and p.rejected["E11"] == "system not selected"
     i = p.sats.index(victim.sat)
     assert np.isnan(p.pseudorange_m[i]) and np.isfinite(p.carrier_cycles[i])
     full = prepare_epoch(ep, store, truth, klobuchar=data["klob"], elevation_mask_rad=0.0)

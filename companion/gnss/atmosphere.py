@@ -15,6 +15,10 @@ from ..messages import GPS_L1_HZ, SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS
 STD_PRESSURE_HPA = 1013.25
 STD_TEMPERATURE_K = 288.15
 STD_RELATIVE_HUMIDITY = 0.7
+#: Klobuchar coefficients used when a file broadcasts none (RTCM streams carry none): RTKLIB's
+#: ``ion_default`` (GPS broadcast of 2004-01-01), so both tools see the same model
+KLOBUCHAR_DEFAULT = (np.array([0.1118e-07, -0.7451e-08, -0.5961e-07, 0.1192e-06]),
+                     np.array([0.1167e+06, -0.2294e+06, -0.1311e+06, 0.1049e+07]))
 
 
 def klobuchar_delay_m(t_gps: float, lat_rad: float, lon_rad: float, azimuth_rad: float,

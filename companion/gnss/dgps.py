@@ -3,13 +3,15 @@
 For each satellite i seen by the base (same signal as the rover will use)::
 
     raw_i = |r_sat,i - r_base| (Sagnac-rotated) - (P_base,i + c dt_sat,i)
-    base_clock = robust weighted mean of raw_i   (weights 1/sigma_i^2 from elevation; iteratively
-                 drop values more than max(3 x 1.4826 MAD, 3 m) from the weighted mean; this value is
-                 -c x base receiver clock plus the atmosphere common to all satellites)
-    PRC_i = raw_i - base_clock
+    base_clock_s = robust weighted mean of raw_i over the satellites of clock group s (each system,
+                 QZSS with GPS: :func:`companion.gnss.signals.clock_group`, as the rover's SPP) (weights 1/sigma_i^2
+                 from elevation; iteratively drop values more than max(3 x 1.4826 MAD, 3 m) from the
+                 weighted mean; this value is -c x base receiver clock of system s, inter-system bias
+                 included, plus the atmosphere common to its satellites)
+    PRC_i = raw_i - base_clock_s(i)
 
-The base-clock estimate is kept *continuous*: from one epoch to the next it moves by the median
-change of raw_i over the satellites seen at both epochs, pulled towards the robust mean by
+Each system's base-clock estimate is kept *continuous*: from one epoch to the next it moves by the
+median change of raw_i over its satellites seen at both epochs, pulled towards the robust mean by
 ``CLOCK_PULL`` per epoch.  A plain per-epoch mean jumps whenever the satellite subset changes (tens
 of metres with Selective Availability), and every such jump lands in the rover's clock as a step.
 
@@ -31,6 +33,7 @@ import numpy as np
 from ..messages import BaseStationPosition, GnssEpoch
 from .ephemeris_store import EphemerisStore
 from .prepare import prepare_epoch
+from .signals import clock_group
 
 BASE_ELEVATION_MASK_RAD = math.radians(5.0)   # corrections are produced down to this elevation
 CLOCK_MIN_ELEVATION_RAD = math.radians(10.0)  # satellites used for the base clock estimate
@@ -42,12 +45,15 @@ CLOCK_MAX_GAP_S = 5.0      # beyond this gap between base epochs the estimate re
 class DgpsCorrector:
     """Holds the latest base-station corrections.  See module docstring."""
 
-    def __init__(self, max_age_s: float = 30.0, signal: str = "L1C", rrc_window_s: float = 30.0):
+    def __init__(self, max_age_s: float = 30.0, signal: str = "L1C", rrc_window_s: float = 30.0,
+                 systems: str = "G"):
         self.max_age_s = max_age_s
         self.signal = signal
+        self.systems = systems
         self.rrc_window_s = rrc_window_s
         self.t_base_gps: float | None = None
-        self.base_clock_m: float = float("nan")
+        self.base_clock_m: float = float("nan")      # of the first system (GPS when present)
+        self.base_clocks_m: dict[str, float] = {}   # clock group ('G' for GPS and QZSS) -> its clock term
         self._prc: dict[str, tuple[float, float, float, int]] = {}   # sat -> (t, prc, rrc, iode)
         self._hist: dict[str, deque] = {}
         self._phase: dict[str, tuple[float, float, float]] = {}
@@ -60,7 +66,7 @@ class DgpsCorrector:
         """Compute corrections from one base epoch; returns the number of satellites corrected."""
         r_base = np.asarray(base.r_e, dtype=float)
         prep = prepare_epoch(base_epoch, store, r_base, elevation_mask_rad=BASE_ELEVATION_MASK_RAD,
-                             signal=self.signal, apply_models=False)
+                             signal=self.signal, apply_models=False, systems=self.systems)
         t = base_epoch.t_gps
         self.last_prepared = prep      # reused by the engine's base-carrier bookkeeping
         for sat, why in prep.rejected.items():
@@ -77,34 +83,22 @@ class DgpsCorrector:
         rho = np.linalg.norm(prep.r_sat_e - r_base, axis=1)
         raw = rho - prep.pseudorange_m
         w = 1.0 / prep.sigma_pseudorange_m ** 2
-        use = ok & (prep.elevation_rad >= CLOCK_MIN_ELEVATION_RAD)
-        if not np.any(use):
-            use = ok.copy()
-        for _ in range(5):
-            clk = float(np.sum(w[use] * raw[use]) / np.sum(w[use]))
-            dev = np.abs(raw - clk)
-            mad = 1.4826 * float(np.median(dev[use]))
-            new_use = use & (dev <= max(3.0 * mad, CLOCK_OUTLIER_FLOOR_M))
-            if new_use.sum() == use.sum() or new_use.sum() < 2:
-                break
-            use = new_use
+        sys_of = np.array([clock_group(sat) for sat in prep.sats])
         raw_now = {sat: float(raw[i]) for i, sat in enumerate(prep.sats) if ok[i]}
-        prev = self._raw_prev
-        common = [sat for sat in raw_now if sat in prev]
-        if (len(common) >= 2 and self.t_base_gps is not None and 0.0 < t - self.t_base_gps <= CLOCK_MAX_GAP_S
-                and math.isfinite(self.base_clock_m)):
-            step = median([raw_now[sat] - prev[sat] for sat in common])
-            continued = self.base_clock_m + step
-            clk = continued + CLOCK_PULL * (clk - continued)
+        continuing = self.t_base_gps is not None and 0.0 < t - self.t_base_gps <= CLOCK_MAX_GAP_S
+        clocks: dict[str, float] = {}
+        for sys_ in dict.fromkeys(sys_of[ok]):      # each system's receiver clock (inter-system biases)
+            clocks[sys_] = self._system_clock(raw, w, ok & (sys_of == sys_), prep, raw_now, continuing, sys_)
         self._raw_prev = raw_now
-        self.base_clock_m = clk
+        self.base_clocks_m = clocks
+        self.base_clock_m = next(iter(clocks.values()))
         self.t_base_gps = t
         n = 0
         new_prc = {}
         for i, sat in enumerate(prep.sats):
             if not ok[i]:
                 continue
-            prc = float(raw[i] - clk)
+            prc = float(raw[i] - clocks[clock_group(sat)])
             iode = int(prep.iode[i])
             h = self._hist.get(sat)
             if h is None or (h and (h[-1][2] != iode or prep.loss_of_lock[i])):
@@ -130,6 +124,28 @@ class DgpsCorrector:
         self._prc = new_prc
         self.counters["base epochs"] += 1
         return n
+
+    def _system_clock(self, raw, w, mine, prep, raw_now, continuing: bool, sys_: str) -> float:
+        """Continuous robust estimate of one system's base clock term from the satellites ``mine``."""
+        use = mine & (prep.elevation_rad >= CLOCK_MIN_ELEVATION_RAD)
+        if not np.any(use):
+            use = mine.copy()
+        for _ in range(5):
+            clk = float(np.sum(w[use] * raw[use]) / np.sum(w[use]))
+            dev = np.abs(raw - clk)
+            mad = 1.4826 * float(np.median(dev[use]))
+            new_use = use & (dev <= max(3.0 * mad, CLOCK_OUTLIER_FLOOR_M))
+            if new_use.sum() == use.sum() or new_use.sum() < 2:
+                break
+            use = new_use
+        prev = self._raw_prev
+        common = [sat for sat in raw_now if sat in prev and clock_group(sat) == sys_]
+        last = self.base_clocks_m.get(sys_, float("nan"))
+        if len(common) >= 2 and continuing and math.isfinite(last):
+            step = median([raw_now[sat] - prev[sat] for sat in common])
+            continued = last + step
+            clk = continued + CLOCK_PULL * (clk - continued)
+        return clk
 
     # ----------------------------------------------------------------------- rover side
     def iode(self, sat: str) -> int | None:

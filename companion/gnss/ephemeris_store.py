@@ -1,7 +1,8 @@
 """Broadcast ephemeris store: deduplication and per-epoch selection.
 
 Selection rule (deterministic): among the satellite's ephemerides whose fit interval covers
-``t_gps`` (|t - toe| <= fit_interval/2), take the one with the nearest toe; ties go to the later
+``t_gps`` (|t - toe| <= fit_interval/2, at least :data:`MIN_FIT_INTERVAL_H` of its system: Galileo
+and BeiDou ephemerides decoded from a stream carry no fit interval), take the one with the nearest toe; ties go to the later
 toe, then the higher IODE.  Unhealthy ephemerides (health != 0) are never returned.
 """
 from __future__ import annotations
@@ -13,10 +14,13 @@ from ..messages import GpsEphemeris
 
 #: extra margin beyond half the fit interval, s (0 = strict IS-GPS-200 fit interval)
 FIT_MARGIN_S = 0.0
+#: shortest validity per system, h (RTKLIB's MAXDTOE_GAL 4 h and MAXDTOE_CMP 6 h either side of toe);
+#: GPS and QZSS use their broadcast fit interval (4 h standard)
+MIN_FIT_INTERVAL_H = {"E": 8.0, "C": 12.0}
 
 
 class EphemerisStore:
-    """Holds GPS ephemerides by satellite; counts rejected additions and failed selections."""
+    """Holds GPS, Galileo, BeiDou and QZSS ephemerides by satellite; counts rejected additions and failed selections."""
 
     def __init__(self, ephemerides: Iterable[GpsEphemeris] = ()):
         self._by_sat: dict[str, list[GpsEphemeris]] = {}
@@ -60,7 +64,7 @@ class EphemerisStore:
             if iode is not None and e.iode != iode:
                 continue
             dt = abs(t_gps - e.t_oe_gps)
-            if dt > e.fit_interval_h * 1800.0 + FIT_MARGIN_S:
+            if dt > max(e.fit_interval_h, MIN_FIT_INTERVAL_H.get(sat[0], 0.0)) * 1800.0 + FIT_MARGIN_S:
                 continue
             if e.health != 0:
                 unhealthy = True

@@ -7,11 +7,20 @@ pos2kml read.  ``--mode rtk`` is :mod:`companion.gnss.rtk_post` (L1+L2 double di
 
 Pipeline per rover epoch: (optional) divergence-free carrier smoothing of rover and base code
 (:class:`CarrierSmoother`), base corrections from the latest base epoch at or before the rover
-epoch (+0.5 s), then :func:`spp_epoch` (WLS + RAIM FDE) on the L1 C/A code.
+epoch (+0.5 s), then :func:`spp_epoch` (WLS + RAIM FDE, one receiver clock plus an inter-system
+bias per extra constellation) on each system's single-frequency code (``--freq l1``: GPS/QZSS L1 C/A,
+Galileo E1, BeiDou B1I) or its iono-free pair (``--freq if``).
+
+``--sys`` (default: every one of G, E, C, J with both observations and ephemerides in the files, as a
+multi-GNSS receiver's user expects; 'G' reproduces the GPS-only processing) selects the
+constellations.  The summary reports the satellites used per epoch by constellation.
 
 Defaults (measured on the GEONET 0759/3040 data, see tests/test_spp_dgps_geonet.py): signal L1C
 with Klobuchar + Saastamoinen standalone (the C1/P2 iono-free combination was worse on these files:
-its noise is x3 and C1-P1 biases enter it amplified), carrier smoothing on (600 s window).
+its noise is x3 and C1-P1 biases enter it amplified), carrier smoothing on (600 s window).  Without
+broadcast Klobuchar coefficients (RINEX converted from RTCM has none) standalone L1 uses RTKLIB's
+default ones (:data:`KLOBUCHAR_DEFAULT`) rather than no model (tests/test_spp_multignss.py: GPS
+8.29 m without a model, 3.24 m with it).
 """
 from __future__ import annotations
 
@@ -30,11 +39,17 @@ from .dgps import DgpsCorrector
 from .ephemeris_store import EphemerisStore
 from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, write_pos
 from .prepare import CarrierSmoother
+from .atmosphere import KLOBUCHAR_DEFAULT
 from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
+from .signals import SUPPORTED_SYSTEMS
 from .rtk_post import antenna_delta_e
 from .spp import SppSolution, spp_epoch
 
 log = logging.getLogger(__name__)
+
+
+#: ``--freq`` -> the ``signal`` of :func:`companion.gnss.prepare.prepare_epoch`
+FREQ_SIGNALS = {"l1": "L1C", "if": "IF"}
 
 
 class GnssProcessingError(Exception):
@@ -50,6 +65,7 @@ class ProcessOptions:
     smoothing_window_s: float = 600.0
     dgps_max_age_s: float = 30.0
     raim: bool = True
+    systems: str = "G"                    # constellations used: letters of 'GECJ'
 
 
 def process(rover_epochs, store: EphemerisStore, opts: ProcessOptions, *, klobuchar=None, base_epochs=None,
@@ -61,7 +77,7 @@ def process(rover_epochs, store: EphemerisStore, opts: ProcessOptions, *, klobuc
     if opts.mode == "dgps":
         if base_epochs is None or base is None:
             raise GnssProcessingError("DGPS needs base observations and a base position")
-        dg = DgpsCorrector(max_age_s=opts.dgps_max_age_s, signal=opts.signal)
+        dg = DgpsCorrector(max_age_s=opts.dgps_max_age_s, signal=opts.signal, systems=opts.systems)
     out: list[SppSolution | None] = []
     bi = 0
     r_prev = None
@@ -76,11 +92,11 @@ def process(rover_epochs, store: EphemerisStore, opts: ProcessOptions, *, klobuc
                 if sm_b is not None:
                     b = sm_b.apply(b)
                 dg.update_base(b, base, store)
-        sol = spp_epoch(ep, store, dgps=dg, klobuchar=klobuchar, r_init_e=r_prev,
+        sol = spp_epoch(ep, store, dgps=dg, klobuchar=klobuchar, r_init_e=r_prev, systems=opts.systems,
                         elevation_mask_rad=opts.elevation_mask_rad, signal=opts.signal, raim=opts.raim)
         if sol is None and r_prev is not None:   # retry cold: the previous position may be the problem
             sol = spp_epoch(ep, store, dgps=dg, klobuchar=klobuchar, elevation_mask_rad=opts.elevation_mask_rad,
-                            signal=opts.signal, raim=opts.raim)
+                            signal=opts.signal, raim=opts.raim, systems=opts.systems)
         if sol is not None:
             r_prev = sol.r_e
         out.append(sol)
@@ -111,33 +127,56 @@ def _xyz(text: str, what: str) -> np.ndarray:
     return v
 
 
+def parse_systems(text: str | None) -> str | None:
+    """'G,E,C,J' / 'GECJ' / 'all' -> 'GECJ'; None or 'auto' -> None (decided from the files)."""
+    if text is None or text.strip().lower() == "auto":
+        return None
+    if text.strip().lower() == "all":
+        return SUPPORTED_SYSTEMS
+    letters = "".join(c for c in text.upper() if c not in ", ")
+    bad = sorted(set(letters) - set(SUPPORTED_SYSTEMS))
+    if bad or not letters:
+        raise GnssProcessingError(f"--sys: expected letters of {','.join(SUPPORTED_SYSTEMS)} (GPS, Galileo, "
+                                  f"BeiDou, QZSS), got {text!r}" + (f" ({','.join(bad)} not supported)" if bad else ""))
+    return "".join(c for c in SUPPORTED_SYSTEMS if c in letters)
+
+
 def _load(args):
     for p in [args.rover, *args.nav, *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
+    wanted = parse_systems(getattr(args, "sys", None))
     store = EphemerisStore()
     klob = None
     for p in args.nav:
         try:
-            for e in read_rinex_nav(p):
+            for e in read_rinex_nav(p, wanted or SUPPORTED_SYSTEMS):
                 store.add(e)
             klob = klob or read_rinex_nav_header_iono(p)
         except (ValueError, IndexError) as exc:
             raise GnssProcessingError(f"cannot read navigation file {p}: {exc}") from exc
     if len(store) == 0:
-        raise GnssProcessingError("no GPS ephemeris in the navigation file(s)")
+        raise GnssProcessingError("no ephemeris of " + (f"the selected systems ({wanted})" if wanted else "GPS, Galileo, "
+                                  "BeiDou or QZSS") + " in the navigation file(s)")
     try:
-        hdr, rover = read_rinex_obs(args.rover)
+        hdr, rover = read_rinex_obs(args.rover, wanted or SUPPORTED_SYSTEMS)
     except (ValueError, IndexError) as exc:
         raise GnssProcessingError(f"cannot read rover observation file {args.rover}: {exc}") from exc
     if not rover:
         raise GnssProcessingError(f"no observation epochs in {args.rover}")
+    # default: every supported system that has both observations and ephemerides
+    with_eph = {s[0] for s in store.sats}
+    observed = {o.sat[0] for ep in rover for o in ep.observations}
+    systems = "".join(c for c in (wanted or SUPPORTED_SYSTEMS) if c in with_eph and (c in observed or wanted))
+    if not systems:
+        raise GnssProcessingError(f"no system has both observations ({''.join(sorted(observed))}) and "
+                                  f"ephemerides ({''.join(sorted(with_eph))})")
     base_epochs = base = None
     if args.mode == "dgps":
         if not args.base:
             raise GnssProcessingError("--mode dgps needs --base")
         try:
-            bhdr, base_epochs = read_rinex_obs(args.base)
+            bhdr, base_epochs = read_rinex_obs(args.base, systems)
         except (ValueError, IndexError) as exc:
             raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
         if args.base_xyz:
@@ -155,7 +194,18 @@ def _load(args):
     if not any(store.select_with_reason(s, 0.5 * (t0 + t1))[0] for s in store.sats) and \
             not any(store.select_with_reason(s, t0)[0] for s in store.sats):
         raise GnssProcessingError("no ephemeris valid during the observation period")
-    return store, klob, hdr, rover, base_epochs, base
+    return store, klob, hdr, rover, base_epochs, base, systems
+
+
+def satellites_by_system(solutions) -> dict[str, dict[str, float]]:
+    """system -> {'mean', 'min', 'max'} satellites used per solved epoch (0 where it had none)."""
+    solved = [s for s in solutions if s is not None]
+    letters = sorted({c for s in solved for c in s.n_sats_by_system}, key=lambda c: SUPPORTED_SYSTEMS.find(c) % 99)
+    out = {}
+    for c in letters:
+        n = [s.n_sats_by_system.get(c, 0) for s in solved]
+        out[c] = {"mean": float(np.mean(n)), "min": int(min(n)), "max": int(max(n))}
+    return out
 
 
 def run(args) -> int:
@@ -170,8 +220,13 @@ def run(args) -> int:
 def _run(args) -> int:
     if args.mode == "rtk":
         return _run_rtk(args)
-    store, klob, hdr, rover, base_epochs, base = _load(args)
-    opts = ProcessOptions(mode=args.mode, elevation_mask_rad=math.radians(args.elevation_mask_deg))
+    store, klob, hdr, rover, base_epochs, base, systems = _load(args)
+    signal = FREQ_SIGNALS[getattr(args, "freq", None) or "l1"]
+    opts = ProcessOptions(mode=args.mode, elevation_mask_rad=math.radians(args.elevation_mask_deg),
+                          signal=signal, systems=systems)
+    iono = "iono-free" if signal == "IF" else ("DGPS corrections" if args.mode == "dgps" else "Klobuchar (broadcast)")
+    if klob is None and signal != "IF" and args.mode == "spp":
+        klob, iono = KLOBUCHAR_DEFAULT, "Klobuchar (RTKLIB's default coefficients: none broadcast)"
     truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
     tty = sys.stderr.isatty()
 
@@ -188,20 +243,25 @@ def _run(args) -> int:
     if not solved:
         raise GnssProcessingError(f"no epoch could be solved ({len(rover)} epochs; ephemeris rejections: "
                                   f"{dict(store.rejections)})")
+    by_sys = satellites_by_system(sols)
     summary = {"mode": args.mode, "signal": opts.signal, "epochs": len(rover), "solved": len(solved),
-               "elevation_mask_deg": args.elevation_mask_deg}
+               "elevation_mask_deg": args.elevation_mask_deg, "systems": systems, "ionosphere": iono,
+               "satellites_by_system": by_sys, "constellations_used": sum(1 for v in by_sys.values() if v["max"] > 0)}
     if truth is not None:
         summary.update(statistics(sols, truth))
     print(f"companion gnss {args.mode}: {len(solved)}/{len(rover)} epochs solved"
           + (f", RMS 3-D {summary['rms_3d_m']:.3f} m, horizontal {summary['rms_h_m']:.3f} m, "
              f"95% 3-D {summary['p95_3d_m']:.3f} m, max {summary['max_3d_m']:.3f} m" if "rms_3d_m" in summary else ""))
+    print(f"satellites used per epoch ({opts.signal}, {iono}): "
+          + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
     rows = []
     for s in solved:
         lat, lon, h = ecef_to_geodetic(s.r_e)
         row = {"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "lat_deg": math.degrees(lat),
                "lon_deg": math.degrees(lon), "h_m": h, "clock_bias_m": s.clock_bias_m, "n_sats": s.n_sats,
                "sats": s.sats, "excluded": s.excluded, "pdop": s.pdop, "hdop": s.hdop, "vdop": s.vdop,
-               "raim_ok": s.raim_ok}
+               "raim_ok": s.raim_ok, "n_sats_by_system": s.n_sats_by_system, "clock_system": s.clock_system,
+               "isb_m": s.isb_m}
         if truth is not None:
             row["err_ned_m"] = [float(x) for x in ecef_to_ned(s.r_e, truth)]
         rows.append(row)
@@ -214,7 +274,8 @@ def _run(args) -> int:
                   program=f"companion gnss {args.mode} ({opts.signal})",
                   inputs=[args.rover, *args.nav, *([args.base] if args.base else [])],
                   options={"pos mode": "single" if args.mode == "spp" else "dgps",
-                           "elev mask": f"{args.elevation_mask_deg:.1f} deg"})
+                           "elev mask": f"{args.elevation_mask_deg:.1f} deg", "navi sys": ",".join(systems),
+                           "ionos opt": iono})
     return 0
 
 

@@ -3,16 +3,27 @@
 :func:`prepare_epoch` turns one :class:`GnssEpoch` into arrays over the usable satellites whose
 pseudorange model is exactly::
 
-    pseudorange_m[i] = |r_sat_e[i] - r_antenna_e| + receiver_clock_bias_m + noise(sigma_pseudorange_m[i])
+    pseudorange_m[i] = |r_sat_e[i] - r_antenna_e| + receiver_clock_bias_m + isb_m[system(i)]
+                       + noise(sigma_pseudorange_m[i])
+
+for the satellites of the selected ``systems`` (GPS, Galileo, BeiDou, QZSS; ``isb_m`` is 0 for the
+reference system and a constant inter-system bias for the others, which SPP estimates).  Satellite
+times are GPS time throughout: the ephemerides carry their system's offset (BDT + 14 s).
 
 * ``r_sat_e`` / ``v_sat_e``: satellite state at the GPS transmit time, rotated into the ECEF frame
   of the reception time (Sagnac).  The rotation angle uses the *geometric* travel time
   |r_sat - r_approx|/c, iterated twice, never P/c (P contains the receiver clock error).
-* Standalone: P + c*dt_sat (relativistic term included) - c*TGD*gamma_f - Klobuchar(f) - tropo.
+* ``signal='L1C'`` (default): each system's single-frequency code (:mod:`companion.gnss.signals`:
+  GPS/QZSS L1 C/A, Galileo E1, BeiDou B1I).  Standalone: P + c*dt_sat (relativistic term included)
+  - group delay (GPS/QZSS TGD, Galileo BGD of the clock's message, BeiDou TGD1: the B1I code
+  against the B3I clock) - Klobuchar x (f_L1/f)^2 (the GPS coefficients for every system, as
+  RTKLIB does) - tropo.
 * DGPS: P + c*dt_sat + PRC (the corrector works on the same signal; TGD, iono and tropo are in the PRC).
-* ``signal='IF'``: ionosphere-free C1/P2 (L1 code with the first of L2W/L2X/L2C/L2L/L2S/L2P code);
-  broadcast clocks refer to the P1/P2 iono-free combination, so neither TGD nor iono is applied.
-  Carrier/Doppler columns then come from the L1 signal.
+* ``signal='IF'``: ionosphere-free combination of each system's pair (GPS C1/P2: L1 code with the
+  first of L2W/L2P/L2X/L2C/L2L/L2S, then L5; Galileo E1/E5b, then E1/E5a; BeiDou B1I/B3I, then
+  B1I/B2I; QZSS L1/L2C, then L1/L5); GPS, Galileo and QZSS clocks refer to such a combination (no
+  group delay), BeiDou's to B3I (TGD1 and TGD2 combined); no iono.  Carrier/Doppler columns then
+  come from the first code's signal.
 * Satellites with carrier phase but no pseudorange are KEPT with ``pseudorange_m = NaN`` (the TDCP
   model uses their phase); their transmit time is t_rx - rx_clock_bias_m/c - rho/c (GPS time), so pass
   ``rx_clock_bias_m`` when known (else the position error is ~3.9 km/s x receiver clock error).
@@ -22,7 +33,8 @@ pseudorange model is exactly::
   better position (see :func:`companion.gnss.spp.spp_epoch`).
 
 Sigma model (variances add):
-  code noise (a^2 + b^2/sin^2 E) with a = b = ``CODE_SIGMA_A_M``/``CODE_SIGMA_B_M`` (x3 for IF);
+  code noise (a^2 + b^2/sin^2 E) with a = b = ``CODE_SIGMA_A_M``/``CODE_SIGMA_B_M`` (x the noise
+  amplification of the pair for IF: 2.98 for GPS L1/L2, 2.81 for Galileo E1/E5b, 3.53 for B1I/B3I);
   standalone adds URA^2, (``IONO_MODEL_ERROR_FRAC`` x Klobuchar)^2 (``IONO_NO_MODEL_SIGMA_M``^2
   without a model), (``TROPO_ZENITH_ERROR_M`` x mapping)^2;
   DGPS uses 2 x code noise (base + rover) + ``DGPS_SIGMA_M``^2 + (``DGPS_AGE_SIGMA_MPS`` x age)^2.
@@ -42,6 +54,8 @@ from ..nav.earth import OMEGA_IE_RADPS, ecef_to_geodetic
 from .atmosphere import klobuchar_delay_m, saastamoinen_zenith_m, tropo_mapping
 from .ephemeris import satellite_state, transmit_time
 from .ephemeris_store import EphemerisStore
+from .signals import (IF_FIRST_SIGNALS, IF_SECOND_SIGNALS, PRIMARY_SIGNALS, SUPPORTED_SYSTEMS, frequency_hz,
+                      group_delay_m, iono_free_noise_factor)
 
 if TYPE_CHECKING:  # pragma: no cover
     from .dgps import DgpsCorrector
@@ -56,7 +70,6 @@ TROPO_ZENITH_ERROR_M = 0.1    # Saastamoinen + standard atmosphere zenith error,
 DGPS_SIGMA_M = 0.2            # spatial/temporal decorrelation of a short-baseline PRC, m
 DGPS_AGE_SIGMA_MPS = 0.01     # growth of the correction error with age, m/s
 UNKNOWN_POSITION_NORM_M = 1.0e6
-L2_CODE_PRIORITY = ("L2W", "L2P", "L2X", "L2C", "L2L", "L2S")
 GAMMA_L1_L2 = (GPS_L1_HZ / GPS_L2_HZ) ** 2
 
 
@@ -121,32 +134,53 @@ def group_by_sat(epoch: GnssEpoch) -> dict[str, dict[str, SatObservation]]:
     return out
 
 
-def form_pseudorange(sig: dict[str, SatObservation], signal: str):
-    """(pseudorange m or NaN, observation carrying phase/Doppler or None, TGD factor, iono factor).
+def form_pseudorange(sig: dict[str, SatObservation], signal: str, system: str = "G"):
+    """(pseudorange m or NaN, observation carrying phase/Doppler or None, codes used, TGD factor,
+    iono factor, code-noise factor) of one satellite of ``system``.
 
-    TGD factor multiplies c*TGD to subtract (1 on L1, gamma on L2, 0 for IF); iono factor scales
-    the L1 Klobuchar delay (f_L1/f)^2 (0 for IF)."""
+    ``signal``: 'L1C' = the system's single-frequency code (:data:`PRIMARY_SIGNALS`: GPS/QZSS L1 C/A,
+    Galileo E1, BeiDou B1I); 'IF' = the iono-free combination of the system's first pair found
+    (:data:`IF_FIRST_SIGNALS` x :data:`IF_SECOND_SIGNALS`); any other code ('L2W') = that code.
+    TGD factor multiplies c*TGD to subtract for GPS/Galileo/QZSS ((f_L1/f)^2 on one code, 0 for IF;
+    BeiDou: :func:`group_delay_m` from the codes); iono factor scales the L1 Klobuchar delay
+    (f_L1/f)^2 (0 for IF)."""
     nan = float("nan")
     if signal == "IF":
-        o1 = sig.get("L1C") or sig.get("L1W") or sig.get("L1P")
+        o1 = code1 = None
+        for code1 in IF_FIRST_SIGNALS.get(system, ()):
+            o1 = sig.get(code1)
+            if o1 is not None:
+                break
         if o1 is None:
-            return nan, None, 0.0, 0.0
+            return nan, None, (), 0.0, 0.0, 1.0
         p2 = nan
-        for s in L2_CODE_PRIORITY:
+        code2 = None
+        for s in IF_SECOND_SIGNALS.get(system, ()):
             o2 = sig.get(s)
             if o2 is not None and o2.pseudorange_m == o2.pseudorange_m:
-                p2 = o2.pseudorange_m
+                p2, code2 = o2.pseudorange_m, s
                 break
         p1 = o1.pseudorange_m
-        g1, g2 = GPS_L1_HZ * GPS_L1_HZ, GPS_L2_HZ * GPS_L2_HZ
+        if code2 is None or (system == "G" and code2[1] == "2"):   # GPS L1/L2: the historical constants
+            g1, g2 = GPS_L1_HZ * GPS_L1_HZ, GPS_L2_HZ * GPS_L2_HZ
+            noise = IF_NOISE_FACTOR
+        else:
+            f1, f2 = frequency_hz(o1.sat, code1), frequency_hz(o1.sat, code2)
+            g1, g2 = f1 * f1, f2 * f2
+            noise = iono_free_noise_factor(f1, f2)
         p = (g1 * p1 - g2 * p2) / (g1 - g2)
-        return p, o1, 0.0, 0.0
-    o = sig.get(signal)
+        return p, o1, (code1, code2) if code2 else (code1,), 0.0, 0.0, noise
+    code = signal
+    if signal == "L1C":
+        for code in PRIMARY_SIGNALS.get(system, ("L1C",)):
+            if code in sig:
+                break
+    o = sig.get(code)
     if o is None:
-        return nan, None, 0.0, 0.0
+        return nan, None, (), 0.0, 0.0, 1.0
     wl = o.wavelength_m
     ratio = (wl / (C / GPS_L1_HZ)) ** 2 if wl == wl else 1.0  # (f_L1 / f)^2
-    return o.pseudorange_m, o, ratio, ratio
+    return o.pseudorange_m, o, (code,), ratio, ratio, 1.0
 
 
 def _rotate(r, v, tau):
@@ -159,8 +193,14 @@ def _rotate(r, v, tau):
 def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
                   dgps: "DgpsCorrector | None" = None, elevation_mask_rad: float = math.radians(10.0),
                   klobuchar=None, signal: str = "L1C", rx_clock_bias_m: float = 0.0,
-                  apply_models: bool = True, tropo: bool = True) -> PreparedEpoch:
+                  apply_models: bool = True, tropo: bool = True, systems: str = "G") -> PreparedEpoch:
     """Corrected measurements of one epoch (see module docstring for the model and conventions).
+
+    ``systems``: the constellations used, letters of :data:`SUPPORTED_SYSTEMS` ('G' by default:
+    GPS only, as the single-clock filter needs; 'GECJ' for all four).  Satellites of other systems
+    are rejected as 'system not selected' ('unsupported system' for GLONASS, SBAS, NavIC).  The
+    pseudorange model is the same for all; each system has its own clock offset, estimated by
+    :func:`companion.gnss.spp.solve_spp` as an inter-system bias.
 
     ``klobuchar``: (alpha[4], beta[4]) or None (then no iono correction standalone).
     ``apply_models=False`` applies the satellite clock only (used by the DGPS base: raw P + c*dt_sat).
@@ -185,15 +225,15 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
     rows = []
     use_iono = apply_models and dgps is None and klobuchar is not None and known
     alpha, beta = (klobuchar if klobuchar is not None else (None, None))
-    code_scale = IF_NOISE_FACTOR if signal == "IF" else 1.0
-    a2 = (CODE_SIGMA_A_M * code_scale) ** 2
-    b2 = (CODE_SIGMA_B_M * code_scale) ** 2
     nan = float("nan")
     for sat, sig in group_by_sat(epoch).items():
-        if sat[0] != "G":
-            rejected[sat] = "unsupported system"
+        sys_ = sat[0]
+        if sys_ not in systems or sys_ not in SUPPORTED_SYSTEMS:
+            rejected[sat] = "system not selected" if sys_ in SUPPORTED_SYSTEMS else "unsupported system"
             continue
-        p, o, tgd_fac, iono_fac = form_pseudorange(sig, signal)
+        p, o, codes, tgd_fac, iono_fac, code_scale = form_pseudorange(sig, signal, sys_)
+        a2 = (CODE_SIGMA_A_M * code_scale) ** 2
+        b2 = (CODE_SIGMA_B_M * code_scale) ** 2
         if o is None:
             rejected[sat] = "no pseudorange"
             continue
@@ -264,7 +304,7 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
                 var_slow = DGPS_SIGMA_M ** 2 + (DGPS_AGE_SIGMA_MPS * age) ** 2
                 var = 2.0 * var + var_slow
             elif apply_models:
-                pr -= C * eph.tgd_s * tgd_fac
+                pr -= group_delay_m(eph, codes, tgd_fac)
                 if use_iono and iono_fac:
                     iono = iono_fac * klobuchar_delay_m(t_rx, lat, lon, az, el, alpha, beta)
                     pr -= iono
@@ -315,13 +355,15 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
 class CarrierSmoother:
     """Hatch filter of code with carrier, per satellite; returns epochs with smoothed pseudoranges.
 
-    With L1 and L2 phase the *divergence-free* phase combinations are used (no ionospheric
-    code-carrier divergence)::
+    Each system's single-frequency code (GPS/QZSS L1 C/A, Galileo E1, BeiDou B1I) is smoothed, with
+    the second code of its iono-free pair when that has phase (GPS/QZSS L2, Galileo E5b/E5a,
+    BeiDou B3I/B2I).  With both phases the *divergence-free* phase combinations are used (no
+    ionospheric code-carrier divergence)::
 
         Phi_DF1 = Phi1 + 2 (Phi1 - Phi2)/(gamma - 1),   Phi_DF2 = Phi2 + 2 gamma (Phi1 - Phi2)/(gamma - 1)
 
     (phases in metres, gamma = (f1/f2)^2), which follow P1 and P2 exactly up to a constant.  Without
-    L2 phase the single-frequency Hatch filter is used with a shorter window
+    a second phase the single-frequency Hatch filter is used with a shorter window
     (``window_single_s``).  Smoothing restarts on: loss-of-lock / half-cycle flags, a gap longer than
     ``max_gap_s``, a geometry-free phase jump larger than ``gf_jump_m`` between epochs, or a
     code-minus-smoothed-code disagreement larger than ``max_code_jump_m``.  ``window_s`` is the
@@ -346,14 +388,22 @@ class CarrierSmoother:
         from dataclasses import replace
         t = epoch.t_gps
         out = []
-        g = GAMMA_L1_L2
         for sat, sig in group_by_sat(epoch).items():
-            o1 = sig.get("L1C")
+            sys_ = sat[0]
+            o1 = None
+            for s in PRIMARY_SIGNALS.get(sys_, ()):
+                if s in sig:
+                    o1 = sig[s]
+                    break
             o2 = None
-            for s in L2_CODE_PRIORITY:
+            for s in IF_SECOND_SIGNALS.get(sys_, ()):
                 if s in sig and sig[s].carrier_cycles == sig[s].carrier_cycles:
                     o2 = sig[s]
                     break
+            if o2 is None or (sys_ == "G" and o2.signal[1] == "2"):
+                g = GAMMA_L1_L2
+            else:
+                g = (frequency_hz(sat, o1.signal if o1 is not None else "L1") / frequency_hz(sat, o2.signal)) ** 2
             if o1 is None or o1.carrier_cycles != o1.carrier_cycles or o1.pseudorange_m != o1.pseudorange_m:
                 self._state.pop(sat, None)
                 out.extend(sig.values())

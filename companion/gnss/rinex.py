@@ -1,13 +1,15 @@
-"""RINEX 2.x / 3.x readers: GPS LNAV navigation files and observation files.
+"""RINEX 2.x / 3.x readers: navigation files (GPS LNAV, Galileo I/NAV and F/NAV, BeiDou D1/D2,
+QZSS LNAV) and observation files (any system).
 
 Own fixed-column parsers (no georinex at run time): a 1-h 30-s file reads in well under a second.
 
-* :func:`read_rinex_nav` -> list of :class:`GpsEphemeris` (GPS only; other systems are skipped).
+* :func:`read_rinex_nav` -> list of :class:`GpsEphemeris` of G/E/C/J (GLONASS, SBAS, NavIC skipped).
 * :func:`read_rinex_nav_header_iono` -> Klobuchar (alpha[4], beta[4]) from the header, or None.
 * :func:`read_rinex_obs` -> (header dict, list of :class:`GnssEpoch`).
 
-Conventions: RINEX nav angles are already radians, the GPS week in the file is continuous
-(no 1024 roll-over).  Observation time tags are the receiver's GPS time tags, converted to continuous
+Conventions: RINEX nav angles are already radians, the GPS and Galileo weeks in the file are
+continuous GPS weeks (no 1024 roll-over); BeiDou records are in BDT (epoch, toe, BDT week), converted
+as :class:`GpsEphemeris` describes.  Observation time tags are the receiver's GPS time tags, converted to continuous
 GPS seconds.  RINEX 2 observation types are mapped onto RINEX 3 codes (RTKLIB's convention):
 C1->C1C, P1->C1W, L1->L1C, D1->D1C, S1->S1C, P2->C2W, L2->L2W (L2C if the file has C2 but no P2),
 C2->C2X... see ``_RINEX2_MAP``.  One :class:`SatObservation` is produced per satellite per signal,
@@ -23,11 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..messages import (SPEED_OF_LIGHT_MPS, GnssEpoch, GpsEphemeris, SatObservation)
+from .ephemeris_store import MIN_FIT_INTERVAL_H
+from .signals import FREQUENCY_HZ
+from ..messages import (SPEED_OF_LIGHT_MPS, SYSTEM_TO_GPS_S, SYSTEM_WEEK_TO_GPS_WEEK, GnssEpoch, GpsEphemeris,
+                        SatObservation)
 
 _GPS_EPOCH = _dt.datetime(1980, 1, 6)
 _SECONDS_PER_WEEK = 604800.0
-_GPS_BAND_HZ = {"1": 1575.42e6, "2": 1227.60e6, "5": 1176.45e6}
 _NAV_LINES = {"G": 8, "J": 8, "E": 8, "C": 8, "I": 8, "R": 4, "S": 4}
 
 # RINEX 2 observation type -> RINEX 3 code (type letter, band, attribute)
@@ -86,9 +90,12 @@ def _header_end(lines: list[str]) -> int:
 def read_rinex_nav_header_iono(path) -> tuple[np.ndarray, np.ndarray] | None:
     """Klobuchar (alpha[4] s, s/semicircle...; beta[4]) from a RINEX 2 (ION ALPHA/BETA) or RINEX 3
     (IONOSPHERIC CORR GPSA/GPSB) navigation header, or None when absent.  Units as broadcast
-    (IS-GPS-200 20.3.3.5.1.7: alpha_n in s/semicircle^n, beta_n in s/semicircle^n)."""
+    (IS-GPS-200 20.3.3.5.1.7: alpha_n in s/semicircle^n, beta_n in s/semicircle^n).  Without GPS
+    coefficients, QZSS's (QZSA/QZSB: the same model and units, IS-QZSS-PNT 5.2.2, fitted over the
+    QZSS service area) are returned: a short u-blox log often has QZSS's and not yet GPS's."""
     lines = _open_text(path)
     alpha = beta = None
+    qzs: dict[str, list[float]] = {}
     for ln in lines[:_header_end(lines)]:
         label = ln[60:].strip()
         if label == "ION ALPHA":
@@ -101,9 +108,24 @@ def read_rinex_nav_header_iono(path) -> tuple[np.ndarray, np.ndarray] | None:
                 alpha = vals
             elif ln[:4] == "GPSB":
                 beta = vals
+            elif ln[:4] in ("QZSA", "QZSB"):
+                qzs[ln[:4]] = vals
+    if (alpha is None or beta is None) and len(qzs) == 2:
+        alpha, beta = qzs["QZSA"], qzs["QZSB"]
     if alpha is None or beta is None:
         return None
     return np.array(alpha, float), np.array(beta, float)
+
+
+#: validity of a broadcast ephemeris, hours either side of toe x 2 (RTKLIB MAXDTOE_*: GPS and QZSS
+#: 2 h, Galileo 4 h, BeiDou 6 h); the store accepts |t - toe| <= fit_interval_h / 2
+FIT_INTERVAL_H = {"G": 4.0, "J": 4.0, **MIN_FIT_INTERVAL_H}
+#: Galileo data-source bits (RINEX 3 field 'Data sources'): I/NAV E1-B (0), E5b-I (2), clock for E5b,E1
+#: (9); F/NAV E5a-I (1), clock for E5a,E1 (8)
+GAL_INAV_BITS = (1 << 0) | (1 << 2) | (1 << 9)
+GAL_FNAV_BITS = (1 << 1) | (1 << 8)
+#: SISA 'no accuracy prediction available' (RINEX -1): RTKLIB's STD_GAL_NAPA, m
+GAL_NAPA_SIGMA_M = 500.0
 
 
 def _fit_interval_h(value: float) -> float:
@@ -112,35 +134,75 @@ def _fit_interval_h(value: float) -> float:
 
 
 def _eph_from_fields(sat: str, t_oc_gps: float, v: list[float]) -> GpsEphemeris:
-    """``v`` = 29+ broadcast orbit fields in RINEX order, starting with af0."""
-    week = int(round(v[21]))
+    """``v`` = 29+ broadcast orbit fields in RINEX order, starting with af0.
+
+    GPS/QZSS: IODE, TGD, SV accuracy, health, fit interval as broadcast.  Galileo: IODnav as iode,
+    SISA as ura_m (NAPA -> ``GAL_NAPA_SIGMA_M``), SV health word, BGD(E1,E5b) for an I/NAV record or
+    BGD(E1,E5a) for an F/NAV one as tgd_s; the Galileo week of RINEX 3 is already a GPS week.
+    BeiDou: the epoch is BDT and toe is BDT seconds, the BDT week gets +1356, AODE as iode, SatH1
+    as health, TGD1 as tgd_s and TGD2 as tgd2_s.  ``t_oc_gps`` is the epoch read *as if* GPS time
+    (the calendar of the record), which for BeiDou is the BDT calendar.
+    """
+    sys_ = sat[0]
+    week = int(round(v[21])) + SYSTEM_WEEK_TO_GPS_WEEK["C"] * (sys_ == "C")
     toe = v[11]
-    # toc as seconds of the toe week (may fall outside [0, 604800) at a week boundary; the
-    # ephemeris code folds time differences into +-half a week)
+    # toc as seconds of the toe week in the system's own time (may fall outside [0, 604800) at a
+    # week boundary; the ephemeris code folds time differences into +-half a week)
     toc = t_oc_gps - week * _SECONDS_PER_WEEK
-    fit = v[29] if len(v) > 29 else 0.0
+    tgd, tgd2, ura, iodc = v[25], 0.0, v[23], int(round(v[26]))
+    fit = FIT_INTERVAL_H.get(sys_, 4.0)
+    if sys_ == "G":
+        fit = _fit_interval_h(v[29] if len(v) > 29 else 0.0)
+    elif sys_ == "E":
+        src = int(round(v[20]))
+        inav = bool(src & GAL_INAV_BITS) or not (src & GAL_FNAV_BITS)
+        tgd, tgd2 = (v[26], 0.0) if inav else (v[25], v[26])
+        ura = ura if ura >= 0.0 else GAL_NAPA_SIGMA_M
+        iodc = 0                         # Galileo has no IODC
+    elif sys_ == "C":
+        tgd2 = v[26]
+        iodc = int(round(v[28])) if len(v) > 28 else 0     # AODC
     return GpsEphemeris(
         sat=sat, week=week, toe_s=toe, toc_s=toc,
         sqrt_a=v[10], e=v[8], i0_rad=v[15], omega0_rad=v[13], omega_rad=v[17], m0_rad=v[6],
         delta_n_radps=v[5], idot_radps=v[19], omega_dot_radps=v[18],
         cuc_rad=v[7], cus_rad=v[9], crc_m=v[16], crs_m=v[4], cic_rad=v[12], cis_rad=v[14],
-        af0_s=v[0], af1_sps=v[1], af2_sps2=v[2], tgd_s=v[25],
-        iode=int(round(v[3])), iodc=int(round(v[26])), health=int(round(v[24])),
-        ura_m=v[23], fit_interval_h=_fit_interval_h(fit))
+        af0_s=v[0], af1_sps=v[1], af2_sps2=v[2], tgd_s=tgd, tgd2_s=tgd2,
+        iode=int(round(v[3])), iodc=iodc, health=int(round(v[24])),
+        ura_m=ura, fit_interval_h=fit)
 
 
-def read_rinex_nav(path) -> list[GpsEphemeris]:
-    """All GPS LNAV ephemerides of a RINEX 2.x ('N' file) or 3.x navigation file, in file order."""
+def _is_fnav(sat: str, v: list[float]) -> bool:
+    """A Galileo record whose data-source field says F/NAV only."""
+    src = int(round(v[20]))
+    return sat[0] == "E" and bool(src & GAL_FNAV_BITS) and not src & GAL_INAV_BITS
+
+
+def _prefer_inav(recs: list[tuple[GpsEphemeris, bool]]) -> list[GpsEphemeris]:
+    """Drop Galileo F/NAV records that have an I/NAV twin (same satellite, IODnav, toe): the I/NAV
+    clock refers to E1/E5b, the one an E1 user with BGD(E1,E5b) needs (RTKLIB's default selection).
+    ``recs``: (ephemeris, is F/NAV)."""
+    inav = {(e.sat, e.iode, e.toe_s) for e, fnav in recs if e.sat[0] == "E" and not fnav}
+    return [e for e, fnav in recs if not (fnav and (e.sat, e.iode, e.toe_s) in inav)]
+
+
+def read_rinex_nav(path, systems: str = "GECJ") -> list[GpsEphemeris]:
+    """Keplerian ephemerides of ``systems`` (GPS, Galileo, BeiDou, QZSS) from a RINEX 2.x GPS ('N')
+    or 3.x navigation file, in file order (Galileo F/NAV records with an I/NAV twin dropped).
+    GLONASS, SBAS and NavIC records are skipped."""
     lines = _open_text(path)
     head = _header_end(lines)
     version = _f(lines[0][:9])
     file_sys = lines[0][40:41].upper() if version >= 3 else "G"
     out: list[GpsEphemeris] = []
+    recs: list[tuple[GpsEphemeris, bool]] = []
     i = head
     n = len(lines)
     if version < 3:
         if lines[0][20:21].upper() not in ("N", " "):
             raise ValueError(f"{path}: RINEX 2 file is not a GPS navigation file")
+        if "G" not in systems:
+            return out
         while i < n:
             ln = lines[i]
             if not ln.strip():
@@ -164,7 +226,7 @@ def read_rinex_nav(path) -> list[GpsEphemeris]:
             continue
         sys_ = ln[0] if ln[0] != " " else file_sys
         nlines = _NAV_LINES.get(sys_, 8)
-        if sys_ != "G":
+        if sys_ not in systems or sys_ not in FIT_INTERVAL_H:
             i += nlines
             continue
         prn = int(ln[1:3])
@@ -176,8 +238,9 @@ def read_rinex_nav(path) -> list[GpsEphemeris]:
             for c in range(4):
                 vals.append(_f(row[4 + 19 * c:23 + 19 * c]))
         i += 8
-        out.append(_eph_from_fields(f"G{prn:02d}", _calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals))
-    return out
+        sat = f"{sys_}{prn:02d}"
+        recs.append((_eph_from_fields(sat, _calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals), _is_fnav(sat, vals)))
+    return _prefer_inav(recs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -185,7 +248,8 @@ def read_rinex_nav(path) -> list[GpsEphemeris]:
 # ---------------------------------------------------------------------------------------------
 
 def _wavelength(sys_: str, band: str) -> float:
-    hz = _GPS_BAND_HZ.get(band) if sys_ in ("G", "J") else None
+    """Carrier wavelength, m, of a band of a system (:data:`FREQUENCY_HZ`); NaN for GLONASS FDMA."""
+    hz = FREQUENCY_HZ.get(sys_, {}).get(band)
     return SPEED_OF_LIGHT_MPS / hz if hz else float("nan")
 
 
@@ -242,8 +306,10 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
     Returns ``(header, epochs)``; ``header`` has 'version', 'marker', 'approx_position_e'
     (np.array, m, or None), 'antenna_delta_hen_m', 'receiver', 'antenna', 'interval_s' (NaN if
     absent), 'obs_types' (system -> RINEX 3 codes), 'n_epochs', 'skipped' (counts by reason:
-    'other system' observations, 'event' records, 'bad epoch' flags).  Only satellites of
-    ``systems`` are kept.  Epochs with flag > 1 (events) are skipped; flag 1 (power failure) is kept
+    'other system' observations, 'event' records, 'bad epoch' flags), 'time_system'.  Only
+    satellites of ``systems`` are kept (default GPS only; 'GECJ' for GPS, Galileo, BeiDou and QZSS,
+    wavelengths from :data:`FREQUENCY_HZ`; GLONASS observations get NaN wavelengths).  Time tags
+    of a file in BDT (TIME OF FIRST OBS) are moved to GPS time (+14 s).  Epochs with flag > 1 (events) are skipped; flag 1 (power failure) is kept
     and all its observations are marked ``loss_of_lock``.
     """
     lines = _open_text(path)
@@ -251,7 +317,7 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
     version = _f(lines[0][:9])
     hdr: dict = {"version": version, "marker": "", "approx_position_e": None, "antenna_delta_hen_m": None,
                  "receiver": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
-                 "skipped": {"other system": 0, "event": 0, "bad epoch": 0}}
+                 "skipped": {"other system": 0, "event": 0, "bad epoch": 0}, "time_system": "GPS"}
     r2_types: list[str] = []
     r3_types: dict[str, list[str]] = {}
     cur_sys = None
@@ -270,6 +336,8 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
             hdr["antenna"] = ln[20:40].strip()
         elif label == "INTERVAL":
             hdr["interval_s"] = _f(ln[:10])
+        elif label == "TIME OF FIRST OBS" and ln[48:51].strip():
+            hdr["time_system"] = ln[48:51].strip()
         elif label == "# / TYPES OF OBSERV":
             if ln[:6].strip():
                 r2_types = []
@@ -298,6 +366,7 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
         hdr["obs_types"] = r3_types
 
     epochs: list[GnssEpoch] = []
+    dt_tag = SYSTEM_TO_GPS_S["C"] if hdr["time_system"] == "BDT" else 0.0
     i, n = head, len(lines)
     if version < 3:
         codes = hdr["obs_types"]["G"]
@@ -353,7 +422,7 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
                 i += 1 + nsat
                 continue
             t = _calendar_to_t_gps(int(ln[2:6]), int(ln[7:9]), int(ln[10:12]), int(ln[13:15]),
-                                   int(ln[16:18]), float(ln[18:29]))
+                                   int(ln[16:18]), float(ln[18:29])) + dt_tag
             i += 1
             obs = []
             for _ in range(nsat):
