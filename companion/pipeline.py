@@ -99,7 +99,6 @@ from .messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoc
                        GpsEphemeris, ImuSample, NavSolution)
 from .nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm  # noqa: E402
 from .nav.engine import NavEngine  # noqa: E402
-from .nav.filter import LAYOUT  # noqa: E402
 from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
 from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale, ImuScreen  # noqa: E402
 from .nav.integrity import GNSS_SOURCES, POSITION_SOURCES  # noqa: E402
@@ -670,7 +669,7 @@ class NavPipeline:
         self._gsf_disagreements = 0
         delta = (g.yaw_rad - heading + math.pi) % (2.0 * math.pi) - math.pi
         # horizontal velocity from the GNSS, vertical kept (GPS_RAW_INT has none)
-        cov_v_n = Cne.T @ eng.kf.P[LAYOUT.vel, LAYOUT.vel] @ Cne
+        cov_v_n = Cne.T @ eng.kf.P[eng.layout.vel, eng.layout.vel] @ Cne
         v_n = np.array([v_ant_n[0], v_ant_n[1], float((Cne.T @ eng.v_e)[2])])
         cov_n = np.diag([sigma_mps ** 2, sigma_mps ** 2, max(float(cov_v_n[2, 2]), 1e-4)])
         eng.reset_heading(delta, g.yaw_sigma_rad, v_imu_e=Cne @ v_n, cov_v_e=Cne @ cov_n @ Cne.T)

@@ -11,13 +11,15 @@ Throughput comes from untimed passes, as wall-clock *and* CPU-time rates (proces
 process itself used, which is what means something on a shared, loaded machine); latency from
 separate passes that time every IMU sample (including any GNSS epoch it releases) with
 perf_counter_ns.  Also: the cost of one carrier-phase RTK epoch (companion.gnss.rtk, GEONET
-0759/3040, L1+L2) in CPU time, and the start-up time of ``import companion.service`` in a fresh
-interpreter.
+0759/3040, L1+L2) in CPU time, the start-up time of ``import companion.service`` in a fresh
+interpreter, and one covariance propagation step with 40 identity states (float ambiguities) beside
+the standard 18, dense against by blocks (companion.nav.filter).
 """
 from __future__ import annotations
 
 import dataclasses
 import gc
+import math
 import resource
 import subprocess
 import sys
@@ -88,6 +90,41 @@ def _rtk_epoch_cpu_s() -> tuple[float, int, float]:
     return cpu / max(len(sols), 1), len(sols), float(np.mean([s.n_sats for s in sols])) if sols else float("nan")
 
 
+def propagation_us(extra_states: int = 40, steps: int = 2000, repeats: int = 5) -> tuple[float, float]:
+    """CPU microseconds of one covariance propagation step with ``extra_states`` identity states
+    (e.g. float ambiguities) beside the standard 18: (dense Phi P Phi^T + Q, by blocks as the
+    filter does it).  Interleaved, best of ``repeats``: a shared machine's load hits both alike."""
+    from companion.nav.earth import geodetic_to_ecef, gravity_gradient_ecef
+    from companion.nav.filter import ErrorStateKalmanFilter, ProcessNoise
+    noise = ProcessNoise(3e-4, 3e-3, 1e-5, 1e-4, imu_time_offset_rw_s_per_sqrt_s=1e-4)
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(18, 18)) * 0.1
+    kf = ErrorStateKalmanFilter(A @ A.T + np.eye(18), noise)
+    for i in range(extra_states):
+        kf.add_block(f"amb {i}", 1, 1.0, 1e-6)
+    C, dv = np.eye(3), np.array([0.01, -0.02, -0.049])
+    G = gravity_gradient_ecef(geodetic_to_ecef(0.6, 2.4, 100.0))
+    kf.propagate(C, dv, G, 0.005)
+    phi, Q = kf.transition_matrix(), kf.process_noise_matrix()
+    phi_T, out = phi.T, np.empty_like(kf.P)
+    P_dense = kf.P.copy()
+
+    def dense():
+        nonlocal P_dense
+        np.matmul(phi, P_dense, out=out)
+        P_dense = out @ phi_T
+        P_dense += Q
+
+    best = [math.inf, math.inf]
+    for _ in range(repeats):
+        for j, step in enumerate((dense, lambda: kf.propagate(C, dv, G, 0.005))):
+            c0 = time.process_time()
+            for _ in range(steps):
+                step()
+            best[j] = min(best[j], (time.process_time() - c0) / steps * 1e6)
+    return best[0], best[1]
+
+
 def _startup_s() -> float:
     """Wall time of a fresh interpreter importing the service (what a restart costs)."""
     t0 = time.perf_counter()
@@ -106,6 +143,7 @@ def run_bench(duration_s: float | None = None) -> dict:
     (rate_imu, cpu_rate_imu), _, _ = _run(sim, tuning, False)
     (rate_gnss, cpu_rate_gnss), _, counters = _run(sim, tuning, True)
     rtk_cpu_s, rtk_epochs, rtk_sats = _rtk_epoch_cpu_s()
+    prop_dense_us, prop_blocks_us = propagation_us()
     _, lat_imu, _ = _run(sim, tuning, False, timed=True)
     _, lat_gnss, _ = _run(sim, tuning, True, timed=True)
     n_sats = np.mean([len({o.sat for o in e.observations}) for e in sim.rover_epochs])
@@ -129,6 +167,8 @@ def run_bench(duration_s: float | None = None) -> dict:
         "latency_us_max": round(float(lat_gnss.max()) / 1e3, 2),
         "latency_us_p50_imu_only": round(float(np.percentile(lat_imu, 50)) / 1e3, 2),
         "gnss_cost_ratio": round(rate_imu / rate_gnss, 3),
+        "propagation_58_states_dense_us": round(prop_dense_us, 2),
+        "propagation_58_states_blocks_us": round(prop_blocks_us, 2),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
     }
 
@@ -147,5 +187,7 @@ def format_bench(r: dict) -> str:
         f"  start-up (import companion.service): {r['startup_import_service_s']} s",
         f"  GNSS updates: {r['pseudorange_updates']} pseudoranges, {r['tdcp_updates']} TDCP; "
         f"cost ratio with/without GNSS {r['gnss_cost_ratio']}",
+        f"  covariance propagation with 40 identity states (n = 58): dense {r['propagation_58_states_dense_us']} us, "
+        f"by blocks {r['propagation_58_states_blocks_us']} us of CPU per IMU sample",
         f"  peak RSS {r['peak_rss_mb']} MB",
     ])

@@ -141,15 +141,13 @@ def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s
 
 def _nees(eng: NavEngine, truth, k: int) -> float:
     """NEES of the 9 navigation error states (attitude, position, velocity) at truth sample k."""
-    from companion.nav.filter import LAYOUT as L
-    err = np.empty(9)
+    L = eng.layout
     # correction-convention errors: truth = estimate + error
     dC = truth.C_b_e[k] @ eng.C_b_e.T
-    err[0:3] = 0.5 * np.array([dC[2, 1] - dC[1, 2], dC[0, 2] - dC[2, 0], dC[1, 0] - dC[0, 1]])
-    err[3:6] = truth.r_e[k] - eng.r_e
-    err[6:9] = truth.v_e[k] - eng.v_e
-    P = eng.kf.P[0:9, 0:9]
-    assert L.att == slice(0, 3) and L.pos == slice(3, 6) and L.vel == slice(6, 9)
+    err = np.concatenate([0.5 * np.array([dC[2, 1] - dC[1, 2], dC[0, 2] - dC[2, 0], dC[1, 0] - dC[0, 1]]),
+                          truth.r_e[k] - eng.r_e, truth.v_e[k] - eng.v_e])
+    idx = np.r_[L.att, L.pos, L.vel]
+    P = eng.kf.P[np.ix_(idx, idx)]
     return float(err @ np.linalg.solve(P, err))
 
 

@@ -40,7 +40,8 @@ from ..messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpo
                         ImuSample, NavSolution)
 from .earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
 from .slow_errors import raise_to_floor, slow_error_position_floor
-from .filter import LAYOUT, ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
+from .filter import ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
+from .state_layout import DEFAULT_LAYOUT, StateLayout, isb_block_name
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
 from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, attitude_rate_e, baseline_batch,
                            doppler_batch,
@@ -133,6 +134,11 @@ class EngineConfig:
     # 1-sigma; sigma 0 = not estimated (held at the mean).  Its random walk is in ProcessNoise.
     imu_time_offset_s: float = 0.0
     imu_time_offset_sigma_s: float = 0.0
+    # inter-system bias blocks (companion.nav.state_layout): systems among E, C, J whose
+    # pseudoranges carry their clock minus GPS's as a state, with this prior 1-sigma; its random
+    # walk is in ProcessNoise.  Empty: one receiver clock for everything (today's GPS-only runs).
+    inter_system_biases: tuple[str, ...] = ()
+    inter_system_bias_sigma_m: float = 100.0
     # dual-antenna moving baseline (NAV-RELPOSNED): body FRD vector from the moving-base antenna to
     # the rover antenna (None = not installed); a measured length further than the tolerance (plus
     # 3 sigma) from it is a wrong carrier fix and is rejected; float solutions are not used
@@ -191,6 +197,7 @@ class NavEngine:
         self.clock_drift_mps = 0.0
         self.clock_initialized = False
         self.imu_time_offset_s = float(config.imu_time_offset_s)
+        self.block_states: dict[str, np.ndarray] = {}    # nominal values of the layout's extra blocks
         self._last_dtheta = (0.0, 0.0, 0.0)
         self._last_tau = 1.0
         self._b_a_list = [0.0, 0.0, 0.0]
@@ -241,7 +248,7 @@ class NavEngine:
         covariance, floored at pos_m on every axis).  Without ``clock_bias_m`` the clock is
         taken from the first epoch's pseudoranges.  ``imu_time_offset_s``: the prior mean of the
         IMU time-tag offset (default: the configured one), with the configured sigma."""
-        L = LAYOUT
+        L = StateLayout.standard(self.cfg.inter_system_biases)
         d = np.zeros(L.n)
         d[L.pos] = P0_sigmas["pos_m"] ** 2
         d[L.vel] = P0_sigmas["vel_mps"] ** 2
@@ -250,6 +257,8 @@ class NavEngine:
         d[L.clk] = P0_sigmas.get("clk_m", 1e3) ** 2
         d[L.drift] = P0_sigmas.get("drift_mps", 10.0) ** 2
         d[L.toff] = self.cfg.imu_time_offset_sigma_s ** 2
+        for system in self.cfg.inter_system_biases:
+            d[L.index(isb_block_name(system))] = self.cfg.inter_system_bias_sigma_m ** 2
         P0 = np.diag(d)
         cov = P0_sigmas.get("pos_cov_e_m2")
         if cov is not None and np.all(np.isfinite(cov)):
@@ -264,7 +273,8 @@ class NavEngine:
         lat, lon, _ = ecef_to_geodetic(r_e)
         Cne = C_n_e(lat, lon)
         P0[L.att, L.att] = Cne @ np.diag([tilt ** 2, tilt ** 2, heading ** 2]) @ Cne.T
-        self.kf = ErrorStateKalmanFilter(P0, self.cfg.noise, self.cfg.gate_probability)
+        self.kf = ErrorStateKalmanFilter(P0, self.cfg.noise, self.cfg.gate_probability, layout=L)
+        self.block_states = {b.name: np.zeros(b.size) for b in L.extra_blocks()}
         self.t_gps = float(t_gps)
         self.r_e = np.array(r_e, float)
         self.v_e = np.array(v_e, float)
@@ -290,6 +300,24 @@ class NavEngine:
         self.integrity.restart(t_gps, probation and self.cfg.integrity_enabled)
         self.initialized = True
         self.reset_counter += 1
+
+    @property
+    def layout(self) -> StateLayout:
+        """The filter's state layout (the standard one before the first initialisation)."""
+        return self.kf.layout if self.kf is not None else DEFAULT_LAYOUT
+
+    def add_state_block(self, name: str, size: int, initial_sigma, random_walk_psd: float = 0.0,
+                        value=0.0) -> None:
+        """Add an identity block to the error state (e.g. a float ambiguity per satellite and
+        signal) with its nominal value; the covariance of every other block is kept.  Initialising
+        again drops it (the layout is rebuilt from the configuration)."""
+        self.kf.add_block(name, size, initial_sigma, random_walk_psd)
+        self.block_states[name] = np.broadcast_to(np.asarray(value, float), (size,)).copy()
+
+    def remove_state_block(self, name: str) -> None:
+        """Remove a block added with :meth:`add_state_block` (a satellite set or slipped)."""
+        self.kf.remove_block(name)
+        del self.block_states[name]
 
     def process(self, msg):
         """Dispatch any core message.  Returns an EpochReport for GNSS epochs, else None."""
@@ -466,7 +494,8 @@ class NavEngine:
             return
         if float(self.v_e @ self.v_e) < self.cfg.nhc_min_speed_mps ** 2:
             return
-        b = nhc_batch(self.v_e, self.C_b_e, self.cfg.nhc_sigma_lateral_mps, self.cfg.nhc_sigma_vertical_mps)
+        b = nhc_batch(self.v_e, self.C_b_e, self.cfg.nhc_sigma_lateral_mps, self.cfg.nhc_sigma_vertical_mps,
+                      layout=self.layout)
         rep = self.kf.gate(b)
         self._record((rep,), self.t_gps)
         if rep.n_accepted < len(b):
@@ -492,8 +521,9 @@ class NavEngine:
             self.counters["zupt skipped: INS speed"] += 1
             return
         w_mean, w_std_mean = self._still.gyro_mean_and_sigma()
-        batches = [zero_velocity_batch(self.v_e, self.cfg.zupt_sigma_mps),
-                   zero_rate_batch(w_mean, self.C_b_e, self.b_g, max(w_std_mean, self.cfg.zaru_sigma_floor_radps))]
+        batches = [zero_velocity_batch(self.v_e, self.cfg.zupt_sigma_mps, layout=self.layout),
+                   zero_rate_batch(w_mean, self.C_b_e, self.b_g, max(w_std_mean, self.cfg.zaru_sigma_floor_radps),
+                                   layout=self.layout)]
         reports = [self.kf.gate(b) for b in batches]
         for r in reports:
             self.counters[f"{r.kind} used"] += r.n_accepted
@@ -531,7 +561,8 @@ class NavEngine:
         t0, t1 = max(t_gps - h, ts[0]), min(t_gps + h, ts[-1])
         a = (self._interpolate(t1)[1] - self._interpolate(t0)[1]) / (t1 - t0) if t1 - t0 > 1e-3 else np.zeros(3)
         clk = self.clock_bias_m - self.clock_drift_mps * (self.t_gps - t_gps)
-        return InsPoint(t_gps, r, v, C, self.omega_ib_b, clk, self.clock_drift_mps, a)
+        return InsPoint(t_gps, r, v, C, self.omega_ib_b, clk, self.clock_drift_mps, a,
+                        dict(self.block_states) if self.block_states else None)
 
     def _interpolate(self, t_gps: float):
         ts = self._history_t
@@ -609,13 +640,14 @@ class NavEngine:
             batches += self._loose_batches(ins, prep, sol)
         else:
             if cfg.use_pseudorange and len(prep.sats):
-                pr = pseudorange_batch(ins, prep, self.lever_arm_b, sigma_floor_m=cfg.sigma_pseudorange_floor_m)
+                pr = pseudorange_batch(ins, prep, self.lever_arm_b, layout=self.layout,
+                                       sigma_floor_m=cfg.sigma_pseudorange_floor_m)
                 pr.r_var = pr.r_var * self._correlation_inflation(epoch.t_gps)
                 if len(pr):
                     self._check_clock(ins, pr)
                     batches.append(pr)
             if cfg.use_doppler and len(prep.sats):
-                batches.append(doppler_batch(ins, prep, self.lever_arm_b, cfg.sigma_doppler_mps))
+                batches.append(doppler_batch(ins, prep, self.lever_arm_b, cfg.sigma_doppler_mps, layout=self.layout))
             if cfg.use_tdcp:
                 self._drop_slipped_phase(prep)
                 corr = None
@@ -624,7 +656,7 @@ class NavEngine:
                     corr = self._base_tdcp_corrections(t_prev, epoch.t_gps) or None
                     self.counters["tdcp base-corrected epochs" if corr else "tdcp uncorrected epochs"] += 1
                 tdcp = tdcp_batch(ins, prep, self._phase, self.lever_arm_b, cfg.sigma_phase_m,
-                                  cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s,
+                                  cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s, layout=self.layout,
                                   phase_correction_m=corr,
                                   elevation_scaling=cfg.sigma_phase_elevation_scaling,
                                   specific_force_e=self._mean_specific_force_e(ins))
@@ -632,7 +664,7 @@ class NavEngine:
                     # at rest the dt_imu column is the INS's own velocity-error growth along the
                     # line of sight: the offset is unobservable, and it walked 0 -> -0.30 s in 390 s
                     # at rest on ArduCopter SITL (then "diverged" on its prior)
-                    tdcp.H[:, LAYOUT.toff] = 0.0
+                    tdcp.H[:, self.layout.toff] = 0.0
                 batches.append(tdcp)
         batches = [b for b in batches if len(b)]
         if cfg.measurement_form == "single_difference" and batches and len(prep.sats):
@@ -674,8 +706,8 @@ class NavEngine:
             if b.kind != "pseudorange" or r.n_accepted < 2:
                 continue
             lat, lon, _ = ecef_to_geodetic(ins.r_e)
-            C_h = np.zeros((2, LAYOUT.n))
-            C_h[:, LAYOUT.pos] = C_n_e(lat, lon).T[0:2]
+            C_h = self.layout.zeros(2)
+            C_h[:, self.layout.pos] = C_n_e(lat, lon).T[0:2]
             acc = r.accepted
             self.protection.epoch(b.H[acc], b.z[acc], b.r_var[acc], self.kf.P, C_h, t_gps,
                                   [lab for lab, a in zip(b.labels, acc) if a])
@@ -713,7 +745,7 @@ class NavEngine:
         white_var = prep.sigma_pseudorange_m[ok] ** 2 - slow ** 2
         slow = np.sqrt(np.maximum(slow ** 2, self.cfg.sigma_pseudorange_floor_m ** 2 - white_var))
         floor = slow_error_position_floor(r_ant, prep.r_sat_e[ok], slow)
-        if floor is not None and raise_to_floor(self.kf.P, LAYOUT.pos, floor):
+        if floor is not None and raise_to_floor(self.kf.P, self.layout.pos, floor):
             self.counters["position covariance raised to the slow-error floor"] += 1
 
     def _check_clock(self, ins: InsPoint, pr: MeasurementBatch) -> None:
@@ -723,7 +755,7 @@ class NavEngine:
         clock's own uncertainty allows, while the innovations agree with each other."""
         z = pr.z.tolist()
         common = median(z)           # statistics.median: much cheaper than numpy's for ~10 values
-        L = LAYOUT
+        L = self.layout
         P = self.kf.P
         if self.clock_initialized:
             r_med = median(pr.r_var.tolist())
@@ -763,9 +795,10 @@ class NavEngine:
         sig = max(float(np.median(prep.sigma_pseudorange_m)), self.cfg.sigma_pseudorange_floor_m)
         sig *= math.sqrt(self._correlation_inflation(prep.t_gps))  # same weighting as tight coupling
         cov_n = np.diag([(sig * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sig * sol.vdop) ** 2])
-        out = [position_fix_batch(ins, sol.r_e, Cne @ cov_n @ Cne.T, self.lever_arm_b)]
+        out = [position_fix_batch(ins, sol.r_e, Cne @ cov_n @ Cne.T, self.lever_arm_b, layout=self.layout)]
         if sol.v_e is not None:
-            out.append(velocity_fix_batch(ins, sol.v_e, self._spp_velocity_cov_e(sol), self.lever_arm_b))
+            out.append(velocity_fix_batch(ins, sol.v_e, self._spp_velocity_cov_e(sol), self.lever_arm_b,
+                                          layout=self.layout))
         return out
 
     def process_fix(self, fix: GnssFix):
@@ -789,13 +822,13 @@ class NavEngine:
         if fix.v_e is not None:
             ins = self._course_alignment(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2)
         ap = fix.autopilot_clock
-        batches = [position_fix_batch(ins, fix.r_e, cov, self.lever_arm_b, autopilot_clock=ap)]
+        batches = [position_fix_batch(ins, fix.r_e, cov, self.lever_arm_b, layout=self.layout, autopilot_clock=ap)]
         if fix.v_e is not None and fix.vertical_velocity_valid:
             batches.append(velocity_fix_batch(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2, self.lever_arm_b,
-                                              autopilot_clock=ap))
+                                              layout=self.layout, autopilot_clock=ap))
         elif fix.v_e is not None:       # no vertical velocity in the message: do not assert zero
             batches.append(horizontal_velocity_fix_batch(ins, fix.v_e, fix.sigma_vel_mps, Cne, self.lever_arm_b,
-                                                         autopilot_clock=ap))
+                                                         layout=self.layout, autopilot_clock=ap))
         reports = [self.kf.gate(b) for b in batches]
         for r in reports:
             self.counters[f"fix {r.kind} used"] += r.n_accepted
@@ -825,7 +858,7 @@ class NavEngine:
             self.counters["attitude older than INS history"] += 1
             return None
         lat, lon, _ = ecef_to_geodetic(ins.r_e)
-        b = attitude_batch(ins.C_b_e, C_n_e(lat, lon), att,
+        b = attitude_batch(ins.C_b_e, C_n_e(lat, lon), att, layout=self.layout,
                            rate_e=None if att.autopilot_clock else attitude_rate_e(ins))
         if not len(b):
             self.counters["attitude without angles"] += 1
@@ -864,7 +897,7 @@ class NavEngine:
             return None
         lat, lon, _ = ecef_to_geodetic(ins.r_e)
         b = baseline_batch(ins.C_b_e, C_n_e(lat, lon), bl, np.asarray(self.cfg.moving_baseline_b_m, float),
-                           rate_e=attitude_rate_e(ins))
+                           layout=self.layout, rate_e=attitude_rate_e(ins))
         return self._update_with(b, "baseline", "baseline rows used")
 
     def _course_alignment_pending(self) -> bool:
@@ -889,7 +922,7 @@ class NavEngine:
                                  self.course_epochs_fused)
         if m.speed_h_mps < cfg.course_alignment_min_speed_mps:
             return ins
-        L = LAYOUT
+        L = self.layout
         delta = (m.heading_rad - heading_of(ins.C_b_e, ins.r_e) + math.pi) % (2.0 * math.pi) - math.pi
         sigma_filter = math.sqrt(max(heading_variance(self.kf.P[L.att, L.att], u), 0.0))
         if sigma_filter < math.pi / 4.0 and float(ins.C_b_e[:, 0] @ v_imu) < 0.0:
@@ -906,7 +939,8 @@ class NavEngine:
                      m.speed_h_mps)
         else:
             b = attitude_batch(ins.C_b_e, C_n_e(*ecef_to_geodetic(ins.r_e)[:2]),
-                               GnssAttitude(ins.t_gps, heading_rad=m.heading_rad, sigma_heading_rad=m.sigma_rad))
+                               GnssAttitude(ins.t_gps, heading_rad=m.heading_rad, sigma_heading_rad=m.sigma_rad),
+                               layout=self.layout)
             if not self._update_with(b, "course alignment", "course alignment: heading fused").n_accepted:
                 return ins
         self.course_epochs_fused += 1
@@ -922,7 +956,7 @@ class NavEngine:
         and its covariance, the velocity is taken from it as well (it was integrated along the wrong
         heading; its error is then uncorrelated with everything else): the state moves by
         ``v_imu_e - v_ref_e``, ``v_ref_e`` being the INS velocity at the GNSS time (default: now)."""
-        L = LAYOUT
+        L = self.layout
         R, P = heading_reset(self.kf.P, L.att, down_axis_e(self.r_e), delta_heading_rad, sigma_heading_rad)
         dv = np.zeros(3)
         if v_imu_e is not None:
@@ -940,7 +974,7 @@ class NavEngine:
     def heading_and_sigma(self) -> tuple[float, float]:
         """The filter's heading (rad, clockwise from true north) and its 1-sigma (rad)."""
         u = down_axis_e(self.r_e)
-        var = heading_variance(self.kf.P[LAYOUT.att, LAYOUT.att], u)
+        var = heading_variance(self.kf.P[self.layout.att, self.layout.att], u)
         return heading_of(self.C_b_e, self.r_e), math.sqrt(max(var, 0.0))
 
     def _update_with(self, batch: MeasurementBatch, what: str, used_counter: str) -> UpdateReport:
@@ -1002,7 +1036,7 @@ class NavEngine:
 
     def _feedback(self, dx: np.ndarray) -> None:
         """Closed loop: fold the estimated errors into the nominal state (error state back to zero)."""
-        L = LAYOUT
+        L = self.layout
         self.C_b_e = rotation_from_rotvec(dx[L.att]) @ self.C_b_e
         self.r_e = self.r_e + dx[L.pos]
         self.v_e = self.v_e + dx[L.vel]
@@ -1012,6 +1046,8 @@ class NavEngine:
         self.clock_bias_m += dx[L.clk]
         self.clock_drift_mps += dx[L.drift]
         self.imu_time_offset_s += dx[L.toff]
+        for name in self.block_states:
+            self.block_states[name] = self.block_states[name] + dx[L.slice(name)]
         # the newest history sample is "now": keep it consistent with the corrected state
         self._history[-1] = (self.t_gps, self.r_e, self.v_e, self.C_b_e)
 
@@ -1048,7 +1084,7 @@ class NavEngine:
         along its path (the epoch is then predicted from dt_imu earlier on the IMU tags)."""
         if not self.cfg.use_tdcp:
             return
-        L = LAYOUT
+        L = self.layout
         C = rotation_from_rotvec(dx[L.att]) @ ins.C_b_e
         fixed = InsPoint(ins.t_gps, ins.r_e + dx[L.pos], ins.v_e + dx[L.vel], C, ins.omega_ib_b,
                          ins.clock_bias_m + dx[L.clk], ins.clock_drift_mps + dx[L.drift])
@@ -1077,7 +1113,7 @@ class NavEngine:
         if not self.initialized:
             nan3 = np.full(3, np.nan)
             return NavSolution(math.nan, nan3, nan3, np.full((3, 3), np.nan), nan3, nan3, nan3, "init")
-        L = LAYOUT
+        L = self.layout
         lat, lon, _ = ecef_to_geodetic(self.r_e)
         Cen = C_n_e(lat, lon).T
         P = self.kf.P

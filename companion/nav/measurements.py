@@ -23,6 +23,7 @@ import numpy as np
 
 from .earth import OMEGA_IE_RADPS, skew
 from .filter import LAYOUT, MeasurementBatch
+from .state_layout import isb_block_name, system_of
 
 
 _TEN_DEG_RAD = math.radians(10.0)
@@ -40,6 +41,8 @@ class InsPoint:
     clock_bias_m: float
     clock_drift_mps: float
     a_e: np.ndarray | None = None   # IMU acceleration (ECEF, m/s^2) there, for the dt_imu column
+    # nominal values of the layout's extra blocks by name (inter-system biases ``isb_E`` in m, ...)
+    block_states: dict[str, np.ndarray] | None = None
 
 
 @dataclass
@@ -94,7 +97,9 @@ def line_of_sight(r_sat_e: np.ndarray, r_ant_e: np.ndarray):
 def pseudorange_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, layout=LAYOUT,
                       sigma_floor_m: float = 0.0) -> MeasurementBatch:
     """Corrected pseudoranges (standalone-modelled or DGPS-corrected, see gnss.prepare):
-    model rho = |r_sat - r_ant| + clock_bias + noise."""
+    model rho = |r_sat - r_ant| + clock_bias (+ isb of the satellite's system) + noise.  The
+    receiver clock is GPS's; a system with an inter-system bias block in ``layout`` (``isb_E``
+    etc.) adds that bias, whose nominal value is ``ins.block_states[name]``."""
     ok = np.isfinite(prep.pseudorange_m)
     r_ant, v_ant, l_e = antenna_state(ins, lever_arm_b)
     rho, u = line_of_sight(prep.r_sat_e[ok], r_ant)
@@ -106,6 +111,14 @@ def pseudorange_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, layout=LAYOU
     H[:, layout.toff] = u @ v_ant
     sig = np.maximum(prep.sigma_pseudorange_m[ok], sigma_floor_m)
     labels = [s for s, k in zip(prep.sats, ok) if k]
+    if layout.isb_index:
+        states = ins.block_states or {}
+        for k, sat in enumerate(labels):
+            system = system_of(sat)
+            col = layout.isb_index.get(system)
+            if col is not None:
+                H[k, col] = 1.0
+                z[k] -= float(states.get(isb_block_name(system), (0.0,))[0])
     return MeasurementBatch("pseudorange", labels, z, H, sig * sig)
 
 
