@@ -115,6 +115,7 @@ RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GP
 ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used to initialise
 BASE_WAIT_S = 0.8             # hold a rover epoch (IMU time) until the base epoch of the same time
                               # arrived (DGPS without extrapolation, base-corrected TDCP), at most this
+MOTION_HOLD_S = 0.5           # the unconfirmed-heading gate stays shut this long after the last sign of motion
 GSF_CONFIRM_SIGMA_RAD = math.radians(20.0)   # a yaw from motion this narrow may confirm an ATTITUDE heading
 GSF_AGREE_SIGMAS = 3.0        # our heading and the yaw from motion agree within this x their combined sigma
 GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a row: reset our heading
@@ -269,6 +270,7 @@ class NavPipeline:
         self.gsf_heading_resets = 0
         self.attitude_yaw_trusted = True          # False for the run once the yaw from motion contradicted it
         self.heading_confirmed = False            # the filter's heading came from, or agreed with, the yaw from motion
+        self._t_last_motion = -math.inf           # last solution in (or starting) horizontal motion
         self.attitude_yaw_confirmed = False       # ... and a filter started on the ATTITUDE yaw agreed with it once
         self._heading_from_attitude = False       # the filter's heading was initialised from ATTITUDE
         self._last_trusted_heading_t = -math.inf  # GPS time of the last dual-antenna heading fused
@@ -760,7 +762,11 @@ class NavPipeline:
         if sigma > self.max_sigma_yaw_rad:
             self.counters["solutions withheld: heading unknown"] += 1
             return False
-        if self.gsf.in_motion and not self.heading_confirmed:
+        if self.gsf.in_motion:
+            self._t_last_motion = eng.t_gps
+        # held for MOTION_HOLD_S after the last sign of motion: the IMU's velocity change restarts
+        # at every GNSS velocity, and a start of motion below the moving speed must not toggle
+        if not self.heading_confirmed and eng.t_gps - self._t_last_motion < MOTION_HOLD_S:
             self.counters["solutions withheld: heading not yet confirmed in motion"] += 1
             return False
         return True
