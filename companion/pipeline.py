@@ -336,19 +336,27 @@ class NavPipeline:
                     self._exception("mavlink")
             return out
         if kind == "ubx":
-            return self._feed_messages(self.ubx.feed(bytes(data)))
+            return self._poll_rtcm(t_rx_ns) + self._feed_messages(self.ubx.feed(bytes(data)))
         if kind == "rtcm":
-            msgs = self.rtcm.feed(bytes(data))
-            ov = self.cfg.corrections.base_position_ecef_m
-            if ov is not None:
-                # surveyed coordinates from the configuration replace the caster's 1005/1006
-                if not self._base_override_sent:
-                    msgs = [BaseStationPosition(0, np.asarray(ov, float))] + msgs
-                    self._base_override_sent = True
-                msgs = [BaseStationPosition(x.station_id, np.asarray(ov, float), x.antenna_height_m)
-                        if isinstance(x, BaseStationPosition) else x for x in msgs]
-            return self._feed_messages(msgs)
+            # the receive time closes a base epoch whose last MSM frame was lost (0.3-s timeout)
+            return self._feed_rtcm_messages(self.rtcm.feed(bytes(data), t_rx_ns * 1e-9))
         return []
+
+    def _poll_rtcm(self, t_rx_ns: int) -> list[NavSolution]:
+        """A base epoch left open by a lost last frame closes on time even while no RTCM arrives."""
+        msgs = self.rtcm.poll(t_rx_ns * 1e-9)
+        return self._feed_rtcm_messages(msgs) if msgs else []
+
+    def _feed_rtcm_messages(self, msgs) -> list[NavSolution]:
+        ov = self.cfg.corrections.base_position_ecef_m
+        if ov is not None:
+            # surveyed coordinates from the configuration replace the caster's 1005/1006
+            if not self._base_override_sent:
+                msgs = [BaseStationPosition(0, np.asarray(ov, float))] + msgs
+                self._base_override_sent = True
+            msgs = [BaseStationPosition(x.station_id, np.asarray(ov, float), x.antenna_height_m)
+                    if isinstance(x, BaseStationPosition) else x for x in msgs]
+        return self._feed_messages(msgs)
 
     def feed_mavlink_record(self, t_rx_ns: int, msg) -> list[NavSolution]:
         """Live path: the link already parsed the frame that is logged; same result as
@@ -370,9 +378,9 @@ class NavPipeline:
         if (msg.get_srcSystem(), msg.get_srcComponent()) != self.target:
             self.counters["mavlink from other components"] += 1
             return []
-        out: list[NavSolution] = []
+        out: list[NavSolution] = self._poll_rtcm(t_rx_ns)
         if mt in ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU2", "SCALED_IMU3"):
-            out = self._imu(msg)
+            out += self._imu(msg)
         elif mt == "SYSTEM_TIME":
             self.time_map.update_from_message(msg)
             self._check_reboot()
@@ -389,9 +397,9 @@ class NavPipeline:
             if msg.flags & m.SERIAL_CONTROL_FLAG_REPLY and msg.device == self.serial_device:
                 n = max(0, min(int(msg.count), 70))
                 if n:
-                    out = self._feed_messages(self.ubx.feed(bytes(msg.data[:n])))
+                    out += self._feed_messages(self.ubx.feed(bytes(msg.data[:n])))
         elif mt == "GPS_RAW_INT":
-            out = self._gps_raw(msg)
+            out += self._gps_raw(msg)
         elif mt == "HEARTBEAT":
             self.vehicle_type = int(msg.type)
             self.disarmed = msg.system_status == m.MAV_STATE_STANDBY

@@ -182,3 +182,30 @@ def test_an_fnav_only_caster_still_gives_galileo_ephemerides(frames):
     gal = [m for m in out if getattr(m, "sat", "")[:1] == "E" and not isinstance(m, GnssEpoch)]
     assert len(gal) == 9 and "ephemeris_galileo_superseded" not in dec.counters
     assert all(e.ura_m == 6144.0 for e in gal)       # this sender leaves F/NAV's SISA at 255 (NAPA)
+
+
+def test_the_pipeline_closes_a_base_epoch_on_the_autopilots_stream(frames, truth):
+    """In the service, MAVLink records (the IMU at 50-400 Hz) carry the receive time that closes a
+    base set whose last frame was lost; RTCM frames alone would release it a second late."""
+    from pymavlink.dialects.v20 import common as mav
+
+    from companion.config import config_from_dict
+    from companion.pipeline import NavPipeline
+
+    week_s = WEEK * 604800.0
+    pipe = NavPipeline(config_from_dict({}))
+    pipe.rtcm = RtcmDecoder(week_hint=WEEK)      # the stream is from 2022: its own week
+    lost = next(i for i, fr in enumerate(frames) if fr[2] == 30 and fr[3])
+    t30 = truth_time(truth, frames, 30)
+    t_rx_s, current_set = 1000.0, 0
+    for f, _t, set_idx, _last in frames[:lost]:
+        # a 1-Hz base: each set within a few ms of its second, other messages after it
+        current_set = set_idx if set_idx is not None else current_set
+        t_rx_s = max(t_rx_s + 0.001, 1000.0 + current_set)
+        pipe.feed("rtcm", int(t_rx_s * 1e9), f)
+    assert t30 not in pipe._base_times
+    enc = mav.MAVLink(None, srcSystem=pipe.target[0], srcComponent=pipe.target[1])
+    hb = enc.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0)
+    pipe.feed("mavlink", int((t_rx_s + 0.5) * 1e9), hb.pack(enc))
+    assert pipe.rtcm.counters["epoch_incomplete_timeout"] == 1
+    assert t30 in pipe._base_times and t30 > week_s
