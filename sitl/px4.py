@@ -168,6 +168,23 @@ class Px4Flight:
             self._check_companion()
             say("  " + self.status_line())
 
+    def wait_for_external_nav(self, timeout_s: float = 90.0) -> float | None:
+        """Pump until EKF2 fuses our position (cs_ev_pos), as an operator waits for "nav OK"
+        before arming: PX4 SIH streams ATTITUDE (which the companion needs for its heading) only
+        once EKF2 has aligned, 30-40 s after boot, so a short ground phase can end before our first
+        estimate.  Seconds waited, None on timeout."""
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout_s:
+            if self.flags.last().get("cs_ev_pos"):
+                waited = time.monotonic() - t0
+                if waited > 0.5:
+                    say(f"  EKF2 fuses our position after {waited:.1f} s more; {self.status_line()}")
+                return waited
+            self.gcs.pump(0.5)
+            self._check_companion()
+        say(f"  EKF2 does not fuse our position after {timeout_s:.0f} s more; {self.status_line()}")
+        return None
+
     def status_line(self) -> str:
         g = self.gcs
         n_est = len(g.records.get("VISION_POSITION_ESTIMATE", ()))
@@ -212,7 +229,9 @@ class Px4Flight:
     def takeoff(self, alt_m: float, timeout_s: float = 40.0) -> bool:
         say(f"takeoff to {alt_m:.0f} m")
         self.events["takeoff"] = time.monotonic()
-        n0, e0, z0 = self.gcs.setpoint[0]
+        # from where the vehicle is now: EKF2 resets its position when it starts fusing ours, which
+        # can fall between the hold point taken for OFFBOARD and the arming (a 35-m "take-off")
+        n0, e0, z0 = self._hold_here()
         self.gcs.setpoint = ((n0, e0, z0 - alt_m), (0.0, 0.0, 0.0))
         t_end = time.monotonic() + timeout_s
         while time.monotonic() < t_end and self.gcs.armed:
@@ -332,6 +351,7 @@ def run(*, duration_s: float = 120.0, px4_dir: str | None = None, out_dir: str =
         gcs.pump(3.0)
         cpu0, t_cpu0 = companion.cpu_s(), time.monotonic()
         flight.ground(duration_s)
+        res["ground_wait_for_ev_pos_s"] = flight.wait_for_external_nav()
         gcs.request_message("GPS_GLOBAL_ORIGIN")
         res["armed"], res["box_completed"] = flight.mission(alt_m, side_m, speed_mps, legs)
         gcs.request_message("GPS_GLOBAL_ORIGIN")
