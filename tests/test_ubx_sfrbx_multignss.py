@@ -1,12 +1,13 @@
 """GPS, QZSS, Galileo and BeiDou broadcast ephemerides from u-blox RXM-SFRBX, on the real ZED-F9P
 log (Hiroshima, 2023-09-19, 35 s), against RTKLIB's ``convbin`` RINEX 3 output of the same file.
 
-* GPS, BeiDou (D1) and QZSS: every field against convbin's navigation file, satellite positions
-  and clocks over an hour.
-* Galileo I/NAV: RTKLIB 2.4.3 b34's convbin writes no Galileo ephemeris from this log (not even
-  from a copy with each satellite's pages 0-6 in order), so there is no field-by-field reference.
-  Instead: the E1-B pages alone and the E5b pages alone (two independent page streams) give the
-  same ephemerides, and the Galileo iono-free pseudoranges fit the position that GPS, BeiDou and
+* Every field of every G, E, C (D1), J ephemeris against convbin's navigation file, and the
+  satellite positions and clocks over an hour.  RTKLIB 2.4.3 b34 reads Galileo SFRBX only in the
+  u-blox M8 layout of 9 words (``raw->len < 44 + off`` rejects the F9P's 8): convbin gets a copy
+  of the log whose Galileo frames carry a 9th, zero word (the data words untouched); on the
+  original it writes no Galileo ephemeris at all.
+* Galileo: besides, the E1-B pages alone and the E5b pages alone (two independent page streams)
+  give the same ephemerides, and the iono-free pseudoranges fit the position that GPS, BeiDou and
   QZSS give, up to one Galileo clock offset.
 * BeiDou D2 (GEO): no GEO in this log; decoded from pages built from a real RTCM 1042 GEO
   ephemeris (a layout round trip, see ``test_beidou_d2_pages_round_trip``).
@@ -25,6 +26,7 @@ import struct
 import numpy as np
 import pytest
 
+from companion.config import config_from_dict
 from companion.gnss.beidou_nav import _D2, BeidouEphemerisAssembler, PREAMBLE
 from companion.gnss.ephemeris import satellite_state
 from companion.gnss.ephemeris_store import EphemerisStore
@@ -35,6 +37,7 @@ from companion.gnss.rinex import read_rinex_nav
 from companion.gnss.spp import spp_epoch
 from companion.io.ubx import decode_ubx_file, ubx_sat_id
 from companion.messages import SECONDS_PER_WEEK, GnssEpoch, GpsEphemeris
+from companion.pipeline import ENGINE_SYSTEMS, NavPipeline
 from tests._data import data_path
 
 pytestmark = [pytest.mark.real_data,
@@ -52,12 +55,41 @@ def decoded():
     return msgs, dec
 
 
+def _m8_galileo_layout(data: bytes) -> bytes:
+    """The UBX stream with each Galileo RXM-SFRBX frame padded to the M8's 9 words (a zero word
+    appended, length and checksum redone); every other byte unchanged."""
+    out = bytearray()
+    i = last = 0
+    while (j := data.find(b"\xb5\x62", i)) >= 0 and j + 8 <= len(data):
+        n = struct.unpack_from("<H", data, j + 4)[0]
+        if data[j + 2:j + 4] == b"\x02\x13" and data[j + 6] == 2 and data[j + 10] == 8:
+            p = bytearray(data[j + 6:j + 6 + n])
+            p[4] = 9
+            body = b"\x02\x13" + struct.pack("<H", n + 4) + bytes(p) + bytes(4)
+            a = b = 0
+            for x in body:
+                a = (a + x) & 0xFF
+                b = (b + a) & 0xFF
+            out += data[last:j] + b"\xb5\x62" + body + bytes((a, b))
+            last = j + 8 + n
+        i = j + 8 + n
+    return bytes(out + data[last:])
+
+
 @pytest.fixture(scope="module")
 def convbin_nav(tmp_path_factory):
     d = tmp_path_factory.mktemp("sfrbx")
-    subprocess.run(["convbin", "-r", "ubx", "-od", "-os", "-o", str(d / "f9p.obs"), "-n", str(d / "f9p.nav"), str(UBX)],
-                   check=True, capture_output=True)
-    return read_rinex_nav(d / "f9p.nav")
+    (d / "m8.ubx").write_bytes(_m8_galileo_layout(UBX.read_bytes()))
+    navs = {}
+    for name in ("f9p", "m8"):
+        src = UBX if name == "f9p" else d / "m8.ubx"
+        subprocess.run(["convbin", "-r", "ubx", "-od", "-os", "-o", str(d / f"{name}.obs"), "-n",
+                        str(d / f"{name}.nav"), str(src)], check=True, capture_output=True)
+        navs[name] = read_rinex_nav(d / f"{name}.nav")
+    # the padding changes nothing but Galileo: convbin decodes it only from the M8 layout
+    assert not any(e.system == "E" for e in navs["f9p"])
+    assert [e for e in navs["m8"] if e.system != "E"] == navs["f9p"]
+    return navs["m8"]
 
 
 def _ephs(msgs):
@@ -93,36 +125,37 @@ def test_every_system_is_decoded(decoded):
     assert dec.sfrbx.galileo.nequick is not None and dec.sfrbx.galileo.nequick[0] > 0.0
 
 
-def test_gps_qzss_beidou_fields_and_positions_match_convbin(decoded, convbin_nav):
+def test_every_field_and_position_matches_convbin(decoded, convbin_nav):
     msgs, _ = decoded
     ref = {(e.sat, e.toe_s): e for e in convbin_nav}
     t0 = _epochs(msgs)[0].t_gps
     worst_r = worst_clk = 0.0
-    n = 0
+    n = {}
     for e in _ephs(msgs):
-        if e.system == "E":
-            continue
         r = ref[(e.sat, e.toe_s)]
-        for name in ("week", "iode", "iodc", "health"):
+        for name in ("week", "iode", "health"):
             assert getattr(e, name) == getattr(r, name), (e.sat, name)
+        # Galileo has no IODC: rinex.py reads 0, the RTCM 1046 decoder and this one give IODnav
+        assert e.iodc == (e.iode if e.system == "E" else r.iodc), e.sat
         for name in FLOAT_FIELDS:
             a, b = getattr(e, name), getattr(r, name)
             assert a == pytest.approx(b, rel=REL_TOL, abs=1e-300), (e.sat, name, a, b)
-        assert URA_M.index(e.ura_m) == _ura_index_rinex(r.ura_m), e.sat
-        if e.system == "G":
-            assert e.fit_interval_h == r.fit_interval_h
-        elif e.system == "J":
-            assert e.fit_interval_h in (2.0, 4.0)           # QZSS flag 0 = 2 h (IS-QZSS-PNT)
+        if e.system == "E":
+            assert e.ura_m == r.ura_m                        # SISA
         else:
-            assert e.fit_interval_h == 12.0 and e.t_oe_gps == r.t_oe_gps
+            assert URA_M.index(e.ura_m) == _ura_index_rinex(r.ura_m), e.sat
+        if e.system == "J":
+            assert e.fit_interval_h in (2.0, 4.0)           # QZSS flag 0 = 2 h (rinex.py: always 4 h)
+        else:
+            assert e.fit_interval_h == r.fit_interval_h and e.t_oe_gps == r.t_oe_gps
         for t in (t0, t0 + 35.0, e.t_oe_gps + 3600.0):
             ra, _, ca, _ = satellite_state(e, t)
             rb, _, cb, _ = satellite_state(r, t)
             worst_r = max(worst_r, float(np.linalg.norm(ra - rb)))
             worst_clk = max(worst_clk, abs(ca - cb))
-        n += 1
-    print(f"\n{n} G/J/C ephemerides vs convbin: worst position {worst_r * 1e3:.3f} mm, clock {worst_clk:.1e} s")
-    assert n == 21 and worst_r < 2e-3 and worst_clk < 1e-12
+        n[e.system] = n.get(e.system, 0) + 1
+    print(f"\n{n} ephemerides vs convbin: worst position {worst_r * 1e3:.3f} mm, clock {worst_clk:.1e} s")
+    assert n == {"G": 9, "E": 7, "C": 8, "J": 4} and worst_r < 2e-3 and worst_clk < 1e-12
 
 
 def _galileo_only(path, sig_id: int):
@@ -238,7 +271,6 @@ def test_the_gps_only_engine_holds_and_ignores_the_other_systems(decoded):
     without their ephemerides; the pipeline's usable-epoch test counts GPS satellites only."""
     from companion.nav.engine import EngineConfig, NavEngine
     from companion.nav.filter import ProcessNoise
-    from companion.pipeline import ENGINE_SYSTEMS, NavPipeline
 
     msgs, _ = decoded
     eng = NavEngine(EngineConfig(noise=ProcessNoise(5e-5, 1e-3, 1e-6, 1e-5)))
@@ -257,12 +289,43 @@ def test_the_gps_only_engine_holds_and_ignores_the_other_systems(decoded):
         {o.sat for o in ep.observations if o.sat[0] in "ECJ"}
     # pipeline: an epoch with three GPS satellites (two signals each) and many others is not usable
     assert ENGINE_SYSTEMS == "G"
-    few = [o for o in ep.observations if o.sat in sorted({x.sat for x in ep.observations if x.sat[0] == "G"})[:3]
-           or o.sat[0] != "G"]
-    pipe = NavPipeline.__new__(NavPipeline)
+    three = sorted({o.sat for o in ep.observations if o.sat[0] == "G"})[:3]
+    few = tuple(o for o in ep.observations if o.sat in three or o.sat[0] != "G")
+    pipe = NavPipeline(config_from_dict({}))
     pipe.engine = eng
-    assert not NavPipeline._usable(pipe, GnssEpoch(ep.t_gps, tuple(few)))
-    assert NavPipeline._usable(pipe, ep)
+    assert not pipe._usable(GnssEpoch(ep.t_gps, few)) and pipe._usable(ep)
+
+
+def _without_non_gps_sfrbx(data: bytes) -> bytes:
+    out = bytearray()
+    i = last = 0
+    while (j := data.find(b"\xb5\x62", i)) >= 0 and j + 8 <= len(data):
+        n = struct.unpack_from("<H", data, j + 4)[0]
+        if data[j + 2:j + 4] == b"\x02\x13" and data[j + 6] != 0:
+            out += data[last:j]
+            last = j + 8 + n
+        i = j + 8 + n
+    return bytes(out + data[last:])
+
+
+def test_pipeline_fed_the_ubx_log_behaves_as_with_gps_ephemerides_only():
+    """The service's path (``NavPipeline.feed('ubx', ...)``, as live and in replay), fed the log
+    in 4-kB chunks, with and without the non-GPS SFRBX frames: no exception, the store holds every
+    system, and every GPS-only decision (usable epochs) is the same."""
+    def run(data: bytes):
+        pipe = NavPipeline(config_from_dict({}))
+        for k in range(0, len(data), 4096):
+            pipe.feed("ubx", k, data[k:k + 4096])
+        return pipe
+
+    full = run(UBX.read_bytes())
+    gps = run(_without_non_gps_sfrbx(UBX.read_bytes()))
+    assert not any(k.startswith("pipeline exceptions") for k in list(full.counters) + list(gps.counters))
+    assert {s[0] for s in full.engine.ephemerides.sats} == set("GECJ") and len(full.engine.ephemerides) == 28
+    assert {s[0] for s in gps.engine.ephemerides.sats} == {"G"} and len(gps.engine.ephemerides) == 9
+    assert full.counters["rover epochs"] == gps.counters["rover epochs"] == 36
+    # the first 26 epochs have fewer than four GPS satellites with ephemerides (26 s, see above)
+    assert full.counters["rover epochs without ephemerides"] == gps.counters["rover epochs without ephemerides"] == 26
 
 
 # ------------------------------------------------------------------------------ BeiDou D2 (GEO)
