@@ -124,6 +124,11 @@ GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a r
 TRUSTED_HEADING_MAX_AGE_S = 5.0   # a dual-antenna heading fused this recently vouches for our heading
 
 
+#: constellations the navigation engine fuses (its prepare_epoch default: GPS only); ephemerides of
+#: other systems are held in its store but not counted towards a usable epoch
+ENGINE_SYSTEMS = "G"
+
+
 @dataclass(frozen=True)
 class InitSigmas:
     """Initial 1-sigma uncertainties (the [filter] section has no keys for them yet)."""
@@ -899,9 +904,12 @@ class NavPipeline:
         self._held = keep
 
     def _usable(self, epoch: GnssEpoch) -> bool:
-        """At least four satellites with ephemerides: the epoch can position the filter."""
+        """At least four satellites of the engine's systems with ephemerides: the epoch can position
+        the filter.  Satellites, not signals (a dual-frequency receiver reports two per satellite),
+        and only the systems the engine uses: Galileo/BeiDou/QZSS ephemerides from SFRBX or RTCM
+        must not make an epoch with three GPS satellites look usable."""
         have = set(self.engine.ephemerides.sats)
-        return sum(1 for o in epoch.observations if o.sat in have) >= 4
+        return len({o.sat for o in epoch.observations if o.sat in have and o.sat[0] in ENGINE_SYSTEMS}) >= 4
 
     def _use_rover_epoch(self, epoch: GnssEpoch) -> None:
         if self.engine.initialized:

@@ -30,7 +30,8 @@ pytestmark = pytest.mark.real_data
 def f9p():
     msgs, dec = decode_ubx_file(str(F9P))
     epochs = [m for m in msgs if isinstance(m, GnssEpoch)]
-    ephs = [m for m in msgs if isinstance(m, GpsEphemeris)]
+    # GPS LNAV (the other systems' SFRBX ephemerides: tests/test_ubx_sfrbx_multignss.py)
+    ephs = [m for m in msgs if isinstance(m, GpsEphemeris) and m.system == "G"]
     return msgs, dec, epochs, ephs
 
 

@@ -126,8 +126,15 @@ def fit_interval_h(flag: int, iodc: int) -> float:
     return 6.0
 
 
+def qzss_fit_interval_h(flag: int) -> float:
+    """QZSS LNAV fit interval flag: 0 = 2 h, 1 = more than 2 h (IS-QZSS-PNT 5.2.2.2.4), taken as 4 h
+    as the RTCM 1044 decoder does."""
+    return 4.0 if flag else 2.0
+
+
 def decode_ephemeris(sat: str, sf1: Subframe, sf2: Subframe, sf3: Subframe, ref_week: int) -> GpsEphemeris:
-    """Ephemeris from subframes 1, 2, 3 (consistency is the caller's job).
+    """Ephemeris from subframes 1, 2, 3 (consistency is the caller's job).  ``sat`` 'Jnn' (QZSS)
+    selects the QZSS meaning of the fit interval flag.
 
     ``ref_week`` (a full GPS week near the transmission time) resolves the 10-bit week number;
     toe/toc are then placed within half a week of the subframe-1 transmission time, so the
@@ -184,7 +191,8 @@ def decode_ephemeris(sat: str, sf1: Subframe, sf2: Subframe, sf3: Subframe, ref_
         omega0_rad=omega0, omega_rad=omega, m0_rad=m0, delta_n_radps=delta_n, idot_radps=idot,
         omega_dot_radps=omega_dot, cuc_rad=cuc, cus_rad=cus, crc_m=crc, crs_m=crs, cic_rad=cic,
         cis_rad=cis, af0_s=af0, af1_sps=af1, af2_sps2=af2, tgd_s=tgd, iode=iode, iodc=iodc,
-        health=health, ura_m=URA_M[ura_index], fit_interval_h=fit_interval_h(fit_flag, iodc))
+        health=health, ura_m=URA_M[ura_index],
+        fit_interval_h=qzss_fit_interval_h(fit_flag) if sat[0] == "J" else fit_interval_h(fit_flag, iodc))
 
 
 KLOBUCHAR_PAGE_SV_ID = 56      # subframe 4 page 18: ionospheric and UTC parameters

@@ -4,8 +4,10 @@
 serial port, a SERIAL_CONTROL tunnel, a file) and it returns the messages completed by that chunk:
 
 * ``RXM-RAWX``  -> :class:`~companion.messages.GnssEpoch` (rover raw observations)
-* ``RXM-SFRBX`` -> :class:`~companion.messages.GpsEphemeris` (GPS L1 C/A LNAV subframes 1-3,
-  once per new consistent set per satellite; see :mod:`companion.gnss.lnav`)
+* ``RXM-SFRBX`` -> :class:`~companion.messages.GpsEphemeris` of GPS and QZSS (L1 C/A LNAV),
+  Galileo (E1-B/E5b I/NAV) and BeiDou (B1I/B2I D1 and D2), once per new consistent set per
+  satellite; see :mod:`companion.io.ubx_sfrbx`.  Counted: ``ephemerides`` and
+  ``ephemerides_<G|J|E|C>``; words of other messages ``sfrbx_not_decoded_<letter>``
 * ``NAV-PVT``   -> :class:`~companion.messages.GnssFix` (the receiver's own solution)
 * ``NAV-RELPOSNED`` (version 0, M8P; version 1, F9P) -> :class:`~companion.messages.GnssBaseline`
   (moving-baseline vector for dual-antenna heading) when ``gnssFixOK`` and ``relPosValid``;
@@ -48,10 +50,10 @@ from typing import Callable, Union
 
 import numpy as np
 
-from ..gnss.lnav import LnavEphemerisAssembler
 from ..messages import (SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
                         SatObservation)
 from ..nav.earth import C_n_e, geodetic_to_ecef
+from .ubx_sfrbx import SfrbxEphemerides
 
 log = logging.getLogger(__name__)
 
@@ -230,8 +232,9 @@ class UbxDecoder:
         10-bit week of SFRBX subframes and NAV-PVT's time of week before the first RXM-RAWX
         (which carries the full week) has been seen.
     check_parity:
-        Verify the LNAV word parity of SFRBX subframes (the receiver has checked it already; a
-        failure here means the log is corrupt or the layout assumption is wrong).
+        Verify the LNAV and BeiDou word parity of SFRBX subframes (the receiver has checked it
+        already; a failure here means the log is corrupt or the layout assumption is wrong).
+        Galileo pages are always CRC-checked.
     """
 
     def __init__(self, week_hint: WeekHint = None, check_parity: bool = True,
@@ -239,7 +242,8 @@ class UbxDecoder:
         self._buf = bytearray()
         self.time_ref = TimeReference(week_hint)
         self.leap_seconds: int | None = None
-        self.ephemerides = LnavEphemerisAssembler(check_parity=check_parity)
+        self.sfrbx = SfrbxEphemerides(check_parity=check_parity)
+        self.ephemerides = self.sfrbx.gps       # GPS LNAV (its ``klobuchar`` feeds the pipeline)
         self.counters: dict[str, int] = {}
         self._rlog = RateLimitedLog(log, log_interval_s)
         self._lock: dict[tuple[str, str], tuple[float, float]] = {}
@@ -396,19 +400,22 @@ class UbxDecoder:
             self._reject("bad_payload", f"RXM-SFRBX length {len(p)} for {num_words} words")
             return None
         self._count("sfrbx")
-        if gnss_id != 0 or sig_id != 0 or num_words != 10:
-            return None           # only GPS L1 C/A LNAV is decoded
-        words = struct.unpack_from("<10I", p, 8)
-        before = dict(self.ephemerides.counters)
+        sat = ubx_sat_id(gnss_id, sv_id)
+        if sat is None:
+            self._count("sfrbx_unknown_satellite")
+            return None
+        words = struct.unpack_from(f"<{num_words}I", p, 8)
         ref_week = self.time_ref.week()
         if ref_week is None:
             ref_week = ERA_WEEK
-        eph = self.ephemerides.add(f"G{sv_id:02d}", words, ref_week)
-        for reason in ("parity", "preamble"):
-            if self.ephemerides.counters[reason] != before[reason]:
-                self._reject(f"sfrbx_{reason}", f"G{sv_id:02d}")
+        eph, reason = self.sfrbx.add(sat[0], sat, sig_id, words, ref_week)
+        if reason == "not_decoded":
+            self._count(f"sfrbx_not_decoded_{sat[0]}")
+        elif reason:
+            self._reject(f"sfrbx_{reason}", sat)
         if eph is not None:
             self._count("ephemerides")
+            self._count(f"ephemerides_{sat[0]}")
         return eph
 
     # -- NAV-TIMEGPS / NAV-PVT -------------------------------------------------------------
