@@ -228,3 +228,7 @@ class NavSolution:
     last_gnss_update_t_gps: float = float("nan")
     reset_counter: int = 0            # bumped at every discontinuity (re-initialisation)
     extras: dict = field(default_factory=dict)
+    # carrier-phase RTK (companion.nav.rtk_update): 'none', 'float' or 'fixed' (integer
+    # ambiguities validated at the last epoch), and the LAMBDA ratio of that fix
+    fix_state: str = "none"
+    fix_ratio: float = float("nan")

@@ -317,6 +317,7 @@ class Scenario:
     ppk: PpkFixModel | None = None           # also emit PPK-class GnssFix solutions
     gnss_attitude: AttitudeAntennas | None = None   # also emit three-antenna GnssAttitude
     initial_attitude_sigma_rad: tuple[float, float] | None = None   # (tilt, heading) alignment
+    dual_frequency: bool = False             # also GPS L2 P(Y) ('L2W') code and carrier (the rtk scenario)
     notes: dict = field(default_factory=dict, compare=False)
 
     @property
@@ -516,13 +517,50 @@ def _attitude_mems() -> Scenario:
                                initial_attitude_sigma_rad=(math.radians(0.3), math.radians(3.0)))
 
 
+#: the rtk scenario's slips (s from t0, rank of the satellite by elevation at that time, cycles):
+#: the reference (highest) satellite, a middle one and a low one
+RTK_SLIPS = ((60.0, 0, 1), (95.0, 3, -5), (200.0, 5, 2))
+RTK_OUTAGE_S = (130.0, 160.0)
+
+
+def _rtk() -> Scenario:
+    """'uav' with a short baseline and a dual-frequency (L1 C/A + L2 P(Y)) RTK rover: the base on
+    station 0759's header position (110 m from the take-off, at most ~0.5 km away), the rover a
+    drone-class RTK receiver, three cycle slips and the 30-s outage."""
+    import dataclasses
+    from companion.gnss.ephemeris import satellite_state
+    uav = _uav()
+    t0 = uav.t0_gps
+    base = sky.GEONET_0759_R_E.copy()
+    slips = []
+    for dt, rank, cyc in RTK_SLIPS:
+        els = sorted(((sky.elevation_azimuth(base, satellite_state(e, t0 + dt)[0])[0], e.sat)
+                      for e in uav.ephemerides), reverse=True)
+        els = [x for x in els if x[0] > math.radians(uav.mask_deg + 5.0)]
+        slips.append((t0 + dt, els[min(rank, len(els) - 1)][1], cyc))
+    return dataclasses.replace(
+        uav, name="rtk",
+        description="uav with a 0.1-0.5 km baseline (base on GEONET 0759), dual-frequency RTK rover, "
+                    "3 cycle slips, 30-s rover outage",
+        base_r_e=base, base_station_id=759, dual_frequency=True,
+        # short baseline: the rover-only atmosphere is a few millimetres
+        iono=dataclasses.replace(uav.iono, sigma_diff_m=0.002),
+        tropo=dataclasses.replace(uav.tropo, sigma_diff_m=0.002),
+        rover_rx=ReceiverErrors(code_noise_m=0.25, code_mp_m=0.3, code_mp_tau_s=8.0,
+                                carrier_noise_m=0.002, carrier_mp_m=0.005, carrier_mp_tau_s=8.0,
+                                doppler_noise_mps=0.05, el_scaling=True),
+        rover_outages=((t0 + RTK_OUTAGE_S[0], t0 + RTK_OUTAGE_S[1]),),
+        cycle_slips=tuple(slips))
+
+
 _BUILDERS = {"paper": _paper, "paper-nosa": _paper_nosa, "uav": _uav, "nhc": _nhc,
              "nhc-skid": lambda: _nhc(skid=True), "attitude": _attitude,
-             "attitude-mems": _attitude_mems}
+             "attitude-mems": _attitude_mems, "rtk": _rtk}
 
 
 def build_scenario(name: str) -> Scenario:
-    """'paper', 'paper-nosa', 'uav', 'nhc', 'nhc-skid', 'attitude' or 'attitude-mems' (see the module docstring)."""
+    """'paper', 'paper-nosa', 'uav', 'nhc', 'nhc-skid', 'attitude', 'attitude-mems' or 'rtk' (see the
+    module docstring)."""
     try:
         return _BUILDERS[name]()
     except KeyError:

@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.gnss.atmosphere import klobuchar_delay_m, saastamoinen_zenith_m
-from companion.messages import (GPS_L1_WAVELENGTH_M, SPEED_OF_LIGHT_MPS, BaseStationPosition,
+from companion.messages import (GPS_L1_HZ, GPS_L1_WAVELENGTH_M, GPS_L2_HZ, GPS_L2_WAVELENGTH_M,
+                                SPEED_OF_LIGHT_MPS, BaseStationPosition,
                                 GnssEpoch, GpsEphemeris, ImuSample, SatObservation)
 from companion.nav.earth import ecef_to_geodetic
 from companion.nav.strapdown import invert_step
@@ -30,6 +31,9 @@ _S_IONO_C, _S_IONO_D, _S_TROPO_C, _S_TROPO_D, _S_SATCLK, _S_SA = 10, 11, 12, 13,
 _S_ORB_C, _S_ORB_D, _S_ORB_RAC = 16, 17, 18
 _S_SITE = {"rover": 20, "base": 30}
 _S_AMB = {"rover": 40, "base": 41}
+_S_SITE_L2 = {"rover": 21, "base": 31}     # second frequency (Scenario.dual_frequency)
+_S_AMB_L2 = {"rover": 42, "base": 43}
+GAMMA_L2 = (GPS_L1_HZ / GPS_L2_HZ) ** 2      # L2 ionospheric delay / L1's
 _S_PPK, _S_ATT = 50, 51
 _S_IMU_UNIT = 60               # + k: redundant IMU unit k (SimData.extra_imu_units)
 
@@ -258,6 +262,17 @@ class ReceiverModel:
         self.car_n = rs.standard_normal((K, S)) * rx.carrier_noise_m
         self.dop_n = rs.standard_normal((K, S)) * rx.doppler_noise_mps / LAMBDA
         self.r_amb = np.random.default_rng([seed, _S_AMB[who]])
+        self.dual = scn.dual_frequency
+        if self.dual:
+            # L2 (P(Y), 'L2W'): its own site errors and ambiguities from their own streams, so the
+            # L1 observables are those of the single-frequency scenario bit for bit
+            r2 = np.random.default_rng([seed, _S_SITE_L2[who]])
+            self.code_mp2 = sensors.gm1(r2, K, dt_ep, rx.code_mp_tau_s, rx.code_mp_m, S)
+            self.car_mp2 = sensors.gm1(r2, K, dt_ep, rx.carrier_mp_tau_s, rx.carrier_mp_m, S)
+            self.code_n2 = r2.standard_normal((K, S)) * rx.code_noise_m
+            self.car_n2 = r2.standard_normal((K, S)) * rx.carrier_noise_m
+            self.r_amb2 = np.random.default_rng([seed, _S_AMB_L2[who]])
+            self.amb2: dict[str, int] = {}
 
         self.errs = {c: np.full((K, S), np.nan) for c in _COMPONENTS}
         self.keep = np.ones(K, bool)
@@ -310,11 +325,15 @@ class ReceiverModel:
                 if sat in amb:
                     lol = True                 # re-acquisition after a gap: new ambiguity
                 amb[sat] = int(self.r_amb.integers(-2 ** 20, 2 ** 20 + 1))
+                if self.dual:
+                    self.amb2[sat] = int(self.r_amb2.integers(-2 ** 20, 2 ** 20 + 1))
                 lock_start[sat] = T_rx[k]
             for i, (ts, ss, cyc) in enumerate(slips):
                 if not self.slip_used[i] and ss == sat and ts <= T_rx[k]:
                     self.slip_used[i] = True
                     amb[sat] += int(cyc)
+                    if self.dual:
+                        self.amb2[sat] += int(cyc)
                     lock_start[sat] = T_rx[k]
                     lol = True
             last_seen[sat] = k
@@ -331,6 +350,16 @@ class ReceiverModel:
                                       cn0_dbhz=float(sensors.cn0_dbhz(el)),
                                       lock_time_s=float(T_rx[k] - lock_start[sat]),
                                       loss_of_lock=lol and not self.first_epoch))
+            if self.dual:
+                iono2 = GAMMA_L2 * comp["iono_m"]
+                pr2 = common + iono2 + (self.code_mp2[k, j] + self.code_n2[k, j]) * f_el
+                cp2 = (common - iono2 + (self.car_mp2[k, j] + self.car_n2[k, j]) * f_el) / GPS_L2_WAVELENGTH_M \
+                    + self.amb2[sat]
+                obs.append(SatObservation(sat=sat, pseudorange_m=float(pr2), carrier_cycles=float(cp2),
+                                          cn0_dbhz=float(sensors.cn0_dbhz(el)) - 3.0,
+                                          lock_time_s=float(T_rx[k] - lock_start[sat]),
+                                          loss_of_lock=lol and not self.first_epoch, signal="L2W",
+                                          wavelength_m=GPS_L2_WAVELENGTH_M))
             e["geometric_m"][k, j] = rho
             e["sat_clock_brdc_m"][k, j] = brdc
             for c in ("iono_m", "tropo_m", "orbit_m", "sat_clock_err_m", "sa_m"):

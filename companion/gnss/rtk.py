@@ -39,10 +39,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
-from ..nav.earth import C_n_e, ecef_to_geodetic
-from .atmosphere import tropo_delay_m
-from .ephemeris import rotate_to_reception_frame, satellite_state
+from ..messages import GnssEpoch
+from .double_difference import (ReceiverSat, dd_covariance, elevation_rad, model_range_m, receiver_sats,
+                                sd_variance_m2)
 from .ephemeris_store import EphemerisStore
 from .lambda_ils import lambda_ils
 
@@ -85,58 +84,10 @@ class RtkSolution:
     counters: dict = field(default_factory=dict)
 
 
-@dataclass
-class _Sat:
-    r_sat_e: np.ndarray             # reception-frame satellite position (m)
-    clock_m: float                  # c x satellite clock bias
-    code_m: dict                    # signal -> pseudorange
-    phase_cyc: dict                 # signal -> carrier (cycles)
-    wavelength_m: dict
-    slip: dict                      # signal -> receiver loss-of-lock flag
-    elevation_rad: float = 0.0
-
-
-def _receiver_sats(epoch: GnssEpoch, store: EphemerisStore, r_rx_e: np.ndarray, signals) -> dict[str, _Sat]:
-    """Satellite geometry and observables of one receiver's epoch (satellites with ephemerides)."""
-    by_sat: dict[str, dict] = {}
-    for o in epoch.observations:
-        if o.signal in signals:
-            by_sat.setdefault(o.sat, {})[o.signal] = o
-    out = {}
-    for sat, obs in by_sat.items():
-        first = obs.get(signals[0])
-        if first is None or not math.isfinite(first.pseudorange_m):
-            continue
-        eph = store.select(sat, epoch.t_gps)
-        if eph is None:
-            continue
-        t_tx = epoch.t_gps - first.pseudorange_m / SPEED_OF_LIGHT_MPS
-        _, _, clk, _ = satellite_state(eph, t_tx)
-        r_s, v_s, clk, _ = satellite_state(eph, t_tx - clk)
-        tau = float(np.linalg.norm(r_s - r_rx_e)) / SPEED_OF_LIGHT_MPS
-        r_rot, _ = rotate_to_reception_frame(r_s, v_s, tau)
-        out[sat] = _Sat(r_rot, clk * SPEED_OF_LIGHT_MPS,
-                        {s: o.pseudorange_m for s, o in obs.items() if math.isfinite(o.pseudorange_m)},
-                        {s: o.carrier_cycles for s, o in obs.items() if math.isfinite(o.carrier_cycles)},
-                        {s: o.wavelength_m for s, o in obs.items()},
-                        {s: bool(o.loss_of_lock) for s, o in obs.items()})
-    return out
-
-
-def _elevation(r_rx_e: np.ndarray, r_sat_e: np.ndarray) -> float:
-    lat, lon, _ = ecef_to_geodetic(r_rx_e)
-    up = C_n_e(lat, lon)[:, 2] * -1.0
-    d = r_sat_e - r_rx_e
-    return math.asin(float(up @ d) / float(np.linalg.norm(d)))
-
-
-def _model_m(r_rx_e: np.ndarray, sat: _Sat) -> tuple[float, np.ndarray]:
-    """Modelled range (geometric + troposphere - satellite clock) and its unit line of sight."""
-    d = sat.r_sat_e - r_rx_e
-    rho = float(np.linalg.norm(d))
-    lat, _, h = ecef_to_geodetic(r_rx_e)
-    el = max(_elevation(r_rx_e, sat.r_sat_e), math.radians(1.0))
-    return rho + tropo_delay_m(lat, h, el) - sat.clock_m, d / rho
+_Sat = ReceiverSat
+_receiver_sats = receiver_sats
+_elevation = elevation_rad
+_model_m = model_range_m
 
 
 class RtkFilter:
@@ -303,20 +254,12 @@ class RtkFilter:
                     keys.append((kind, s, sat, ref))
                 groups.append(grp)
         m = len(rows_v)
-        R = np.zeros((m, m))
-        for grp in groups:
-            for i in grp:
-                R[i, i] = var_sd[i][0] + var_sd[i][1]
-                for j in grp:
-                    if j != i:
-                        R[i, j] = var_sd[i][1]          # the reference satellite's share
+        R = dd_covariance(var_sd, groups)
         return np.array(rows_v), np.array(rows_H).reshape(m, n), R, keys
 
     def _sd_var(self, el: float, kind: str) -> float:
         cfg = self.cfg
-        s_el = max(math.sin(el), 0.1)
-        v = 2.0 * (cfg.phase_sigma_a_m ** 2 + (cfg.phase_sigma_b_m / s_el) ** 2)    # two receivers
-        return v * (cfg.code_phase_ratio ** 2 if kind == "code" else 1.0)
+        return sd_variance_m2(el, kind, cfg.phase_sigma_a_m, cfg.phase_sigma_b_m, cfg.code_phase_ratio)
 
     def _update(self, common, sr, sb) -> int:
         """Iterated EKF update with all DD rows; DD phase rows far off are dropped (counted)."""

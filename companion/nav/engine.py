@@ -53,6 +53,7 @@ from .imu_screen import ImuScreen
 from .integrity import POSITION_SOURCES, IntegrityLimits, IntegrityMonitor, IntegrityState
 from .chi2 import chi2_ppf
 from .protection import ProtectionLevel
+from .rtk_update import FIX_NONE, RtkUpdate, RtkUpdateConfig
 from .strapdown import strapdown_step_with_force
 
 log = logging.getLogger(__name__)
@@ -164,6 +165,27 @@ class EngineConfig:
     # exceeds the fault-free bound, and the missed-detection probability of a one-satellite fault
     hpl_integrity_risk: float = 1e-5
     hpl_missed_detection: float = 1e-3
+    # carrier-phase RTK (companion.nav.rtk_update): DD phase and code against the base's epochs
+    # with float ambiguity blocks and integer fixing, instead of the DGPS pseudoranges and TDCP,
+    # whenever a base epoch (and its station position) is at hand; off here so that the seed
+    # experiments stay as published, on by default in the product's configuration
+    rtk_enabled: bool = False
+    rtk_signals: tuple[str, ...] = ("L1C", "L2W")
+    rtk_sigma_phase_a_m: float = 0.003
+    rtk_sigma_phase_b_m: float = 0.003
+    rtk_code_phase_ratio: float = 100.0
+    rtk_max_base_age_s: float = 1.5
+    rtk_ratio_threshold: float = 3.0
+    rtk_min_fix_ambiguities: int = 4
+    rtk_hold_sigma_cycles: float = 0.01
+
+    def rtk_config(self) -> RtkUpdateConfig:
+        return RtkUpdateConfig(signals=tuple(self.rtk_signals), elevation_mask_deg=self.elevation_mask_deg,
+                               sigma_phase_a_m=self.rtk_sigma_phase_a_m, sigma_phase_b_m=self.rtk_sigma_phase_b_m,
+                               code_phase_ratio=self.rtk_code_phase_ratio, max_base_age_s=self.rtk_max_base_age_s,
+                               ratio_threshold=self.rtk_ratio_threshold,
+                               min_fix_ambiguities=self.rtk_min_fix_ambiguities,
+                               hold_sigma_cycles=self.rtk_hold_sigma_cycles, gate_probability=self.gate_probability)
 
 
 @dataclass
@@ -175,6 +197,9 @@ class EpochReport:
     rejected: dict = field(default_factory=dict)
     dx: np.ndarray | None = None
     applied: bool = False
+    fix_state: str = FIX_NONE         # carrier-phase RTK: 'none', 'float' or 'fixed'
+    fix_ratio: float = math.nan       # LAMBDA ratio of a fixed epoch
+    n_fixed: int = 0                  # DD ambiguities fixed
 
 
 class NavEngine:
@@ -234,6 +259,7 @@ class NavEngine:
         self.reset_counter = 0
         self.epoch_reports: deque = deque(maxlen=16)
         self.on_epoch = None  # optional callback(EpochReport)
+        self.rtk = RtkUpdate(config.rtk_config(), self.counters) if config.rtk_enabled else None
 
     # ------------------------------------------------------------------ set-up
     def initialize(self, t_gps: float, r_e, v_e, C_b_e, P0_sigmas: dict, *,
@@ -292,6 +318,8 @@ class NavEngine:
         self._phase.clear()
         self._prev_epoch_v = None
         self._pending.clear()
+        if self.rtk is not None:
+            self.rtk.reset()
         self._last_epoch_t = math.nan
         self.course_epochs_fused = 0
         self.course_alignment_t_gps = math.nan
@@ -349,6 +377,8 @@ class NavEngine:
             self.dgps = DgpsCorrector()
         self.dgps.update_base(epoch, self.base, self.ephemerides)
         self.counters["base epochs"] += 1
+        if self.rtk is not None:
+            self.rtk.add_base(epoch)
         if self.cfg.use_tdcp and self.cfg.tdcp_base_correction != "off" and self.dgps.last_prepared is not None:
             self._remember_base_phase(self.dgps.last_prepared)
         return None
@@ -631,6 +661,15 @@ class NavEngine:
         if cfg.use_dgps and self.dgps is None:
             self.counters["epoch without DGPS base"] += 1
         batches: list[MeasurementBatch] = []
+        rtk_rows, rtk_batches, rtk_reports = None, [], []
+        if self.rtk is not None and self.base is not None and not cfg.use_loose:
+            r_ant, v_ant, l_e = antenna_state(ins, self.lever_arm_b)
+            rtk_rows = self.rtk.rows(self, ins, epoch, r_ant, l_e, v_ant, self._correlation_inflation(epoch.t_gps))
+            if rtk_rows is not None:
+                rtk_rows.P_prior_pos = self.kf.P[self.layout.pos, self.layout.pos].copy()
+                rtk_batches, rtk_reports = self.rtk.gate(self, rtk_rows)
+                if not rtk_batches:
+                    rtk_rows = None
         sol = None
         if cfg.use_loose or self._course_alignment_pending():
             sol = self._spp(ins, prep)
@@ -639,7 +678,7 @@ class NavEngine:
         if cfg.use_loose:
             batches += self._loose_batches(ins, prep, sol)
         else:
-            if cfg.use_pseudorange and len(prep.sats):
+            if cfg.use_pseudorange and len(prep.sats) and not rtk_batches:   # DD code replaces them
                 pr = pseudorange_batch(ins, prep, self.lever_arm_b, layout=self.layout,
                                        sigma_floor_m=cfg.sigma_pseudorange_floor_m)
                 pr.r_var = pr.r_var * self._correlation_inflation(epoch.t_gps)
@@ -648,7 +687,9 @@ class NavEngine:
                     batches.append(pr)
             if cfg.use_doppler and len(prep.sats):
                 batches.append(doppler_batch(ins, prep, self.lever_arm_b, cfg.sigma_doppler_mps, layout=self.layout))
-            if cfg.use_tdcp:
+            if cfg.use_tdcp and rtk_batches:
+                self._drop_slipped_phase(prep)          # DD phase carries the carrier; keep the bookkeeping
+            elif cfg.use_tdcp:
                 self._drop_slipped_phase(prep)
                 corr = None
                 if cfg.tdcp_base_correction != "off" and self._phase:
@@ -675,6 +716,7 @@ class NavEngine:
             batches = [single_difference(b, ref) for b in batches] if ref else []
             batches = [b for b in batches if len(b)]
         reports = [self.kf.gate(b, leave_one_out=b.kind in cfg.leave_one_out_kinds) for b in batches]
+        batches, reports = batches + rtk_batches, reports + rtk_reports
         for r in reports:
             self.counters[f"{r.kind} used"] += r.n_accepted
             for reason in r.rejected_reason.values():
@@ -691,6 +733,15 @@ class NavEngine:
             rep.applied = True
             rep.dx = dx
             self.last_gnss_update_t = epoch.t_gps
+        if self.rtk is not None:
+            dx_total = dx
+            if rtk_rows is not None:
+                hold_before = self.counters["rtk fixed epochs"]
+                st = self.rtk.resolve(self, rtk_rows, dx)
+                if self.counters["rtk fixed epochs"] != hold_before:
+                    dx_total = dx + self.rtk.last_hold_dx
+                rep.fix_state, rep.fix_ratio, rep.n_fixed = st.fix_state, st.ratio, st.n_fixed
+            self.rtk.finish(self, rtk_rows, dx_total)
         self._remember_phase(ins, dx, prep)
         self._last_epoch_t = epoch.t_gps
         self._check_integrity(epoch.t_gps)
@@ -1139,6 +1190,10 @@ class NavEngine:
             status = "coasting"
         else:
             status = "nav"
+        fix_state, fix_ratio = FIX_NONE, math.nan
+        rtk = self.rtk.status if self.rtk is not None else None
+        if rtk is not None and self.t_gps - rtk.t_gps <= self.cfg.coasting_after_s:
+            fix_state, fix_ratio = rtk.fix_state, rtk.ratio
         return NavSolution(self.t_gps, self.r_e.copy(), self.v_e.copy(), self.C_b_e.copy(), sig_r, sig_v, sig_a,
                            status, self.last_gnss_update_t, self.reset_counter,
                            {"clock_bias_m": self.clock_bias_m, "clock_drift_mps": self.clock_drift_mps,
@@ -1147,7 +1202,8 @@ class NavEngine:
                             "hpl_m": pl.hpl_m if pl else math.nan, "hpl_cov_m": pl.hpl_cov_m if pl else math.nan,
                             "hpl_ss_m": pl.hpl_ss_m if pl else math.nan,
                             "imu_time_offset_s": self.imu_time_offset_s,
-                            "imu_time_offset_sigma_s": math.sqrt(max(float(P[L.toff, L.toff]), 0.0))})
+                            "imu_time_offset_sigma_s": math.sqrt(max(float(P[L.toff, L.toff]), 0.0))},
+                           fix_state=fix_state, fix_ratio=fix_ratio)
 
 
 def _stale_corrections(rejected: dict[str, str]) -> bool:

@@ -1,0 +1,117 @@
+"""Pieces of double-differenced (DD) carrier phase and code shared by the post-processing RTK
+filter (:mod:`.rtk`) and the engine's RTK update (:mod:`companion.nav.rtk_update`).
+
+* :func:`receiver_sats`: one receiver's epoch as satellite geometry and observables, the satellite
+  at its own transmit time from that receiver's pseudorange (light time, Sagnac rotation to the
+  reception frame, satellite clock).  Each receiver is modelled **at its own epoch**: a rover
+  tagged x.987 s and a base tagged x.000 s each give their own observed-minus-computed, and what
+  the DD of the two keeps from the 13-ms offset is the change of the per-satellite errors
+  (atmosphere, orbit and clock errors: mm/s) over it; receiver clocks cancel between satellites.
+* :func:`model_range_m`: geometric range + Saastamoinen troposphere at the receiver's height -
+  satellite clock, and the unit line of sight.
+* :func:`sd_variance_m2`: between-receiver single-difference variance, ``2 (a^2 + b^2/sin^2 el)``
+  (RTKLIB's default a = b = 3 mm), code = ``code_phase_ratio`` x phase.
+* :func:`dd_covariance`: the DD covariance of rows sharing a reference satellite: each row's own
+  SD variance plus the reference's, the reference's share off the diagonal.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
+from ..nav.earth import C_n_e, ecef_to_geodetic
+from .atmosphere import tropo_delay_m
+from .ephemeris import rotate_to_reception_frame, satellite_state
+from .ephemeris_store import EphemerisStore
+
+
+@dataclass
+class ReceiverSat:
+    """One satellite as seen by one receiver at one epoch."""
+
+    r_sat_e: np.ndarray             # reception-frame satellite position (m)
+    clock_m: float                  # c x satellite clock bias
+    code_m: dict                    # signal -> pseudorange (m)
+    phase_cyc: dict                 # signal -> carrier (cycles)
+    wavelength_m: dict
+    slip: dict                      # signal -> receiver loss-of-lock flag
+    elevation_rad: float = 0.0
+    half_cycle: dict | None = None  # signal -> unresolved half-cycle flag
+    lock_time_s: dict | None = None  # signal -> continuous lock time (s)
+    eph: object = None              # the ephemeris used (both receivers must use the same one)
+
+
+def receiver_sats(epoch: GnssEpoch, store: EphemerisStore, r_rx_e: np.ndarray, signals) -> dict[str, ReceiverSat]:
+    """Satellite geometry and observables of one receiver's epoch (satellites with ephemerides
+    and a pseudorange on the first of ``signals``)."""
+    by_sat: dict[str, dict] = {}
+    for o in epoch.observations:
+        if o.signal in signals:
+            by_sat.setdefault(o.sat, {})[o.signal] = o
+    out = {}
+    for sat, obs in by_sat.items():
+        first = obs.get(signals[0])
+        if first is None or not math.isfinite(first.pseudorange_m):
+            continue
+        eph = store.select(sat, epoch.t_gps)
+        if eph is None:
+            continue
+        t_tx = epoch.t_gps - first.pseudorange_m / SPEED_OF_LIGHT_MPS
+        _, _, clk, _ = satellite_state(eph, t_tx)
+        r_s, v_s, clk, _ = satellite_state(eph, t_tx - clk)
+        tau = float(np.linalg.norm(r_s - r_rx_e)) / SPEED_OF_LIGHT_MPS
+        r_rot, _ = rotate_to_reception_frame(r_s, v_s, tau)
+        out[sat] = ReceiverSat(r_rot, clk * SPEED_OF_LIGHT_MPS,
+                               {s: o.pseudorange_m for s, o in obs.items() if math.isfinite(o.pseudorange_m)},
+                               {s: o.carrier_cycles for s, o in obs.items() if math.isfinite(o.carrier_cycles)},
+                               {s: o.wavelength_m for s, o in obs.items()},
+                               {s: bool(o.loss_of_lock) for s, o in obs.items()},
+                               half_cycle={s: bool(o.half_cycle_ambiguous) for s, o in obs.items()},
+                               lock_time_s={s: float(o.lock_time_s) for s, o in obs.items()},
+                               eph=eph)
+    return out
+
+
+def elevation_rad(r_rx_e: np.ndarray, r_sat_e: np.ndarray) -> float:
+    lat, lon, _ = ecef_to_geodetic(r_rx_e)
+    up = C_n_e(lat, lon)[:, 2] * -1.0
+    d = r_sat_e - r_rx_e
+    return math.asin(float(up @ d) / float(np.linalg.norm(d)))
+
+
+def model_range_m(r_rx_e: np.ndarray, sat: ReceiverSat, llh=None) -> tuple[float, np.ndarray]:
+    """Modelled range (geometric + troposphere - satellite clock) and its unit line of sight
+    (receiver to satellite).  ``llh``: the receiver's geodetic position if known already."""
+    d = sat.r_sat_e - r_rx_e
+    rho = float(np.linalg.norm(d))
+    lat, lon, h = ecef_to_geodetic(r_rx_e) if llh is None else llh
+    up = -C_n_e(lat, lon)[:, 2]
+    el = max(math.asin(float(up @ d) / rho), math.radians(1.0))
+    return rho + tropo_delay_m(lat, h, el) - sat.clock_m, d / rho
+
+
+def sd_variance_m2(el_rad: float, kind: str, sigma_a_m: float, sigma_b_m: float, code_phase_ratio: float) -> float:
+    """Between-receiver single-difference variance of a phase or code observation (m^2)."""
+    s_el = max(math.sin(el_rad), 0.1)
+    v = 2.0 * (sigma_a_m ** 2 + (sigma_b_m / s_el) ** 2)    # two receivers
+    return v * (code_phase_ratio ** 2 if kind == "code" else 1.0)
+
+
+def dd_covariance(var_sd: list[tuple[float, float]], groups: list[list[int]]) -> np.ndarray:
+    """DD covariance: row i has SD variances (own, reference's); rows of one group share the
+    reference, so they correlate by the reference's SD variance."""
+    m = len(var_sd)
+    R = np.zeros((m, m))
+    for grp in groups:
+        for i in grp:
+            R[i, i] = var_sd[i][0] + var_sd[i][1]
+            for j in grp:
+                if j != i:
+                    R[i, j] = var_sd[i][1]          # the reference satellite's share
+    return R
+
+
+__all__ = ["ReceiverSat", "receiver_sats", "elevation_rad", "model_range_m", "sd_variance_m2", "dd_covariance"]

@@ -1,0 +1,535 @@
+"""Carrier-phase RTK inside the tightly coupled filter: double-differenced (DD) carrier phase and
+code against a base epoch, float single-difference ambiguities as error-state blocks, integers by
+LAMBDA with partial fixing, fix-and-hold and wrong-fix detection.
+
+The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
+:mod:`companion.gnss.double_difference`), with the engine's INS in place of a position-only state:
+
+* **States**: one between-receiver single-difference ambiguity ``N = N_rover - N_base`` (cycles)
+  per (satellite, signal), an identity block ``"amb G05 L1C"`` of the engine's error state
+  (:meth:`NavEngine.add_state_block`), added on acquisition with the code-minus-phase value
+  (receiver clocks cancel in it), reset on a slip or a loss of lock, dropped when the satellite has
+  not been seen for ``max_gap_s``.  Their common part is unobservable and never matters: only
+  between-satellite differences enter the rows.
+* **Rows** per signal against the highest satellite ``j`` (``d`` = rover - base):
+  ``lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j)`` and ``dP_i - dP_j = DD rho``,
+  rho modelled at the **INS-predicted antenna position** (the linearisation point) for the rover
+  and at the surveyed position for the base.  Jacobians: ``-(u_i - u_j)`` on the antenna position
+  (chain rule to the IMU position, attitude through the lever arm, ``dt_imu`` through the antenna
+  velocity, as :func:`.measurements.pseudorange_batch`), ``+-lambda`` on the two ambiguities.  The DD
+  covariance (the reference's share in every row) is whitened by its Cholesky factor, so the
+  filter's update with uncorrelated rows is the correlated update exactly.
+* **Epoch pairing**: each receiver is modelled at its own epoch
+  (:func:`~companion.gnss.double_difference.receiver_sats`); the base epoch nearest the rover's
+  within ``max_base_age_s`` is used **without interpolation or extrapolation**.  Receiver clocks
+  cancel in the DD whatever the two tags are; what a time offset leaves is the change of the
+  per-satellite errors (satellite clock, orbit, atmosphere: mm/s) over it, 0.01 mm for a real
+  rover's x.987 s against a base's x.000 s and ~1 mm for a 1-s-old base epoch.
+* **Slips before they reach the ambiguities**: the receiver's flags (loss of lock, half cycle, lock
+  time going down, at rover or base) and the INS-predicted phase: per satellite, the change since
+  the last epoch of ``lambda dphi - d rho(INS) - lambda N`` with the median over the satellites
+  removed (the receiver clocks' change), against its noise and the INS's velocity uncertainty
+  (seed 004's innovation test, on single differences).  A slipped ambiguity is re-initialised
+  before the rows are built.
+* **Integers**: after the float update, LAMBDA (:func:`~companion.gnss.lambda_ils.lambda_ils`) on
+  the DD ambiguities with the ratio test; partial fixing drops the least certain DD ambiguity and
+  tries again down to ``min_fix_ambiguities``.  A candidate is validated against the phase
+  residuals it leaves (``fixed_residual_sigma``) and against the INS prediction (the position it
+  implies, chi-square with 3 dof against the predicted covariance); accepted, it is **held**: fed
+  to the filter as a measurement of the DD ambiguities (``hold_sigma_cycles``), so the whole state
+  (position, velocity, attitude, biases) moves to the fixed solution and the next epochs start
+  from it.
+* **Wrong fixes**: a held set whose phase rows then fail the gate (more than one row, or most of
+  them) is dropped at once: every ambiguity re-initialised, the position covariance widened by
+  ``wrong_fix_position_sigma_m``.  Counted.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import solve_triangular
+
+from ..gnss.double_difference import dd_covariance, model_range_m, receiver_sats, sd_variance_m2
+from ..gnss.lambda_ils import lambda_ils
+from ..messages import GnssEpoch
+from .chi2 import chi2_ppf
+from .earth import ecef_to_geodetic, skew
+from .filter import MeasurementBatch, UpdateReport
+from .measurements import antenna_state
+
+FIX_NONE, FIX_FLOAT, FIX_FIXED = "none", "float", "fixed"
+
+
+@dataclass(frozen=True)
+class RtkUpdateConfig:
+    signals: tuple[str, ...] = ("L1C", "L2W")
+    elevation_mask_deg: float = 10.0
+    sigma_phase_a_m: float = 0.003            # SD variance 2 (a^2 + b^2 / sin^2 el) per receiver pair
+    sigma_phase_b_m: float = 0.003
+    code_phase_ratio: float = 100.0
+    max_base_age_s: float = 1.5
+    ambiguity_init_sigma_cycles: float = 30.0
+    ambiguity_psd_cycles2ps: float = 1e-8
+    max_gap_s: float = 5.0
+    slip_min_m: float = 0.05                  # INS-predicted phase change beyond which a slip is declared
+    slip_sigmas: float = 5.0
+    slip_max_interval_s: float = 1.5
+    ratio_threshold: float = 3.0
+    min_success_rate: float = 0.999           # bootstrapped success rate of the (partial) set
+    min_fix_ambiguities: int = 4
+    fixed_residual_sigma: float = 4.0
+    ins_fix_probability: float = 0.999        # chi-square test of the fixed position against the INS
+    hold_sigma_cycles: float = 0.01
+    wrong_fix_position_sigma_m: float = 0.3
+    gate_probability: float = 0.999
+
+
+@dataclass
+class _Amb:
+    name: str                 # state block name
+    wavelength_m: float
+    t_added: float
+    base_slips: int           # base slip count at initialisation
+    last_seen: float
+
+
+@dataclass
+class RtkEpochRows:
+    """The DD rows of one epoch (before whitening) and what resolution needs."""
+
+    t_gps: float
+    z: np.ndarray             # innovations (m), phase rows then code rows
+    H: np.ndarray
+    R: np.ndarray
+    kinds: list[str]          # 'phase' / 'code'
+    labels: list[str]
+    refs: dict                # signal -> reference satellite
+    amb_pairs: list           # per phase row: (key_i, key_ref)
+    sd_resid: dict            # key -> (SD residual at the INS point (m), rover LOS, ambiguity (cycles))
+    P_prior_pos: np.ndarray | None = None
+    keep: np.ndarray | None = None
+
+
+@dataclass
+class RtkStatus:
+    fix_state: str = FIX_NONE
+    ratio: float = math.nan
+    n_fixed: int = 0
+    n_ambiguities: int = 0
+    t_gps: float = math.nan
+    success_rate: float = math.nan
+
+
+class RtkUpdate:
+    """RTK bookkeeping of one engine: base epochs, ambiguity blocks, slip tests, fix state."""
+
+    def __init__(self, cfg: RtkUpdateConfig, counters):
+        self.cfg = cfg
+        self.counters = counters
+        self.gate_chi2 = float(chi2_ppf(cfg.gate_probability, 1))
+        self.ins_chi2_3 = float(chi2_ppf(cfg.ins_fix_probability, 3))
+        self._base: deque = deque(maxlen=8)          # (t_gps, epoch, sats or None)
+        self._base_slips: dict = {}                  # (sat, signal) -> count of base slips seen
+        self._base_lock: dict = {}
+        self._rover_lock: dict = {}
+        self.amb: dict[tuple[str, str], _Amb] = {}
+        self._resid: dict = {}                       # key -> (t_gps, post-update SD residual m)
+        self.held: set = set()                       # keys in the last held fix
+        self._reset_after: set = set()               # keys to re-initialise at the end of the epoch
+        self.status = RtkStatus()
+
+    # ------------------------------------------------------------------ bookkeeping
+    def reset(self) -> None:
+        """After an engine (re-)initialisation: the layout was rebuilt without the blocks."""
+        self.amb.clear()
+        self._resid.clear()
+        self.held.clear()
+        self._rover_lock.clear()
+        self.status = RtkStatus()
+
+    def add_base(self, epoch: GnssEpoch) -> None:
+        """A base epoch (its station position must be known to the engine); base slips counted."""
+        for o in epoch.observations:
+            key = (o.sat, o.signal)
+            lock = float(o.lock_time_s)
+            prev = self._base_lock.get(key)
+            if o.loss_of_lock or o.half_cycle_ambiguous or (
+                    prev is not None and math.isfinite(lock) and math.isfinite(prev) and lock < prev):
+                self._base_slips[key] = self._base_slips.get(key, 0) + 1
+            self._base_lock[key] = lock
+        self._base.append([epoch.t_gps, epoch, None])
+
+    def _base_for(self, t_gps: float):
+        best = min(self._base, key=lambda b: abs(b[0] - t_gps), default=None)
+        if best is None or abs(best[0] - t_gps) > self.cfg.max_base_age_s:
+            return None
+        return best
+
+    def _add_amb(self, eng, key, value_cycles: float, wavelength_m: float, t: float) -> None:
+        name = f"amb {key[0]} {key[1]}"
+        eng.add_state_block(name, 1, self.cfg.ambiguity_init_sigma_cycles, self.cfg.ambiguity_psd_cycles2ps,
+                            value=value_cycles)
+        self.amb[key] = _Amb(name, wavelength_m, t, self._base_slips.get(key, 0), t)
+        self.counters["rtk ambiguities added"] += 1
+
+    def _drop_amb(self, eng, key) -> None:
+        a = self.amb.pop(key, None)
+        if a is not None:
+            eng.remove_state_block(a.name)
+        self._resid.pop(key, None)
+        self.held.discard(key)
+
+    def _drop_all(self, eng) -> None:
+        for key in list(self.amb):
+            self._drop_amb(eng, key)
+
+    # ------------------------------------------------------------------ one epoch: float rows
+    def rows(self, eng, ins, epoch: GnssEpoch, r_ant_e: np.ndarray, l_e: np.ndarray,
+             v_ant_e: np.ndarray, code_variance_factor: float = 1.0) -> RtkEpochRows | None:
+        """Ambiguity bookkeeping, slip tests and the DD rows of a rover epoch at the INS point
+        (None: no base epoch near enough, or fewer than two common satellites).
+        ``code_variance_factor``: the engine's inflation for time-correlated code errors (its
+        ``pseudorange_correlation_time_s``), so that averaging epochs of correlated multipath does
+        not make the float ambiguities look better than they are (the success rate relies on it)."""
+        obs = self.observe(eng, epoch, r_ant_e)
+        if obs is None:
+            return None
+        t, common, sr, sb, model_r, model_b = obs
+        self._manage(eng, t, common, sr, sb)
+        self._slip_test(eng, t, common, sr, sb, model_r, model_b)
+        return self.build(eng, obs, l_e, v_ant_e, code_variance_factor)
+
+    def observe(self, eng, epoch: GnssEpoch, r_ant_e: np.ndarray):
+        """The rover epoch and its base epoch modelled (rover at the antenna position ``r_ant_e``):
+        (t, common satellites above the mask, rover sats, base sats, rover and base models);
+        changes nothing but the base epoch's cached geometry."""
+        cfg = self.cfg
+        b = self._base_for(epoch.t_gps)
+        if b is None:
+            self.counters["rtk epochs without a base epoch"] += 1
+            return None
+        if b[2] is None:
+            b[2] = receiver_sats(b[1], eng.ephemerides, eng.base.r_e, cfg.signals)
+        sb = b[2]
+        sr = receiver_sats(epoch, eng.ephemerides, r_ant_e, cfg.signals)
+        llh_r = ecef_to_geodetic(r_ant_e)
+        llh_b = ecef_to_geodetic(eng.base.r_e)
+        up = _up(llh_r)
+        mask = math.radians(cfg.elevation_mask_deg)
+        model_r, model_b, common = {}, {}, []
+        for sat in sorted(set(sr) & set(sb)):
+            if sr[sat].eph is not sb[sat].eph:
+                self.counters["rtk satellite skipped: base and rover ephemerides differ"] += 1
+                continue
+            mr = model_range_m(r_ant_e, sr[sat], llh_r)
+            el = math.asin(max(-1.0, min(1.0, float(mr[1] @ up))))
+            if el < mask:
+                continue
+            sr[sat].elevation_rad = el
+            model_r[sat] = mr
+            model_b[sat] = model_range_m(eng.base.r_e, sb[sat], llh_b)
+            common.append(sat)
+        return epoch.t_gps, common, sr, sb, model_r, model_b
+
+    def _manage(self, eng, t, common, sr, sb) -> None:
+        """Add, reset and drop ambiguity blocks from the receivers' flags and the satellites seen."""
+        cfg = self.cfg
+        for sat in common:
+            for s in cfg.signals:
+                key = (sat, s)
+                r, q = sr[sat], sb[sat]
+                ok = s in r.phase_cyc and s in q.phase_cyc and s in r.code_m and s in q.code_m \
+                    and not r.half_cycle.get(s, False) and not q.half_cycle.get(s, False)
+                lock = r.lock_time_s.get(s, math.nan)
+                prev_lock = self._rover_lock.get(key)
+                self._rover_lock[key] = lock
+                a = self.amb.get(key)
+                if a is not None:
+                    slipped = r.slip.get(s, False) or (prev_lock is not None and math.isfinite(lock)
+                                                       and math.isfinite(prev_lock) and lock < prev_lock)
+                    base_slipped = self._base_slips.get(key, 0) != a.base_slips
+                    if slipped or base_slipped or not ok or t - a.last_seen > cfg.max_gap_s:
+                        self._drop_amb(eng, key)
+                        self.counters["rtk ambiguities reset: slip flag / lock time / gap"] += 1
+                        a = None
+                if ok and a is None:
+                    lam = r.wavelength_m[s]
+                    n0 = (r.phase_cyc[s] - q.phase_cyc[s]) - (r.code_m[s] - q.code_m[s]) / lam
+                    self._add_amb(eng, key, n0, lam, t)
+                if ok:
+                    self.amb[key].last_seen = t
+        for key in [k for k, a in self.amb.items() if t - a.last_seen > cfg.max_gap_s]:
+            self._drop_amb(eng, key)
+            self.counters["rtk ambiguities dropped: satellite lost"] += 1
+
+    def _sd_residual(self, eng, key, sr, sb, model_r, model_b) -> float:
+        sat, s = key
+        a = self.amb[key]
+        lam = a.wavelength_m
+        sd_phi = lam * (sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
+        return sd_phi - (model_r[sat][0] - model_b[sat][0]) - lam * float(eng.block_states[a.name][0])
+
+    def _slip_test(self, eng, t, common, sr, sb, model_r, model_b) -> None:
+        """INS-predicted phase: per ambiguity, the change of its SD residual since the last epoch,
+        minus the median change of the signal (the receiver clocks); a jump re-initialises it."""
+        cfg = self.cfg
+        L = eng.layout
+        P = eng.kf.P
+        sig_v2 = float(np.trace(P[L.vel, L.vel])) / 3.0
+        for s in cfg.signals:
+            keys, d, var = [], [], []
+            for sat in common:
+                key = (sat, s)
+                prev = self._resid.get(key)
+                if key not in self.amb or prev is None or not 0.0 < t - prev[0] <= cfg.slip_max_interval_s:
+                    continue
+                e = self._sd_residual(eng, key, sr, sb, model_r, model_b)
+                keys.append(key)
+                d.append(e - prev[1])
+                v = sd_variance_m2(sr[sat].elevation_rad, "phase", cfg.sigma_phase_a_m, cfg.sigma_phase_b_m, 1.0)
+                var.append(2.0 * v + sig_v2 * (t - prev[0]) ** 2)
+            if len(keys) < 4:
+                continue
+            d = np.asarray(d)
+            dev = np.abs(d - np.median(d))
+            lim = np.maximum(cfg.slip_min_m, cfg.slip_sigmas * np.sqrt(var))
+            for key, bad in zip(keys, dev > lim):
+                if bad:
+                    a = self.amb[key]
+                    self._drop_amb(eng, key)
+                    sat = key[0]
+                    lam = a.wavelength_m
+                    n0 = (sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s]) - (sr[sat].code_m[s] - sb[sat].code_m[s]) / lam
+                    self._add_amb(eng, key, n0, lam, t)
+                    self.counters["rtk slips detected: INS-predicted phase"] += 1
+
+    def build(self, eng, obs, l_e: np.ndarray, v_ant_e: np.ndarray,
+              code_variance_factor: float = 1.0) -> RtkEpochRows | None:
+        """DD phase and code rows (innovations at the INS point, Jacobians over the engine's
+        layout, DD covariance) of the modelled epoch ``obs`` (:meth:`observe`)."""
+        t, common, sr, sb, model_r, model_b = obs
+        cfg = self.cfg
+        L = eng.layout
+        n = L.n
+        H_att = skew(l_e)
+        z, Hs, var_sd, kinds, labels, refs, pairs = [], [], [], [], [], {}, []
+        groups = []
+        for s in cfg.signals:
+            sats = [q for q in common if (q, s) in self.amb]
+            if len(sats) < 2:
+                continue
+            ref = max(sats, key=lambda q: sr[q].elevation_rad)
+            refs[s] = ref
+            kref = (ref, s)
+            for kind in ("phase", "code"):
+                grp = []
+                for sat in sats:
+                    if sat == ref:
+                        continue
+                    key = (sat, s)
+                    du = model_r[sat][1] - model_r[ref][1]
+                    dd_rho = (model_r[sat][0] - model_b[sat][0]) - (model_r[ref][0] - model_b[ref][0])
+                    h = np.zeros(n)
+                    h[L.pos] = -du
+                    h[L.att] = du @ H_att
+                    h[L.toff] = du @ v_ant_e
+                    if kind == "phase":
+                        a, ar = self.amb[key], self.amb[kref]
+                        lam = a.wavelength_m
+                        obs = lam * ((sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
+                                     - (sr[ref].phase_cyc[s] - sb[ref].phase_cyc[s]))
+                        amb = float(eng.block_states[a.name][0]) - float(eng.block_states[ar.name][0])
+                        h[L.index(a.name)] = lam
+                        h[L.index(ar.name)] = -lam
+                        z.append(obs - dd_rho - lam * amb)
+                        pairs.append((key, kref))
+                    else:
+                        obs = (sr[sat].code_m[s] - sb[sat].code_m[s]) - (sr[ref].code_m[s] - sb[ref].code_m[s])
+                        z.append(obs - dd_rho)
+                    Hs.append(h)
+                    f = code_variance_factor if kind == "code" else 1.0
+                    var_sd.append(tuple(f * sd_variance_m2(sr[q].elevation_rad, kind, cfg.sigma_phase_a_m,
+                                                           cfg.sigma_phase_b_m, cfg.code_phase_ratio)
+                                        for q in (sat, ref)))
+                    kinds.append(kind)
+                    labels.append(f"{sat}-{ref} {s} {kind}")
+                    grp.append(len(z) - 1)
+                groups.append(grp)
+        if not z:
+            self.counters["rtk epochs without DD rows"] += 1
+            return None
+        sd_resid = {}
+        for key, a in self.amb.items():
+            if key[0] in model_r:
+                sd_resid[key] = (self._sd_residual(eng, key, sr, sb, model_r, model_b), model_r[key[0]][1],
+                                 float(eng.block_states[a.name][0]))
+        order = [i for i, k in enumerate(kinds) if k == "phase"] + [i for i, k in enumerate(kinds) if k == "code"]
+        R = dd_covariance(var_sd, groups)[np.ix_(order, order)]
+        phase_pairs = pairs          # phase rows come first, in the order they were built
+        return RtkEpochRows(t, np.asarray(z)[order], np.asarray(Hs)[order], R, [kinds[i] for i in order],
+                            [labels[i] for i in order], refs, phase_pairs, sd_resid)
+
+    # ------------------------------------------------------------------ gating and batches
+    def gate(self, eng, rows: RtkEpochRows) -> tuple[list[MeasurementBatch], list[UpdateReport]]:
+        """Per-row chi-square test against the predicted variance (correlations ignored for the
+        test only).  A failing phase row of a held ambiguity set means a wrong fix (dropped at
+        once); any other failing phase row re-initialises that satellite's ambiguity.  Returns the
+        whitened phase and code batches with their reports."""
+        P = eng.kf.P
+        S = np.einsum("ij,jk,ik->i", rows.H, P, rows.H) + np.diag(rows.R)
+        ratio = rows.z ** 2 / (S * self.gate_chi2)
+        ok = np.isfinite(ratio) & (ratio <= 1.0)
+        phase = np.array([k == "phase" for k in rows.kinds])
+        bad_phase = np.flatnonzero(phase & ~ok)
+        if len(bad_phase):
+            held_bad = [i for i in bad_phase if rows.amb_pairs[i][0] in self.held]
+            if self.held and (len(held_bad) > 1 or len(bad_phase) > 0.5 * np.count_nonzero(phase)):
+                self.counters["rtk wrong fixes dropped: phase residuals"] += 1
+                self._wrong_fix(eng)
+                return [], []
+            for i in bad_phase:       # the row's own satellite: its ambiguity starts again after this epoch
+                self.counters["rtk phase rows rejected: innovation gate"] += 1
+                self._reset_after.add(rows.amb_pairs[i][0])
+        keep = ok.copy()
+        rows.keep = keep
+        batches, reports = [], []
+        for kind in ("phase", "code"):
+            sel = np.flatnonzero(keep & (phase if kind == "phase" else ~phase))
+            if not len(sel):
+                continue
+            Rk = rows.R[np.ix_(sel, sel)]
+            C = np.linalg.cholesky(Rk)
+            zw = solve_triangular(C, rows.z[sel], lower=True)
+            Hw = solve_triangular(C, rows.H[sel], lower=True)
+            labels = [rows.labels[i] for i in sel]
+            b = MeasurementBatch(f"rtk_{kind}", labels, zw, Hw, np.ones(len(sel)))
+            Sw = np.einsum("ij,jk,ik->i", Hw, P, Hw) + 1.0
+            reports.append(UpdateReport(b.kind, labels, zw, Sw, ratio[sel], np.ones(len(sel), bool), {}))
+            batches.append(b)
+            self.counters[f"rtk_{kind} used"] += len(sel)
+        self.counters["rtk code rows rejected: innovation gate"] += int(np.count_nonzero(~phase & ~ok))
+        return batches, reports
+
+    def _wrong_fix(self, eng) -> None:
+        self._drop_all(eng)
+        L = eng.layout
+        eng.kf.P[L.pos, L.pos] += np.eye(3) * self.cfg.wrong_fix_position_sigma_m ** 2
+        self.status = RtkStatus(FIX_NONE, math.nan, 0, 0, self.status.t_gps)
+
+    # ------------------------------------------------------------------ integers
+    def resolve(self, eng, rows: RtkEpochRows, dx_float: np.ndarray) -> RtkStatus:
+        """LAMBDA on the DD ambiguities after the float update; a validated fix is held (applied to
+        the filter).  Returns the epoch's fix status."""
+        cfg = self.cfg
+        L = eng.layout
+        keep = rows.keep if rows.keep is not None else np.ones(len(rows.z), bool)
+        pairs = [rows.amb_pairs[i] for i, k in enumerate(rows.kinds) if k == "phase" and keep[i]]
+        n_dd = len(pairs)
+        if n_dd < cfg.min_fix_ambiguities:
+            return self._set_status(rows.t_gps, FIX_FLOAT, math.nan, 0, n_dd)
+        T = np.zeros((n_dd, L.n))
+        for i, (k, r) in enumerate(pairs):
+            T[i, L.index(self.amb[k].name)] = 1.0
+            T[i, L.index(self.amb[r].name)] = -1.0
+        a = np.array([float(eng.block_states[self.amb[k].name][0] - eng.block_states[self.amb[r].name][0])
+                      for k, r in pairs])
+        P = eng.kf.P
+        idx = np.flatnonzero(np.any(T != 0.0, axis=0))
+        Tc = T[:, idx]
+        Qa_full = Tc @ P[np.ix_(idx, idx)] @ Tc.T
+        active = list(np.argsort(-np.diag(Qa_full)))        # the least certain first out
+        while len(active) >= cfg.min_fix_ambiguities:
+            sel = np.array(sorted(active))
+            out = self._try(eng, rows, dx_float, T[sel], a[sel], Qa_full[np.ix_(sel, sel)])
+            if out is not None:
+                res, afix = out
+                if len(sel) < n_dd:
+                    self.counters["rtk epochs fixed partially"] += 1
+                self.counters["rtk fixed epochs"] += 1
+                if not self.held:
+                    self.counters["rtk fixes (from float)"] += 1
+                self._hold(eng, T[sel], a[sel], afix)
+                self.held = {pairs[i][0] for i in sel} | {pairs[i][1] for i in sel}
+                st = self._set_status(rows.t_gps, FIX_FIXED, res.ratio, len(sel), n_dd)
+                st.success_rate = res.success_rate
+                return st
+            active.pop(0)
+        self.counters["rtk float epochs"] += 1
+        if self.held:
+            self.counters["rtk fixes lost (float again)"] += 1
+        self.held = set()
+        return self._set_status(rows.t_gps, FIX_FLOAT, math.nan, 0, n_dd)
+
+    def _set_status(self, t, state, ratio, n_fixed, n_dd) -> RtkStatus:
+        self.status = RtkStatus(state, ratio, n_fixed, n_dd, t)
+        return self.status
+
+    def _try(self, eng, rows, dx_float, T, a, Qa):
+        cfg = self.cfg
+        try:
+            res = lambda_ils(a, Qa, m=2)
+        except (np.linalg.LinAlgError, RuntimeError):
+            self.counters["rtk lambda failures"] += 1
+            return None
+        if not res.ratio >= cfg.ratio_threshold:
+            return None
+        if not res.success_rate >= cfg.min_success_rate:
+            self.counters["rtk fixes rejected: success rate"] += 1
+            return None
+        afix = res.fixed[:, 0]
+        P = eng.kf.P
+        PTt = P @ T.T
+        S = T @ PTt + np.eye(len(a)) * cfg.hold_sigma_cycles ** 2
+        dx_hold = PTt @ np.linalg.solve(S, afix - a)
+        # the fixed phase residuals against their own noise (the pre-update rows, linear model)
+        keep = rows.keep if rows.keep is not None else np.ones(len(rows.z), bool)
+        ph = np.flatnonzero(keep & np.array([k == "phase" for k in rows.kinds]))
+        if len(ph):
+            v = rows.z[ph] - rows.H[ph] @ (dx_float + dx_hold)
+            zr = np.abs(v) / np.sqrt(np.diag(rows.R)[ph])
+            if float(zr.max()) > cfg.fixed_residual_sigma:
+                self.counters["rtk fixes rejected: phase residuals"] += 1
+                return None
+        # against the INS prediction: the position the fix implies, relative to the predicted one
+        L = eng.layout
+        if rows.P_prior_pos is not None:
+            d = dx_float[L.pos] + dx_hold[L.pos]
+            if float(d @ np.linalg.solve(rows.P_prior_pos, d)) > self.ins_chi2_3:
+                self.counters["rtk fixes rejected: INS prediction"] += 1
+                return None
+        return res, afix
+
+    def _hold(self, eng, T, a, afix) -> None:
+        """Fix-and-hold: the fixed DD ambiguities as a measurement of the whole filter."""
+        b = MeasurementBatch("rtk_hold", [f"dd{i}" for i in range(len(a))], afix - a, T,
+                             np.full(len(a), self.cfg.hold_sigma_cycles ** 2))
+        rep = UpdateReport(b.kind, b.labels, b.z, np.ones(len(a)), np.zeros(len(a)), np.ones(len(a), bool), {})
+        dx = eng.kf.update([b], [rep])
+        eng._feedback(dx)
+        self.last_hold_dx = dx
+
+    # ------------------------------------------------------------------ after the epoch
+    def finish(self, eng, rows: RtkEpochRows | None, dx_total: np.ndarray) -> None:
+        """End of the epoch: re-initialise the ambiguities whose rows failed, and store each
+        ambiguity's post-update SD residual for the next epoch's slip test."""
+        for key in self._reset_after:
+            self._drop_amb(eng, key)
+        self._reset_after.clear()
+        if rows is None:
+            return
+        L = eng.layout
+        dr = dx_total[L.pos]
+        for key, (e_pre, u, n_pre) in rows.sd_resid.items():
+            a = self.amb.get(key)
+            if a is None:
+                continue
+            n_post = float(eng.block_states[a.name][0])
+            self._resid[key] = (rows.t_gps, e_pre + float(u @ dr) - a.wavelength_m * (n_post - n_pre))
+
+
+def _up(llh) -> np.ndarray:
+    from .earth import C_n_e
+    return -C_n_e(llh[0], llh[1])[:, 2]
