@@ -20,7 +20,7 @@ from __future__ import annotations
 from ..io.rtcm_eph import FIT_INTERVAL_BEIDOU_H, PI_ICD
 from ..messages import SECONDS_PER_WEEK, SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris
 from .ephemeris import is_beidou_geo
-from .lnav import URA_M
+from .lnav import URA_M, toc_near_toe, week_of_toe
 
 PREAMBLE = 0x712
 _SC = PI_ICD
@@ -116,16 +116,8 @@ def decode_ephemeris(sat: str, parts_of: dict[int, Subframe], geo: bool) -> GpsE
     sow1 = parts_of[1].sow
     toe = f["toe"] * 8.0
     toc = f["toc"] * 8.0
-    week = f["week"]
-    if toe - sow1 > SECONDS_PER_WEEK / 2:
-        week -= 1
-    elif toe - sow1 < -SECONDS_PER_WEEK / 2:
-        week += 1
-    toc_s = toc
-    if toc - toe > SECONDS_PER_WEEK / 2:
-        toc_s -= SECONDS_PER_WEEK
-    elif toc - toe < -SECONDS_PER_WEEK / 2:
-        toc_s += SECONDS_PER_WEEK
+    week = week_of_toe(f["week"], toe, sow1)
+    toc_s = toc_near_toe(toc, toe)
     return GpsEphemeris(
         sat=sat, week=week + SYSTEM_WEEK_TO_GPS_WEEK["C"], toe_s=toe, toc_s=toc_s,
         sqrt_a=f["sqrt_a"] * 2.0 ** -19, e=f["e"] * 2.0 ** -33, i0_rad=f["i0"] * 2.0 ** -31 * _SC,

@@ -25,7 +25,8 @@ from __future__ import annotations
 from pyrtcm import calc_crc24q
 
 from ..io.rtcm_eph import FIT_INTERVAL_GALILEO_H, PI_ICD, galileo_sisa_m
-from ..messages import SECONDS_PER_WEEK, SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris
+from ..messages import SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris
+from .lnav import toc_near_toe, week_of_toe
 
 #: ephemeris words (1-4 carry IODnav) and the clock/health word 5
 EPHEMERIS_WORDS = (1, 2, 3, 4, 5)
@@ -93,17 +94,8 @@ def decode_ephemeris(sat: str, words: dict[int, int]) -> GpsEphemeris:
     e5b_hs, e1b_hs = w5.u(67, 2), w5.u(69, 2)
     e5b_dvs, e1b_dvs = w5.u(71, 1), w5.u(72, 1)
     wn_gst, tow = w5.u(73, 12), w5.u(85, 20)
-    # week of toe: toe within half a week of the word-5 transmission time
-    week = wn_gst
-    if toe - tow > SECONDS_PER_WEEK / 2:
-        week -= 1
-    elif toe - tow < -SECONDS_PER_WEEK / 2:
-        week += 1
-    toc_s = toc
-    if toc - toe > SECONDS_PER_WEEK / 2:
-        toc_s -= SECONDS_PER_WEEK
-    elif toc - toe < -SECONDS_PER_WEEK / 2:
-        toc_s += SECONDS_PER_WEEK
+    week = week_of_toe(wn_gst, toe, tow)
+    toc_s = toc_near_toe(toc, toe)
     iod = w1.u(6, 10)
     return GpsEphemeris(
         sat=sat, week=week + SYSTEM_WEEK_TO_GPS_WEEK["E"], toe_s=toe, toc_s=toc_s, sqrt_a=sqrt_a, e=e,

@@ -132,6 +132,24 @@ def qzss_fit_interval_h(flag: int) -> float:
     return 4.0 if flag else 2.0
 
 
+def week_of_toe(week: int, toe_s: float, t_tx_sow_s: float) -> int:
+    """The week of toe: toe within half a week of the transmission time (week crossover)."""
+    if toe_s - t_tx_sow_s < -SECONDS_PER_WEEK / 2:
+        return week + 1
+    if toe_s - t_tx_sow_s > SECONDS_PER_WEEK / 2:
+        return week - 1
+    return week
+
+
+def toc_near_toe(toc_s: float, toe_s: float) -> float:
+    """toc in toe's week (normally equal; one may sit across the week boundary)."""
+    if toc_s - toe_s > SECONDS_PER_WEEK / 2:
+        return toc_s - SECONDS_PER_WEEK
+    if toc_s - toe_s < -SECONDS_PER_WEEK / 2:
+        return toc_s + SECONDS_PER_WEEK
+    return toc_s
+
+
 def decode_ephemeris(sat: str, sf1: Subframe, sf2: Subframe, sf3: Subframe, ref_week: int) -> GpsEphemeris:
     """Ephemeris from subframes 1, 2, 3 (consistency is the caller's job).  ``sat`` 'Jnn' (QZSS)
     selects the QZSS meaning of the fit interval flag.
@@ -172,20 +190,8 @@ def decode_ephemeris(sat: str, sf1: Subframe, sf2: Subframe, sf3: Subframe, ref_
     omega_dot = b3.s(9, 1, 24) * 2.0 ** -43 * pi
     idot = b3.s(10, 9, 14) * 2.0 ** -43 * pi
 
-    # Week of toe: toe within half a week of the transmission time (week crossover).
-    week_toe = wn
-    if toe - sf1.tow_start_s < -SECONDS_PER_WEEK / 2:
-        week_toe = wn + 1
-    elif toe - sf1.tow_start_s > SECONDS_PER_WEEK / 2:
-        week_toe = wn - 1
-    # toc relative to the week of toe (toc and toe are normally equal; keep them in one week)
-    t_toe = week_toe * SECONDS_PER_WEEK + toe
-    toc_s = toc
-    t_toc = week_toe * SECONDS_PER_WEEK + toc
-    if t_toc - t_toe > SECONDS_PER_WEEK / 2:
-        toc_s = toc - SECONDS_PER_WEEK
-    elif t_toc - t_toe < -SECONDS_PER_WEEK / 2:
-        toc_s = toc + SECONDS_PER_WEEK
+    week_toe = week_of_toe(wn, toe, sf1.tow_start_s)
+    toc_s = toc_near_toe(toc, toe)
     return GpsEphemeris(
         sat=sat, week=int(week_toe), toe_s=toe, toc_s=toc_s, sqrt_a=sqrt_a, e=e, i0_rad=i0,
         omega0_rad=omega0, omega_rad=omega, m0_rad=m0, delta_n_radps=delta_n, idot_radps=idot,
