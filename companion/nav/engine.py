@@ -167,8 +167,8 @@ class EngineConfig:
     hpl_missed_detection: float = 1e-3
     # carrier-phase RTK (companion.nav.rtk_update): DD phase and code against the base's epochs
     # with float ambiguity blocks and integer fixing, instead of the DGPS pseudoranges and TDCP,
-    # whenever a base epoch (and its station position) is at hand; off here so that the seed
-    # experiments stay as published, on by default in the product's configuration
+    # whenever a base epoch (and its station position) is at hand; off so that the seed
+    # experiments stay as published (not in the service's configuration yet: python -m sitl rtk)
     rtk_enabled: bool = False
     rtk_signals: tuple[str, ...] = ("L1C", "L2W")
     rtk_sigma_phase_a_m: float = 0.003
