@@ -20,7 +20,7 @@ from __future__ import annotations
 from ..io.rtcm_eph import FIT_INTERVAL_BEIDOU_H, PI_ICD
 from ..messages import SECONDS_PER_WEEK, SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris
 from .ephemeris import is_beidou_geo
-from .lnav import URA_M, toc_near_toe, week_of_toe
+from .lnav import URA_M, new_ephemeris, toc_near_toe, week_of_toe
 
 PREAMBLE = 0x712
 _SC = PI_ICD
@@ -180,10 +180,4 @@ class BeidouEphemerisAssembler:
         if any(_sow_step(sow1, store[k].sow) != step * (k - 1) for k in need):
             self.counters["inconsistent"] += 1          # parts of different frames: wait
             return None
-        eph = decode_ephemeris(sat, store, geo)
-        key = (eph.iode, eph.toe_s, eph.week)
-        if self._last.get(sat) == key:
-            return None
-        self._last[sat] = key
-        self.counters["ephemerides"] += 1
-        return eph
+        return new_ephemeris(decode_ephemeris(sat, store, geo), self._last, self.counters)

@@ -26,7 +26,7 @@ from pyrtcm import calc_crc24q
 
 from ..io.rtcm_eph import FIT_INTERVAL_GALILEO_H, PI_ICD, galileo_sisa_m
 from ..messages import SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris
-from .lnav import toc_near_toe, week_of_toe
+from .lnav import new_ephemeris, toc_near_toe, week_of_toe
 
 #: ephemeris words (1-4 carry IODnav) and the clock/health word 5
 EPHEMERIS_WORDS = (1, 2, 3, 4, 5)
@@ -147,10 +147,4 @@ class InavEphemerisAssembler:
             self.counters["svid"] += 1
             del store[4]
             return None
-        eph = decode_ephemeris(sat, store)
-        key = (eph.iode, eph.toe_s, eph.week)
-        if self._last.get(sat) == key:
-            return None
-        self._last[sat] = key
-        self.counters["ephemerides"] += 1
-        return eph
+        return new_ephemeris(decode_ephemeris(sat, store), self._last, self.counters)

@@ -150,6 +150,17 @@ def toc_near_toe(toc_s: float, toe_s: float) -> float:
     return toc_s
 
 
+def new_ephemeris(eph: GpsEphemeris, last: dict, counters) -> GpsEphemeris | None:
+    """``eph`` the first time its (IODE, toe, week) is seen for its satellite, else None: a
+    broadcast repeats the same set every 30 s.  ``last``: satellite -> key, kept by the caller."""
+    key = (eph.iode, eph.toe_s, eph.week)
+    if last.get(eph.sat) == key:
+        return None
+    last[eph.sat] = key
+    counters["ephemerides"] += 1
+    return eph
+
+
 def decode_ephemeris(sat: str, sf1: Subframe, sf2: Subframe, sf3: Subframe, ref_week: int) -> GpsEphemeris:
     """Ephemeris from subframes 1, 2, 3 (consistency is the caller's job).  ``sat`` 'Jnn' (QZSS)
     selects the QZSS meaning of the fit interval flag.
@@ -266,11 +277,5 @@ class LnavEphemerisAssembler:
             # a set straddling an ephemeris cut-over: wait for the next subframes
             self.counters["inconsistent"] += 1
             return None
-        eph = decode_ephemeris(sat, s1, s2, s3, ref_week)
-        key = (eph.iode, eph.toe_s, eph.week)
-        if self._last.get(sat) == key:
-            return None
-        self._last[sat] = key
-        self.counters["ephemerides"] += 1
-        return eph
+        return new_ephemeris(decode_ephemeris(sat, s1, s2, s3, ref_week), self._last, self.counters)
 
