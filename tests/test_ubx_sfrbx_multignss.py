@@ -231,6 +231,26 @@ def test_galileo_pseudoranges_fit_the_position_of_the_other_systems(decoded):
     assert worst["E"] < 5.0
 
 
+def test_beidou_iono_free_fits_and_no_bds3_b2i_false_lock(decoded):
+    """BeiDou B1I/B2I iono-free residuals at the G+C+J position, per satellite, within a few metres
+    of the system's median.  The log holds one 'B2I' pseudorange of BDS-3 C36 (10 dB-Hz, lock 0,
+    360 m off its B1I: BDS-3 broadcasts no B2I), which put C36's residual 525 m off."""
+    msgs, _ = decoded
+    store = EphemerisStore(_ephs(msgs))
+    epochs = _epochs(msgs)
+    assert any(o.sat == "C36" and o.signal == "L7I" for ep in epochs for o in ep.observations)
+    r_ref = _reference_position(epochs, store)
+    per_sat: dict[str, list[float]] = {}
+    for ep in epochs[5:]:
+        p = prepare_epoch(ep, store, r_ref, signal="IF", systems="GC")
+        res = p.pseudorange_m - np.linalg.norm(p.r_sat_e - r_ref, axis=1)
+        idx = [i for i, s in enumerate(p.sats) if s[0] == "C" and math.isfinite(res[i])]
+        for i in idx:
+            per_sat.setdefault(p.sats[i], []).append(float(res[i] - np.median(res[idx])))
+    assert len(per_sat) >= 5 and "C36" not in per_sat       # C36 has B1I only
+    assert max(abs(float(np.mean(v))) for v in per_sat.values()) < 3.0
+
+
 def _first_times(msgs):
     """Seconds into the log (from its first RXM-RAWX) at which, ephemerides arriving as in a live
     stream: >= 4 satellites with a pseudorange and an ephemeris, and the first SPP solution."""

@@ -55,7 +55,7 @@ from .atmosphere import klobuchar_delay_m, saastamoinen_zenith_m, tropo_mapping
 from .ephemeris import satellite_state, transmit_time
 from .ephemeris_store import EphemerisStore
 from .signals import (IF_FIRST_SIGNALS, IF_SECOND_SIGNALS, PRIMARY_SIGNALS, SUPPORTED_SYSTEMS, frequency_hz,
-                      group_delay_m, iono_free_noise_factor)
+                      group_delay_m, iono_free_noise_factor, is_transmitted)
 
 if TYPE_CHECKING:  # pragma: no cover
     from .dgps import DgpsCorrector
@@ -127,10 +127,12 @@ class PreparedEpoch:
 
 
 def group_by_sat(epoch: GnssEpoch) -> dict[str, dict[str, SatObservation]]:
-    """sat -> signal -> observation, in first-seen satellite order."""
+    """sat -> signal -> observation, in first-seen satellite order; signals the satellite does not
+    transmit (:func:`~companion.gnss.signals.is_transmitted`: false locks) are left out."""
     out: dict[str, dict[str, SatObservation]] = {}
     for o in epoch.observations:
-        out.setdefault(o.sat, {})[o.signal] = o
+        if is_transmitted(o.sat, o.signal):
+            out.setdefault(o.sat, {})[o.signal] = o
     return out
 
 

@@ -71,6 +71,24 @@ IF_SECOND_SIGNALS: dict[str, tuple[str, ...]] = {
 }
 
 
+#: first BeiDou PRN of BDS-3 (C19 onwards; BDS-2 is C01-C18)
+BDS3_FIRST_PRN = 19
+
+
+def is_transmitted(sat: str, signal: str) -> bool:
+    """False for a signal the satellite does not broadcast, which a receiver can still report from a
+    false lock: BDS-3 satellites carry B1I and B3I for BDS-2 users but not B2I (band 7 I/Q/X; their
+    band-7 signal is B2b), BeiDou ICD B1I 3.0 / B3I 1.0.  On the real ZED-F9P log of
+    tests/test_ubx_sfrbx_multignss.py one C36 'B2I' pseudorange at 10 dB-Hz, lock time 0, was 360 m
+    off its B1I and put the iono-free residual 525 m off."""
+    if sat[0] == "C" and signal in ("L7I", "L7Q", "L7X"):
+        try:
+            return int(sat[1:]) < BDS3_FIRST_PRN
+        except ValueError:
+            return True
+    return True
+
+
 def frequency_hz(sat: str, signal: str) -> float:
     """Carrier frequency of ``signal`` ('L1C') of ``sat`` ('E11'), NaN when unknown (GLONASS FDMA)."""
     return FREQUENCY_HZ.get(sat[0], {}).get(signal[1:2], float("nan"))
