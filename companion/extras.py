@@ -5,6 +5,7 @@ the simulator are extras (``pyproject.toml``)::
 
     plot = matplotlib (every --plot)      mqtt = aiomqtt (telemetry, corrections.source = 'mqtt')
     sitl = the simulator (pyubx2, plots)  rinex = hatanaka (compressed RINEX)
+    ulog = pyulog (PX4 .ulg replay)
     test = everything the test suite needs
 
 ``require("aiomqtt", "mqtt", "MQTT telemetry")`` returns the module, or raises :class:`MissingExtra`
@@ -18,7 +19,7 @@ import importlib.util
 from types import ModuleType
 
 # module -> extra that installs it (pyproject.toml [project.optional-dependencies])
-EXTRA_OF = {"matplotlib": "plot", "aiomqtt": "mqtt", "pyubx2": "sitl", "georinex": "test", "hatanaka": "rinex"}
+EXTRA_OF = {"matplotlib": "plot", "aiomqtt": "mqtt", "pyubx2": "sitl", "georinex": "test", "hatanaka": "rinex", "pyulog": "ulog"}
 
 
 class MissingExtra(ImportError):

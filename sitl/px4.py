@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import struct
+import shutil
 import sys
 import threading
 import time
@@ -312,9 +313,16 @@ def console_warnings(text: str) -> list[str]:
     return [line for line in text.splitlines() if line.startswith(("WARN", "ERROR"))]
 
 
+#: what `--ulog` keeps: every IMU sample, the receiver, the autopilot's estimates and SIH's truth
+#: (about 1 MB a minute instead of 15 for PX4's default profile)
+ULOG_TOPICS = {"sensor_combined": 0, "vehicle_gps_position": 0, "vehicle_attitude": 50, "vehicle_status": 200,
+               "vehicle_global_position": 50, "vehicle_global_position_groundtruth": 20,
+               "vehicle_attitude_groundtruth": 20}
+
+
 def run(*, duration_s: float = 120.0, px4_dir: str | None = None, out_dir: str = "out/px4", alt_m: float = 10.0,
         side_m: float = 20.0, speed_mps: float = 5.0, legs: int = 4,
-        overrides: dict[str, str] | None = None) -> dict:
+        overrides: dict[str, str] | None = None, ulog: bool = False) -> dict:
     dist = find_dist(px4_dir)
     problem = dist_problem(dist)
     if problem:
@@ -322,7 +330,7 @@ def run(*, duration_s: float = 120.0, px4_dir: str | None = None, out_dir: str =
     out = Path(out_dir).resolve()
     out.mkdir(parents=True, exist_ok=True)
     params = read_params(PARAM_FILE)
-    sitl = Px4Sitl(dist, params, out / "px4")
+    sitl = Px4Sitl(dist, params, out / "px4", ulog_topics=ULOG_TOPICS if ulog else None)
     companion = gcs = flags = None
     flight = None
     res: dict = {"autopilot": "px4", "output": "vision", "param_file": str(PARAM_FILE), "px4_dir": str(dist),
@@ -374,6 +382,10 @@ def run(*, duration_s: float = 120.0, px4_dir: str | None = None, out_dir: str =
             gcs.close()
         res["px4_exit_code"] = sitl.stop()
         say("PX4 and companion stopped")
+        if ulog and sitl.ulog_files():
+            res["ulog"] = str(out / "flight.ulg")
+            shutil.copyfile(sitl.ulog_files()[-1], res["ulog"])
+            say(f"ULog of the flight: {res['ulog']}")
     if flight is not None:
         res["events_mono_s"] = flight.events
         res.update(score(gcs.records, gcs.statustext, res, flag_samples=flags.samples,
@@ -422,7 +434,7 @@ def cmd_px4(args) -> int:
     try:
         res = run(duration_s=args.duration, px4_dir=args.px4_dir, out_dir=args.out, legs=args.legs,
                   side_m=args.side, alt_m=args.alt, speed_mps=args.speed,
-                  overrides=dict(kv.split("=", 1) for kv in args.set or ()))
+                  overrides=dict(kv.split("=", 1) for kv in args.set or ()), ulog=getattr(args, "ulog", False))
     except RuntimeError as exc:
         print(f"sitl px4: {exc}", file=sys.stderr)
         return 2
@@ -442,6 +454,8 @@ def add_arguments(p, *, out_default: str = "out/px4") -> None:
         p.add_argument("--side", type=float, default=20.0, help="box side, m")
         p.add_argument("--alt", type=float, default=10.0, help="takeoff height, m")
         p.add_argument("--speed", type=float, default=5.0, help="horizontal speed, m/s")
+        p.add_argument("--ulog", action="store_true",
+                       help="keep a ULog of the flight (IMU, GPS, estimates, SIH truth) as OUT/flight.ulg")
         p.add_argument("--set", action="append", metavar="SECTION.KEY=TOML",
                        help="experiment: override one key of deploy/companion.toml, e.g. filter.zupt_enabled=true")
 

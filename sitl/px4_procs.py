@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import re
 import socket
+import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -90,9 +91,14 @@ class Px4Sitl:
     """One PX4 SIH instance (quad X) with ``params`` set at boot; writes only below ``run_dir``
     (and PX4's own /tmp/px4_lock-N, /tmp/px4-sock-N)."""
 
-    def __init__(self, dist: Path, params: dict[str, float], run_dir: Path, instance: int | None = None):
+    def __init__(self, dist: Path, params: dict[str, float], run_dir: Path, instance: int | None = None,
+                 ulog_topics: dict[str, int] | None = None):
         self.dist = Path(dist)
         self.params = dict(params)
+        # topic -> interval ms (0 = every sample): a ULog of just these, from boot to shutdown
+        # (PX4's logger reads WORKDIR/etc/logging/logger_topics.txt instead of its profile);
+        # None = no ULog (a full one is about 15 MB a minute)
+        self.ulog_topics = dict(ulog_topics) if ulog_topics else None
         self.run_dir = Path(run_dir)
         self.instance = free_instance() if instance is None else instance
         self.proc: subprocess.Popen | None = None
@@ -113,10 +119,25 @@ class Px4Sitl:
     def start(self, timeout_s: float = 30.0) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         param_file = self.run_dir / "params.sh"
-        param_file.write_text("".join(f"param set {k} {v:g}\n" for k, v in self.params.items()))
+        params = dict(self.params)
+        if self.ulog_topics:
+            params["SDLOG_MODE"] = 2                 # log from boot until shutdown, armed or not
+        param_file.write_text("".join(f"param set {k} {v:g}\n" for k, v in params.items()))
         self._log = open(self.log_path, "wb")
         env = dict(os.environ, PX4_RUN_DIR=str(self.run_dir))
-        self.proc = subprocess.Popen(["/bin/sh", str(self.dist / "start_sih.sh"), "-f", "-n", "-i", str(self.instance),
+        if self.ulog_topics:
+            # the logger reads ./etc/logging/logger_topics.txt, and ./etc is the (read-only) ROMFS:
+            # run on a copy of it (720 kB) with the list added; start_sih.sh -f would delete it,
+            # so WORKDIR is cleared here
+            shutil.rmtree(self.work_dir, ignore_errors=True)
+            shutil.copytree(self.dist / "etc", self.work_dir / "etc", symlinks=True)
+            topics = self.work_dir / "etc" / "logging" / "logger_topics.txt"
+            topics.parent.mkdir(parents=True, exist_ok=True)
+            topics.write_text("".join(f"{t} {ms}\n" for t, ms in self.ulog_topics.items()))
+            flags = []
+        else:
+            flags = ["-f", "-n"]
+        self.proc = subprocess.Popen(["/bin/sh", str(self.dist / "start_sih.sh"), *flags, "-i", str(self.instance),
                                       "-p", str(param_file)], cwd=str(self.run_dir), env=env, stdout=self._log,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
         t_end = time.monotonic() + timeout_s
@@ -127,6 +148,10 @@ class Px4Sitl:
                 return
             time.sleep(0.2)
         raise RuntimeError(f"PX4 did not finish its start-up script within {timeout_s:.0f} s (log {self.log_path})")
+
+    def ulog_files(self) -> list[Path]:
+        """The ULog files PX4 wrote (WORKDIR/log/<date>/<time>.ulg), oldest first."""
+        return sorted((self.work_dir / "log").rglob("*.ulg"))
 
     def log_text(self) -> str:
         try:
