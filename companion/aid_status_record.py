@@ -25,12 +25,16 @@ AID_STATUS_RECORD_VERSION = 1
 KIND = "aid_status"
 
 
-def _r(x, nd: int = 4):
+def json_number(x, nd: int = 4):
+    """``x`` rounded to ``nd`` decimals for JSON, None when it is not a finite number."""
     try:
         x = float(x)
     except (TypeError, ValueError):
         return None
     return round(x, nd) if math.isfinite(x) else None
+
+
+_r = json_number
 
 
 def aid_status_dict(pipeline, sol) -> dict:

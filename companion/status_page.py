@@ -23,18 +23,16 @@ import time
 from collections import deque
 from importlib import resources
 
-log = logging.getLogger(__name__)
+from .aid_status_record import json_number
 
-MAX_HEADER_BYTES = 8192
-HEADER_TIMEOUT_S = 5.0
+log = logging.getLogger(__name__)
 
 
 def _num(x, nd: int = 3):
-    try:
-        x = float(x)
-    except (TypeError, ValueError):
-        return None
-    return round(x, nd) if math.isfinite(x) else None
+    return json_number(x, nd)
+
+MAX_HEADER_BYTES = 8192
+HEADER_TIMEOUT_S = 5.0
 
 
 class StatusBoard:
