@@ -1,0 +1,158 @@
+"""`companion gnss configure` against a fake u-blox on 127.0.0.1 (issue 15, receiver set-up).
+
+The fake receiver parses the bytes it gets with pyubx2's UBXReader (as a receiver would read its
+input, independently of how companion built them), records the settings, and answers every CFG
+message with ACK-ACK, or ACK-NAK for the settings it is told to reject, or not at all."""
+from __future__ import annotations
+
+import socket
+import threading
+
+import pytest
+
+pyubx2 = pytest.importorskip("pyubx2")
+from pyubx2 import SET, UBXMessage, UBXReader  # noqa: E402
+
+from companion.cli import main  # noqa: E402
+from companion.io.ubx_configure import AckScanner  # noqa: E402
+
+NMEA_NOISE = b"$GNGGA,,,,,,0,00,99.99,,,,,,*56\r\n"
+
+
+def _valset_keys(msg) -> dict:
+    return {k: v for k, v in vars(msg).items() if k.startswith("CFG_")}
+
+
+class FakeReceiver:
+    """Answers what it reads; ``reject(msg)`` True -> ACK-NAK; ``silent`` -> no answer at all."""
+
+    def __init__(self, proto: str = "tcp", reject=lambda msg: False, silent: bool = False):
+        self.reject, self.silent, self.proto = reject, silent, proto
+        self.received: list = []                     # parsed pyubx2 messages, in order
+        kind = socket.SOCK_STREAM if proto == "tcp" else socket.SOCK_DGRAM
+        self.sock = socket.socket(socket.AF_INET, kind)
+        self.sock.bind(("127.0.0.1", 0))
+        self.address = f"{proto}://127.0.0.1:{self.sock.getsockname()[1]}"
+        if proto == "tcp":
+            self.sock.listen(1)
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _answer(self, msg) -> bytes:
+        if self.silent:
+            return NMEA_NOISE                        # its NMEA goes on, no answer to the command
+        ack = "ACK-NAK" if self.reject(msg) else "ACK-ACK"
+        return NMEA_NOISE + UBXMessage("ACK", ack, 0, clsID=msg.msg_cls[0], msgID=msg.msg_id[0]).serialize()
+
+    def _serve(self) -> None:
+        if self.proto == "tcp":
+            conn, _ = self.sock.accept()
+            with conn, conn.makefile("rb") as stream:
+                for _raw, msg in UBXReader(stream, msgmode=SET):
+                    self.received.append(msg)
+                    conn.sendall(self._answer(msg))
+        else:
+            while True:
+                try:
+                    data, peer = self.sock.recvfrom(65536)
+                except OSError:
+                    return
+                msg = UBXReader.parse(data, msgmode=SET)
+                self.received.append(msg)
+                self.sock.sendto(self._answer(msg), peer)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.fixture
+def receiver():
+    made = []
+
+    def make(**kw):
+        made.append(FakeReceiver(**kw))
+        return made[-1]
+    yield make
+    for r in made:
+        r.close()
+
+
+def test_f9_keys_values_and_layers_as_the_receiver_reads_them(receiver, capsys):
+    rx = receiver()
+    rc = main(["gnss", "configure", rx.address, "--receiver-port", "uart2", "--rate-hz", "10", "--moving-base",
+               "--layers", "ram,bbr"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert all(m.identity == "CFG-VALSET" for m in rx.received)
+    assert all(len(_valset_keys(m)) == 1 for m in rx.received)           # one key per message: ACK per key
+    assert all((m.ram, m.bbr, m.flash) == (1, 1, 0) for m in rx.received)
+    got = {k: v for m in rx.received for k, v in _valset_keys(m).items()}
+    assert got == {"CFG_UART2OUTPROT_UBX": 1, "CFG_MSGOUT_UBX_RXM_RAWX_UART2": 1,
+                   "CFG_MSGOUT_UBX_RXM_SFRBX_UART2": 1, "CFG_RATE_MEAS": 100, "CFG_RATE_NAV": 1,
+                   "CFG_MSGOUT_UBX_NAV_RELPOSNED_UART2": 1}
+    assert out.count(": ACK") == 6
+
+
+def test_nak_is_reported_by_key_and_the_other_keys_still_go(receiver, capsys):
+    rx = receiver(reject=lambda m: "CFG_SIGNAL_GLO_ENA" in vars(m))
+    rc = main(["gnss", "configure", rx.address, "--systems", "G,E,R"])
+    cap = capsys.readouterr()
+    assert rc == 1
+    assert "CFG_SIGNAL_GLO_ENA = 1: NAK" in cap.out and "rejected by the receiver: CFG_SIGNAL_GLO_ENA" in cap.err
+    got = {k: v for m in rx.received for k, v in _valset_keys(m).items()}
+    assert {k: got[k] for k in got if k.startswith("CFG_SIGNAL")} == {
+        "CFG_SIGNAL_GPS_ENA": 1, "CFG_SIGNAL_GAL_ENA": 1, "CFG_SIGNAL_BDS_ENA": 0, "CFG_SIGNAL_QZSS_ENA": 0,
+        "CFG_SIGNAL_GLO_ENA": 1}
+    assert cap.out.count(": ACK") == len(rx.received) - 1
+
+
+def test_silent_receiver_stops_at_the_first_key_with_a_reason(receiver, capsys):
+    rx = receiver(silent=True)
+    rc = main(["gnss", "configure", rx.address, "--timeout-s", "0.3"])
+    cap = capsys.readouterr()
+    assert rc == 1
+    assert len(rx.received) == 1 and "not sent" in cap.out
+    # NMEA but no UBX frame came back -> the baud-rate hint
+    assert "no ACK/NAK" in cap.err and "no UBX frame" in cap.err
+
+
+def test_m8_legacy_messages(receiver, capsys):
+    rx = receiver(proto="udp")
+    rc = main(["gnss", "configure", rx.address, "--generation", "m8", "--rate-hz", "2", "--layers", "ram,flash"])
+    assert rc == 0, capsys.readouterr()
+    ids = [m.identity for m in rx.received]
+    assert ids == ["CFG-MSG", "CFG-MSG", "CFG-RATE", "CFG-CFG"]
+    # 3-byte CFG-MSG: class, id, rate on the port it arrived on
+    assert [bytes(m.payload) for m in rx.received[:2]] == [bytes([0x02, 0x15, 1]), bytes([0x02, 0x13, 1])]
+    rate, save = rx.received[2], rx.received[3]
+    assert (rate.measRate, rate.navRate, rate.timeRef) == (500, 1, 1)
+    assert (save.devBBR, save.devFlash) == (0, 1) and save.saveMask != b"\x00\x00\x00\x00"
+
+
+def test_dry_run_frames_parse_back(capsys):
+    assert main(["gnss", "configure", "--dry-run", "--rate-hz", "4"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    parsed = {}
+    for ln in lines:
+        frame = bytes.fromhex(ln.rpartition(": ")[2])
+        parsed.update(_valset_keys(UBXReader.parse(frame, msgmode=SET)))
+    assert parsed["CFG_RATE_MEAS"] == 250 and parsed["CFG_MSGOUT_UBX_RXM_RAWX_UART1"] == 1
+
+
+def test_option_errors(capsys):
+    assert main(["gnss", "configure", "--dry-run", "--rate-hz", "100"]) == 2
+    assert main(["gnss", "configure", "--dry-run", "--generation", "m8", "--systems", "G"]) == 2
+    assert main(["gnss", "configure", "--dry-run", "--layers", "eeprom"]) == 2
+    assert main(["gnss", "configure"]) == 2                                   # no address, no dry run
+    assert main(["gnss", "configure", "tcp://127.0.0.1"]) == 2                # no port number
+    assert "error" in capsys.readouterr().err
+
+
+def test_ack_scanner_skips_noise_and_bad_checksums():
+    ack = UBXMessage("ACK", "ACK-ACK", 0, clsID=0x06, msgID=0x8A).serialize()
+    nak = UBXMessage("ACK", "ACK-NAK", 0, clsID=0x06, msgID=0x01).serialize()
+    broken = ack[:-1] + bytes([ack[-1] ^ 0xFF])
+    s = AckScanner()
+    stream = b"\xb5" + NMEA_NOISE + broken + ack + nak
+    got = [a for i in range(0, len(stream), 3) for a in s.feed(stream[i:i + 3])]     # split anywhere
+    assert got == [(True, 0x06, 0x8A), (False, 0x06, 0x01)]
