@@ -156,3 +156,49 @@ def test_ack_scanner_skips_noise_and_bad_checksums():
     stream = b"\xb5" + NMEA_NOISE + broken + ack + nak
     got = [a for i in range(0, len(stream), 3) for a in s.feed(stream[i:i + 3])]     # split anywhere
     assert got == [(True, 0x06, 0x8A), (False, 0x06, 0x01)]
+
+
+def test_through_the_autopilots_serial_control_tunnel(capsys):
+    """--mavlink: the frames reach the receiver on the fake ArduPilot's GPS1 port in SERIAL_CONTROL
+    requests, the ACKs come back in its replies, and the port is unlocked at the end."""
+    import asyncio
+
+    from tests._fake_ardupilot import FakeArduPilot, free_udp_port
+
+    seen: list = []
+    consumed = [0]
+
+    def receiver_on_gps1(t: float) -> bytes:       # the u-blox behind the autopilot's port
+        scanner_input = bytes(ap.uart_written[consumed[0]:])
+        out = b""
+        while len(scanner_input) >= 8:
+            n = scanner_input[4] | (scanner_input[5] << 8)
+            if len(scanner_input) < n + 8:
+                break
+            msg = UBXReader.parse(scanner_input[:n + 8], msgmode=SET)
+            consumed[0] += n + 8
+            scanner_input = scanner_input[n + 8:]
+            seen.append(msg)
+            out += UBXMessage("ACK", "ACK-ACK", 0, clsID=msg.msg_cls[0], msgID=msg.msg_id[0]).serialize()
+        return out
+
+    ap = FakeArduPilot(receiver_on_gps1)
+
+    async def scenario():
+        port = free_udp_port()
+        loop = asyncio.get_running_loop()
+        await loop.create_datagram_endpoint(lambda: ap, remote_addr=("127.0.0.1", port))
+        ap.start()
+        try:
+            return await loop.run_in_executor(None, main, ["gnss", "configure", "--mavlink",
+                                                            f"udpin:127.0.0.1:{port}", "--rate-hz", "5"])
+        finally:
+            ap.stop()
+
+    rc = asyncio.run(scenario())
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    got = {k: v for m in seen for k, v in _valset_keys(m).items()}
+    assert got["CFG_MSGOUT_UBX_RXM_RAWX_UART1"] == 1 and got["CFG_RATE_MEAS"] == 200
+    assert out.count(": ACK") == len(seen) == 5
+    assert ap.lock_changes and ap.lock_changes[-1][1] is False       # the autopilot has its port back

@@ -21,7 +21,8 @@ in flight.  A missing answer stops the run (no receiver, wrong port or baud rate
 reported by key and the others are still sent.
 
 Transports: a serial device (pyserial), ``tcp://HOST:PORT`` (a receiver behind a serial-to-TCP
-bridge, ser2net / u-center's server) or ``udp://HOST:PORT``.
+bridge, ser2net / u-center's server), ``udp://HOST:PORT``, or the autopilot's GPS port through
+MAVLink SERIAL_CONTROL (``--mavlink``, ArduPilot; :class:`TunnelTransport`).
 """
 from __future__ import annotations
 
@@ -185,6 +186,80 @@ class SerialTransport:
         self.port.close()
 
 
+class TunnelTransport:
+    """The receiver on the autopilot's GPS port, through MAVLink SERIAL_CONTROL
+    (:class:`~companion.io.serial_control.SerialControlTunnel`, ArduPilot only).
+
+    The link and the tunnel run on an asyncio loop in a background thread; :meth:`write` and
+    :meth:`read_some` are called from the (synchronous) configuration run.  The port is locked
+    (EXCLUSIVE polls) from the first HEARTBEAT until :meth:`close`, which unlocks it three times
+    (one lost datagram must not leave the autopilot without its GPS)."""
+
+    def __init__(self, connection: str, device: str = "GPS1", *, baud: int = 0, target_system: int = 1,
+                 heartbeat_timeout_s: float = 5.0):
+        import asyncio
+        import queue
+        import threading
+        from . import mavlink as mav_io
+        from .serial_control import RELEASE_REPEATS_S, SerialControlTunnel
+        self._asyncio, self._rx = asyncio, queue.Queue()
+        self._release_repeats = RELEASE_REPEATS_S
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name="ubx-configure-tunnel", daemon=True)
+        self._thread.start()
+        dev = {"GPS1": mav_io.m.SERIAL_CONTROL_DEV_GPS1, "GPS2": mav_io.m.SERIAL_CONTROL_DEV_GPS2}[device]
+
+        async def start():
+            link = mav_io.MavlinkLink(connection, target_system=target_system, timesync_interval_s=0)
+            await link.start()
+            t_end = self.loop.time() + heartbeat_timeout_s
+            while not link.connected and self.loop.time() < t_end:
+                await asyncio.sleep(0.02)
+            if not link.connected:
+                await link.close()
+                raise ReceiverConfigError(f"no HEARTBEAT from autopilot {target_system} on {connection} in "
+                                          f"{heartbeat_timeout_s:g} s")
+            tunnel = SerialControlTunnel(link, dev, baudrate=baud)
+            tunnel.listeners.append(self._rx.put)
+            return link, tunnel, asyncio.ensure_future(tunnel.run())
+
+        try:
+            self.link, self.tunnel, self._poller = self._call(start())
+        except BaseException:
+            self._stop_loop()
+            raise
+
+    def _call(self, coro):
+        return self._asyncio.run_coroutine_threadsafe(coro, self.loop).result()
+
+    def write(self, data: bytes) -> None:
+        self.loop.call_soon_threadsafe(self.tunnel.write, bytes(data))
+
+    def read_some(self, timeout_s: float) -> bytes:
+        import queue
+        try:
+            return self._rx.get(timeout=max(timeout_s, 1e-3))
+        except queue.Empty:
+            return b""
+
+    def close(self) -> None:
+        async def stop():
+            self._poller.cancel()
+            for k, dt in enumerate(self._release_repeats):
+                await self._asyncio.sleep(dt - (self._release_repeats[k - 1] if k else 0.0))
+                self.tunnel.release()
+            await self.link.close()
+        try:
+            self._call(stop())
+        finally:
+            self._stop_loop()
+
+    def _stop_loop(self) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(timeout=5.0)
+        self.loop.close()
+
+
 def open_transport(address: str, baud: int = 38400):
     """``tcp://HOST:PORT``, ``udp://HOST:PORT`` or a serial device."""
     if address.startswith(("tcp://", "udp://")):
@@ -294,12 +369,18 @@ def run_configure_cli(args) -> int:
         for it in items:
             print(f"{it.key} = {it.value}: {it.frame.hex(' ')}")
         return 0
-    if not args.address:
+    if bool(args.address) == bool(args.mavlink):
         print("companion gnss configure: error: give the receiver's port (a serial device, tcp://HOST:PORT "
-              "or udp://HOST:PORT), or --dry-run", file=sys.stderr)
+              "or udp://HOST:PORT) or --mavlink CONNECTION (through the autopilot), one of them; or --dry-run",
+              file=sys.stderr)
         return 2
+    where = args.address or f"{args.device} of the autopilot on {args.mavlink}"
     try:
-        transport = open_transport(args.address, args.baud)
+        if args.mavlink:
+            transport = TunnelTransport(args.mavlink, args.device, baud=args.tunnel_baud,
+                                        target_system=args.target_system)
+        else:
+            transport = open_transport(args.address, args.baud)
     except ReceiverConfigError as exc:
         print(f"companion gnss configure: error: {exc}", file=sys.stderr)
         return 2
@@ -315,7 +396,7 @@ def run_configure_cli(args) -> int:
     silent = [r for r in results if r.status == "timeout"]
     if silent:
         print(f"companion gnss configure: error: {silent[0].item.key}: no ACK/NAK; "
-              + silence_hint(scanner, args.address, args.baud), file=sys.stderr)
+              + silence_hint(scanner, where, args.baud if not args.mavlink else args.tunnel_baud), file=sys.stderr)
         return 1
     if naks:
         hint = ""
@@ -324,7 +405,7 @@ def run_configure_cli(args) -> int:
         print(f"companion gnss configure: error: rejected by the receiver: {', '.join(r.item.key for r in naks)}"
               + hint, file=sys.stderr)
         return 1
-    print(f"companion gnss configure: {len(results)} settings acknowledged by the receiver at {args.address}")
+    print(f"companion gnss configure: {len(results)} settings acknowledged by the receiver at {where}")
     return 0
 
 
@@ -337,6 +418,14 @@ def register(gnss_subparsers) -> None:
     p.add_argument("address", nargs="?",
                    help="serial device (/dev/ttyACM0), tcp://HOST:PORT or udp://HOST:PORT")
     p.add_argument("--baud", type=int, default=38400, help="serial baud rate (u-blox default 38400)")
+    p.add_argument("--mavlink", metavar="CONNECTION",
+                   help="through the autopilot instead (ArduPilot SERIAL_CONTROL; pymavlink connection string, "
+                        "e.g. udpin:127.0.0.1:14550, with the service stopped). The GPS port is locked for the "
+                        "run and given back at the end. ArduPilot re-configures its receiver unless "
+                        "GPS_AUTO_CONFIG 0; with GPS_RAW_DATA 0 it switches raw messages off again")
+    p.add_argument("--device", choices=["GPS1", "GPS2"], default="GPS1", help="--mavlink: the autopilot's GPS port")
+    p.add_argument("--tunnel-baud", type=int, default=0, help="--mavlink: set the GPS port's baud rate (0: leave it)")
+    p.add_argument("--target-system", type=int, default=1, help="--mavlink: the autopilot's system id")
     p.add_argument("--generation", choices=["f9", "m8"], default="f9",
                    help="f9: CFG-VALSET keys (ZED-F9P, NEO-M9N ...); m8: legacy CFG-MSG/CFG-RATE (NEO-M8T/M8P)")
     p.add_argument("--receiver-port", choices=list(F9_PORTS), default="uart1",
