@@ -17,20 +17,13 @@ import csv
 import math
 import os
 import sys
-import xml.etree.ElementTree as ET
 from pathlib import Path
+
+from .io.track_export import TrackPoint, gps_to_utc_iso, write_gpx, write_kml
 
 # numpy, pymavlink and the field log are imported where they are used: `companion --help` and
 # `companion config check` must not pay for them (tests/test_packaging.py)
 SECONDS_PER_WEEK = 604800.0
-
-
-def gps_to_utc_iso(t_gps: float, leap_seconds: int) -> str:
-    """ISO 8601 UTC of a GPS time (``leap_seconds`` = GPS - UTC)."""
-    from datetime import timedelta
-    from .gnss.pos_format import GPS_EPOCH
-    t = GPS_EPOCH + timedelta(seconds=round(t_gps - leap_seconds, 3))
-    return t.strftime("%Y-%m-%dT%H:%M:%S.") + f"{t.microsecond // 1000:03d}Z"
 
 
 def _serial_control_parser():
@@ -42,7 +35,7 @@ def _serial_control_parser():
 
 
 def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=None,
-                     injected_only: bool = False, leap_seconds: int = 18) -> dict:
+                     injected_only: bool = False, leap_seconds: int | None = None) -> dict:
     """Write the requested outputs; returns counts of what went into each."""
     from .io.fieldlog import read_field_log
     from .nav.earth import ecef_to_geodetic
@@ -94,42 +87,18 @@ def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=N
     for s in sols:
         lat, lon, h = ecef_to_geodetic(s.r_e)
         rows.append((s, math.degrees(lat), math.degrees(lon), h))
+    points = [TrackPoint(s.t_gps, lat, lon, h) for s, lat, lon, h in rows]
+    name = f"companion: {Path(str(log)).name}"
     if kml:
-        _write_kml(kml, rows, str(log))
+        write_kml(kml, points, name, leap_seconds=leap_seconds)
     if gpx:
-        _write_gpx(gpx, rows, leap_seconds)
+        write_gpx(gpx, points, name, leap_seconds=leap_seconds)
     if csv_path:
         _write_csv(csv_path, rows, leap_seconds)
     return counts
 
 
-def _write_kml(path, rows, name: str) -> None:
-    ns = "http://www.opengis.net/kml/2.2"
-    ET.register_namespace("", ns)
-    kml = ET.Element(f"{{{ns}}}kml")
-    doc = ET.SubElement(kml, f"{{{ns}}}Document")
-    ET.SubElement(doc, f"{{{ns}}}name").text = f"companion: {Path(name).name}"
-    pm = ET.SubElement(doc, f"{{{ns}}}Placemark")
-    ET.SubElement(pm, f"{{{ns}}}name").text = "fused track"
-    ls = ET.SubElement(pm, f"{{{ns}}}LineString")
-    ET.SubElement(ls, f"{{{ns}}}altitudeMode").text = "absolute"
-    ET.SubElement(ls, f"{{{ns}}}coordinates").text = " ".join(f"{lon:.9f},{lat:.9f},{h:.3f}" for _, lat, lon, h in rows)
-    ET.ElementTree(kml).write(path, encoding="utf-8", xml_declaration=True)
-
-
-def _write_gpx(path, rows, leap_seconds: int) -> None:
-    ns = "http://www.topografix.com/GPX/1/1"
-    ET.register_namespace("", ns)
-    gpx = ET.Element(f"{{{ns}}}gpx", {"version": "1.1", "creator": "companion"})
-    seg = ET.SubElement(ET.SubElement(gpx, f"{{{ns}}}trk"), f"{{{ns}}}trkseg")
-    for s, lat, lon, h in rows:
-        pt = ET.SubElement(seg, f"{{{ns}}}trkpt", {"lat": f"{lat:.9f}", "lon": f"{lon:.9f}"})
-        ET.SubElement(pt, f"{{{ns}}}ele").text = f"{h:.3f}"          # ellipsoidal: GPX does not say which
-        ET.SubElement(pt, f"{{{ns}}}time").text = gps_to_utc_iso(s.t_gps, leap_seconds)
-    ET.ElementTree(gpx).write(path, encoding="utf-8", xml_declaration=True)
-
-
-def _write_csv(path, rows, leap_seconds: int) -> None:
+def _write_csv(path, rows, leap_seconds: int | None) -> None:
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["t_gps_s", "gps_week", "tow_s", "utc", "lat_deg", "lon_deg", "h_ellipsoid_m", "sigma_n_m",
@@ -180,5 +149,6 @@ def register(subparsers) -> None:
     p.add_argument("--gpx", help="write the solutions as a GPX track")
     p.add_argument("--csv", help="write the solutions as CSV")
     p.add_argument("--injected-only", action="store_true", help="only the solutions sent to the autopilot")
-    p.add_argument("--leap-seconds", type=int, default=18, help="GPS - UTC for the UTC times (default 18)")
+    p.add_argument("--leap-seconds", type=int, default=None,
+                   help="GPS - UTC for the UTC times (default: the leap-second table, 18 since 2017)")
     p.set_defaults(func=lambda a: run_export_cli(a))
