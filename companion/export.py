@@ -1,9 +1,9 @@
 """``companion export LOG``: a field log's raw streams and its solutions in the formats other tools read.
 
 * ``--ubx PATH``: the receiver's byte stream as it arrived: ``ubx`` records (a receiver on the
-  companion's own serial port) and the payloads of the autopilot's SERIAL_CONTROL replies (a
-  receiver on the autopilot's GPS port, through the tunnel), in log order -- for RTKLIB's
-  ``convbin`` / ``rnx2rtkp`` or u-center.
+  companion's own serial port) and the payloads of the autopilot's SERIAL_CONTROL replies of one
+  GPS port (a receiver on the autopilot's GPS port, through the tunnel), in log order -- for
+  RTKLIB's ``convbin`` / ``rnx2rtkp`` or u-center.
 * ``--rtcm PATH``: the correction bytes as received (NTRIP, radio, MQTT, file).
 * ``--kml PATH`` / ``--gpx PATH`` / ``--csv PATH``: the logged solutions (IMU position) as Google
   Earth track, GPX track or a table with time, position, sigmas, status and whether it was
@@ -24,6 +24,7 @@ from .io.track_export import TrackPoint, gps_to_utc_iso, write_gpx, write_kml
 # numpy, pymavlink and the field log are imported where they are used: `companion --help` and
 # `companion config check` must not pay for them (tests/test_packaging.py)
 SECONDS_PER_WEEK = 604800.0
+SERIAL_CONTROL_GPS_DEVICES = ("GPS1", "GPS2")
 
 
 def _serial_control_parser():
@@ -35,13 +36,21 @@ def _serial_control_parser():
 
 
 def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=None,
-                     injected_only: bool = False, leap_seconds: int | None = None) -> dict:
-    """Write the requested outputs; returns counts of what went into each."""
+                     injected_only: bool = False, leap_seconds: int | None = None,
+                     device: str = "auto") -> dict:
+    """Write the requested outputs; returns counts of what went into each.
+
+    ``device``: whose SERIAL_CONTROL replies are the receiver's bytes: 'GPS1', 'GPS2' or 'auto'
+    (the first GPS port that replies).  Replies of any other device (a ground station's shell
+    session on the same link) would corrupt the UBX stream: skipped and counted."""
     from .io.fieldlog import read_field_log
     from .nav.earth import ecef_to_geodetic
     from .pipeline import decode_solution
-    counts = {"records": 0, "ubx_bytes": 0, "serial_control_replies": 0, "rtcm_bytes": 0, "solutions": 0,
-              "solutions_skipped": 0}
+    counts = {"records": 0, "ubx_bytes": 0, "serial_control_replies": 0, "serial_control_other_devices": 0,
+              "serial_control_device": None, "rtcm_bytes": 0, "solutions": 0, "solutions_skipped": 0}
+    if device not in ("auto", *SERIAL_CONTROL_GPS_DEVICES):
+        raise ValueError(f"device: auto, GPS1 or GPS2; got {device!r}")
+    want_dev = None
     f_ubx = open(ubx, "wb") if ubx else None
     f_rtcm = open(rtcm, "wb") if rtcm else None
     m = parser = None
@@ -58,9 +67,18 @@ def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=N
             elif rec.kind == "mavlink" and f_ubx:
                 if parser is None:
                     m, parser = _serial_control_parser()
+                    gps_ids = {getattr(m, f"SERIAL_CONTROL_DEV_{d}"): d for d in SERIAL_CONTROL_GPS_DEVICES}
+                    if device != "auto":
+                        want_dev = getattr(m, f"SERIAL_CONTROL_DEV_{device}")
                 for msg in parser.parse_buffer(rec.payload) or ():
                     if msg.get_type() == "SERIAL_CONTROL" and msg.flags & m.SERIAL_CONTROL_FLAG_REPLY \
                             and msg.count:
+                        if want_dev is None and msg.device in gps_ids:
+                            want_dev = msg.device
+                        if msg.device != want_dev:
+                            counts["serial_control_other_devices"] += 1
+                            continue
+                        counts["serial_control_device"] = gps_ids[want_dev]
                         data = bytes(msg.data[:msg.count])
                         f_ubx.write(data)
                         counts["ubx_bytes"] += len(data)
@@ -120,7 +138,7 @@ def run_export_cli(args) -> int:
     try:
         counts = export_field_log(args.log, ubx=args.ubx, rtcm=args.rtcm, kml=args.kml, gpx=args.gpx,
                                   csv_path=args.csv, injected_only=args.injected_only,
-                                  leap_seconds=args.leap_seconds)
+                                  leap_seconds=args.leap_seconds, device=args.device)
     except (OSError, ValueError) as exc:
         print(f"companion export: error: {exc}", file=sys.stderr)
         return 2
@@ -130,8 +148,11 @@ def run_export_cli(args) -> int:
         return 2
     parts = [f"{counts['records']} records"]
     if args.ubx:
-        parts.append(f"{counts['ubx_bytes']} UBX bytes ({counts['serial_control_replies']} SERIAL_CONTROL replies) "
-                     f"-> {args.ubx}")
+        via = (f" ({counts['serial_control_replies']} SERIAL_CONTROL replies of {counts['serial_control_device']})"
+               if counts["serial_control_replies"] else "")
+        other = (f", {counts['serial_control_other_devices']} replies of other devices skipped"
+                 if counts["serial_control_other_devices"] else "")
+        parts.append(f"{counts['ubx_bytes']} UBX bytes{via} -> {args.ubx}{other}")
     if args.rtcm:
         parts.append(f"{counts['rtcm_bytes']} RTCM bytes -> {args.rtcm}")
     if args.kml or args.gpx or args.csv:
@@ -144,6 +165,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("export", help="a field log's raw UBX/RTCM streams and its solutions (KML, GPX, CSV)")
     p.add_argument("log", help="field log file, rotated-log directory or stem")
     p.add_argument("--ubx", help="write the receiver's UBX bytes here (for convbin, u-center)")
+    p.add_argument("--device", choices=["auto", *SERIAL_CONTROL_GPS_DEVICES], default="auto",
+                   help="--ubx through the autopilot: whose SERIAL_CONTROL replies (default: the first GPS port "
+                        "that replies; other devices' replies, e.g. a ground station's shell, are skipped)")
     p.add_argument("--rtcm", help="write the correction bytes here (RTCM3)")
     p.add_argument("--kml", help="write the solutions as a KML track")
     p.add_argument("--gpx", help="write the solutions as a GPX track")
