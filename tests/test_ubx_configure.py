@@ -14,7 +14,7 @@ pyubx2 = pytest.importorskip("pyubx2")
 from pyubx2 import SET, UBXMessage, UBXReader  # noqa: E402
 
 from companion.cli import main  # noqa: E402
-from companion.io.ubx_configure import AckScanner  # noqa: E402
+from companion.io.ubx_configure import AckScanner, bandwidth_warning, raw_output_bytes_per_s  # noqa: E402
 
 NMEA_NOISE = b"$GNGGA,,,,,,0,00,99.99,,,,,,*56\r\n"
 
@@ -39,7 +39,7 @@ class FakeReceiver:
         self.thread.start()
 
     def _answer(self, msg) -> bytes:
-        if self.silent:
+        if self.silent is True or (callable(self.silent) and self.silent(msg)):
             return NMEA_NOISE                        # its NMEA goes on, no answer to the command
         ack = "ACK-NAK" if self.reject(msg) else "ACK-ACK"
         return NMEA_NOISE + UBXMessage("ACK", ack, 0, clsID=msg.msg_cls[0], msgID=msg.msg_id[0]).serialize()
@@ -202,3 +202,23 @@ def test_through_the_autopilots_serial_control_tunnel(capsys):
     assert got["CFG_MSGOUT_UBX_RXM_RAWX_UART1"] == 1 and got["CFG_RATE_MEAS"] == 200
     assert out.count(": ACK") == len(seen) == 5
     assert ap.lock_changes and ap.lock_changes[-1][1] is False       # the autopilot has its port back
+
+
+def test_new_baud_rate_goes_last_and_its_lost_ack_is_expected(receiver, capsys):
+    rx = receiver(silent=lambda m: "CFG_UART1_BAUDRATE" in vars(m))     # switched before answering
+    rc = main(["gnss", "configure", rx.address, "--receiver-baud", "460800", "--timeout-s", "0.3"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert list(_valset_keys(rx.received[-1])) == ["CFG_UART1_BAUDRATE"]
+    assert rx.received[-1].CFG_UART1_BAUDRATE == 460800
+    assert "--baud 460800" in out
+
+
+def test_raw_output_that_does_not_fit_the_uart_is_warned_about(capsys):
+    # the F9 default (5 Hz) does not fit the receiver's factory 38400 baud; 460800 carries it
+    assert raw_output_bytes_per_s("f9", 5.0) > 0.8 * 38400 / 10 and bandwidth_warning("f9", 5.0, 38400)
+    assert bandwidth_warning("f9", 5.0, 460800) is None
+    assert main(["gnss", "configure", "/dev/ttyNOTHERE", "--dry-run"]) == 0
+    assert "warning: at 5 Hz" in capsys.readouterr().err
+    assert main(["gnss", "configure", "/dev/ttyNOTHERE", "--dry-run", "--receiver-baud", "460800"]) == 0
+    assert "warning" not in capsys.readouterr().err

@@ -44,6 +44,12 @@ F9_SYSTEMS = {"G": "GPS", "E": "GAL", "C": "BDS", "J": "QZSS", "R": "GLO"}
 LAYER_BITS = {"ram": 0x01, "bbr": 0x02, "flash": 0x04}
 M8_SAVE_ALL = b"\x1f\x1f\x00\x00"        # CFG-CFG saveMask: ioPort msgConf infMsg navConf rxmConf senConf ...
 MIN_RATE_HZ, MAX_RATE_HZ = 0.1, 25.0     # F9P raw output tops out at 25 Hz (20 Hz with RTK)
+UART_BAUDS = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+# What raw output costs on a UART (for the warning, not a limit): RXM-RAWX is 16 + 32 bytes per
+# signal (+8 framing); a multi-constellation dual-frequency F9P tracks about 60 signals, a
+# single-frequency M8T about 25; SFRBX, NAV and NMEA add about 1500 B/s between them.
+RAWX_SIGNALS_TYPICAL = {"f9": 60, "m8": 25}
+OTHER_OUTPUT_BPS = 1500.0
 
 
 class ReceiverConfigError(Exception):
@@ -84,6 +90,21 @@ def layers_mask(layers: str) -> int:
     return mask
 
 
+def raw_output_bytes_per_s(generation: str, rate_hz: float) -> float:
+    """Rough UBX output of a receiver configured this way (bytes/s)."""
+    return rate_hz * (16 + 32 * RAWX_SIGNALS_TYPICAL[generation] + 8) + OTHER_OUTPUT_BPS
+
+
+def bandwidth_warning(generation: str, rate_hz: float, baud: int) -> str | None:
+    """A warning when the raw output would not fit a UART at ``baud`` (8N1: 10 bits a byte)."""
+    need, have = raw_output_bytes_per_s(generation, rate_hz), baud / 10.0
+    if need <= 0.8 * have:
+        return None
+    return (f"at {rate_hz:g} Hz the raw output is about {need:.0f} B/s, more than 80 % of what "
+            f"{baud} baud carries ({have:.0f} B/s): frames will be lost; raise the baud rate "
+            "(--receiver-baud, then --baud) or lower --rate-hz")
+
+
 def _measurement_period_ms(rate_hz: float) -> int:
     if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
         raise ReceiverConfigError(f"--rate-hz must be within {MIN_RATE_HZ:g}-{MAX_RATE_HZ:g} Hz, got {rate_hz:g}")
@@ -91,8 +112,10 @@ def _measurement_period_ms(rate_hz: float) -> int:
 
 
 def f9_items(*, receiver_port: str = "uart1", rate_hz: float = 5.0, moving_base: bool = False,
-             systems: str | None = None, layers: str = "ram,bbr,flash") -> list[ConfigItem]:
-    """The CFG-VALSET frames (one key each) for an F9-generation receiver."""
+             systems: str | None = None, layers: str = "ram,bbr,flash",
+             receiver_baud: int | None = None) -> list[ConfigItem]:
+    """The CFG-VALSET frames (one key each) for an F9-generation receiver; a new baud rate goes
+    last (the receiver switches at once, its ACK may be lost on the way)."""
     ubx = _pyubx2()
     if receiver_port not in F9_PORTS:
         raise ReceiverConfigError(f"--receiver-port: one of {', '.join(F9_PORTS)}; got {receiver_port!r}")
@@ -112,6 +135,12 @@ def f9_items(*, receiver_port: str = "uart1", rate_hz: float = 5.0, moving_base:
         if bad or not wanted:
             raise ReceiverConfigError(f"--systems: comma-separated {','.join(F9_SYSTEMS)}; got {systems!r}")
         keys += [(f"CFG_SIGNAL_{name}_ENA", int(letter in wanted)) for letter, name in F9_SYSTEMS.items()]
+    if receiver_baud:
+        if receiver_port not in ("uart1", "uart2"):
+            raise ReceiverConfigError("--receiver-baud is for --receiver-port uart1 or uart2")
+        if receiver_baud not in UART_BAUDS:
+            raise ReceiverConfigError(f"--receiver-baud: one of {', '.join(map(str, UART_BAUDS))}")
+        keys.append((f"CFG_{msg_port}_BAUDRATE", int(receiver_baud)))
     mask = layers_mask(layers)
     return [ConfigItem(k, v, ubx.UBXMessage.config_set(mask, 0, [(k, v)]).serialize()) for k, v in keys]
 
@@ -313,11 +342,18 @@ class AckScanner:
         return out
 
 
-def send_items(transport, items: list[ConfigItem], *, timeout_s: float = 1.5,
+def send_items(transport, items: list[ConfigItem], *, timeout_s: float = 1.5, drain_s: float = 0.3,
                clock=time.monotonic) -> tuple[list[ItemResult], AckScanner]:
-    """Send each frame and wait for its ACK/NAK; stop at the first silence (the rest: 'not sent')."""
+    """Send each frame and wait for its ACK/NAK; stop at the first silence (the rest: 'not sent').
+
+    First ``drain_s`` of input is read and its answers dropped: an ACK still buffered in the port
+    (the autopilot's GPS driver configures the receiver too, with the same CFG-VALSET) must not
+    pass for the answer to our first frame."""
     scanner = AckScanner()
     results: list[ItemResult] = []
+    t_end = clock() + drain_s
+    while clock() < t_end:
+        scanner.feed(transport.read_some(t_end - clock()))
     for k, item in enumerate(items):
         t0 = clock()
         transport.write(item.frame)
@@ -328,7 +364,7 @@ def send_items(transport, items: list[ConfigItem], *, timeout_s: float = 1.5,
                     status = "ack" if acked else "nak"
                     break
         results.append(ItemResult(item, status, round(clock() - t0, 3)))
-        if status == "timeout":
+        if status == "timeout" and k < len(items) - 1:
             results += [ItemResult(it, "not sent") for it in items[k + 1:]]
             break
     return results, scanner
@@ -349,7 +385,9 @@ def silence_hint(scanner: AckScanner, address: str, baud: int) -> str:
 def build_items(args) -> list[ConfigItem]:
     if args.generation == "f9":
         return f9_items(receiver_port=args.receiver_port, rate_hz=args.rate_hz, moving_base=args.moving_base,
-                        systems=args.systems, layers=args.layers)
+                        systems=args.systems, layers=args.layers, receiver_baud=args.receiver_baud)
+    if args.receiver_baud:
+        raise ReceiverConfigError("--receiver-baud is for --generation f9 (M8: CFG-PRT, use u-center)")
     if args.systems:
         raise ReceiverConfigError("--systems is for --generation f9 (M8: CFG-GNSS, use u-center)")
     if args.receiver_port != "uart1":
@@ -365,6 +403,10 @@ def run_configure_cli(args) -> int:
     except ReceiverConfigError as exc:
         print(f"companion gnss configure: error: {exc}", file=sys.stderr)
         return 2
+    if not args.mavlink and args.address and not args.address.startswith(("tcp://", "udp://")):
+        warn = bandwidth_warning(args.generation, args.rate_hz, args.receiver_baud or args.baud)
+        if warn:
+            print(f"companion gnss configure: warning: {warn}", file=sys.stderr)
     if args.dry_run:
         for it in items:
             print(f"{it.key} = {it.value}: {it.frame.hex(' ')}")
@@ -394,6 +436,11 @@ def run_configure_cli(args) -> int:
         print(f"{r.item.key} = {r.item.value}: {answer}")
     naks = [r for r in results if r.status == "nak"]
     silent = [r for r in results if r.status == "timeout"]
+    if silent and len(results) > 1 and silent[0] is results[-1] and results[-1].item.key.endswith("_BAUDRATE"):
+        # the receiver switched before its ACK reached us: expected, not an error
+        print(f"companion gnss configure: the receiver now talks at {args.receiver_baud} baud (no ACK at the "
+              f"old rate is normal): use --baud {args.receiver_baud} from now on")
+        silent = []
     if silent:
         print(f"companion gnss configure: error: {silent[0].item.key}: no ACK/NAK; "
               + silence_hint(scanner, where, args.baud if not args.mavlink else args.tunnel_baud), file=sys.stderr)
@@ -438,6 +485,9 @@ def register(gnss_subparsers) -> None:
     p.add_argument("--layers", default="ram,bbr,flash",
                    help="where the settings go: ram, bbr, flash, comma-separated (default all three; "
                         "m8: bbr/flash = CFG-CFG save)")
+    p.add_argument("--receiver-baud", type=int,
+                   help="f9: also set the receiver's UART baud rate (sent last; then use --baud with it). "
+                        "Raw output at 5 Hz needs more than the default 38400")
     p.add_argument("--timeout-s", type=float, default=1.5, help="wait this long for each ACK/NAK")
     p.add_argument("--dry-run", action="store_true", help="print the frames (hex) instead of sending them")
     p.set_defaults(func=run_configure_cli)
