@@ -5,9 +5,10 @@
   GPS port (a receiver on the autopilot's GPS port, through the tunnel), in log order -- for
   RTKLIB's ``convbin`` / ``rnx2rtkp`` or u-center.
 * ``--rtcm PATH``: the correction bytes as received (NTRIP, radio, MQTT, file).
-* ``--kml PATH`` / ``--gpx PATH`` / ``--csv PATH``: the logged solutions (IMU position) as Google
-  Earth track, GPX track or a table with time, position, sigmas, status and whether it was
-  injected.  ``--injected-only`` keeps the solutions that reached the autopilot.
+* ``--kml PATH`` / ``--gpx PATH`` / ``--csv PATH`` / ``--pos PATH``: the logged solutions (IMU
+  position) as Google Earth track, GPX track, a table with time, position, sigmas, status and
+  whether it was injected, or RTKLIB's solution file (rtkplot, pos2kml; Q 5, the NED sigmas).
+  ``--injected-only`` keeps the solutions that reached the autopilot.
 
 No replay is needed: the solutions are the ones the service computed and logged.
 """
@@ -35,7 +36,7 @@ def _serial_control_parser():
     return m, parser
 
 
-def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=None,
+def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=None, pos=None,
                      injected_only: bool = False, leap_seconds: int | None = None,
                      device: str = "auto") -> dict:
     """Write the requested outputs; returns counts of what went into each.
@@ -83,7 +84,7 @@ def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=N
                         f_ubx.write(data)
                         counts["ubx_bytes"] += len(data)
                         counts["serial_control_replies"] += 1
-            elif rec.kind == "solution" and (kml or gpx or csv_path):
+            elif rec.kind == "solution" and (kml or gpx or csv_path or pos):
                 try:
                     sol = decode_solution(rec.payload)
                 except Exception:
@@ -113,6 +114,11 @@ def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=N
         write_gpx(gpx, points, name, leap_seconds=leap_seconds)
     if csv_path:
         _write_csv(csv_path, rows, leap_seconds)
+    if pos:
+        from .gnss.pos_format import pos_records_from_nav_solutions, write_pos
+        write_pos(pos, pos_records_from_nav_solutions(sols), program="companion export (logged solutions)",
+                  inputs=[str(log)], options={"pos": "IMU (the fused solution, not the antenna)",
+                                              "solutions": "injected only" if injected_only else "all but init"})
     return counts
 
 
@@ -132,12 +138,13 @@ def _write_csv(path, rows, leap_seconds: int | None) -> None:
 
 
 def run_export_cli(args) -> int:
-    if not (args.ubx or args.rtcm or args.kml or args.gpx or args.csv):
-        print("companion export: nothing to do: give --ubx, --rtcm, --kml, --gpx and/or --csv", file=sys.stderr)
+    if not (args.ubx or args.rtcm or args.kml or args.gpx or args.csv or args.pos):
+        print("companion export: nothing to do: give --ubx, --rtcm, --kml, --gpx, --csv and/or --pos",
+              file=sys.stderr)
         return 2
     try:
         counts = export_field_log(args.log, ubx=args.ubx, rtcm=args.rtcm, kml=args.kml, gpx=args.gpx,
-                                  csv_path=args.csv, injected_only=args.injected_only,
+                                  csv_path=args.csv, pos=args.pos, injected_only=args.injected_only,
                                   leap_seconds=args.leap_seconds, device=args.device)
     except (OSError, ValueError) as exc:
         print(f"companion export: error: {exc}", file=sys.stderr)
@@ -155,14 +162,15 @@ def run_export_cli(args) -> int:
         parts.append(f"{counts['ubx_bytes']} UBX bytes{via} -> {args.ubx}{other}")
     if args.rtcm:
         parts.append(f"{counts['rtcm_bytes']} RTCM bytes -> {args.rtcm}")
-    if args.kml or args.gpx or args.csv:
-        parts.append(f"{counts['solutions']} solutions -> " + ", ".join(p for p in (args.kml, args.gpx, args.csv) if p))
+    if args.kml or args.gpx or args.csv or args.pos:
+        parts.append(f"{counts['solutions']} solutions -> "
+                     + ", ".join(p for p in (args.kml, args.gpx, args.csv, args.pos) if p))
     print("companion export: " + "; ".join(parts))
     return 0
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("export", help="a field log's raw UBX/RTCM streams and its solutions (KML, GPX, CSV)")
+    p = subparsers.add_parser("export", help="a field log's raw UBX/RTCM streams and its solutions (KML, GPX, CSV, .pos)")
     p.add_argument("log", help="field log file, rotated-log directory or stem")
     p.add_argument("--ubx", help="write the receiver's UBX bytes here (for convbin, u-center)")
     p.add_argument("--device", choices=["auto", *SERIAL_CONTROL_GPS_DEVICES], default="auto",
@@ -172,6 +180,7 @@ def register(subparsers) -> None:
     p.add_argument("--kml", help="write the solutions as a KML track")
     p.add_argument("--gpx", help="write the solutions as a GPX track")
     p.add_argument("--csv", help="write the solutions as CSV")
+    p.add_argument("--pos", help="write the solutions in RTKLIB's .pos format (rtkplot, pos2kml)")
     p.add_argument("--injected-only", action="store_true", help="only the solutions sent to the autopilot")
     p.add_argument("--leap-seconds", type=int, default=None,
                    help="GPS - UTC for the UTC times (default: the leap-second table, 18 since 2017)")

@@ -103,3 +103,58 @@ def test_only_the_gps_ports_replies_make_the_ubx_stream(tmp_path, capsys):
     assert "of GPS1" in text and "replies of other devices skipped" in text
     assert main(["export", str(tmp_path / "log"), "--ubx", str(out), "--device", "GPS2"]) == 0
     assert out.read_bytes() == b""                               # nothing from GPS2 in this log
+
+
+def test_logged_solutions_as_rtklib_pos(tmp_path):
+    """--pos: the logged solutions in RTKLIB's format, the NED sigmas in sdn/sde/sdu; pos2kml reads it."""
+    import math
+
+    import numpy as np
+
+    from companion.messages import NavSolution
+    from companion.nav.earth import ecef_to_geodetic, geodetic_to_ecef
+    from companion.pipeline import encode_solution
+    rng = np.random.default_rng(3)
+    sols = []
+    for k in range(30):
+        r = geodetic_to_ecef(np.radians(34.4 + 2e-6 * k), np.radians(132.5 - 1e-6 * k), 60.0 + 0.05 * k)
+        sig = rng.uniform(0.05, 2.0, 3)
+        sols.append(NavSolution(1.379e9 + 0.2 * k, r, np.zeros(3), np.eye(3), sig, np.full(3, 0.05),
+                                np.full(3, 0.01), "init" if k == 0 else "nav", reset_counter=1,
+                                extras={"inject": True, "mode": "tight", "imu_count": k, "t_boot_us": k}))
+    w = FieldLogWriter(tmp_path / "log", background_flush=False)
+    for k, s in enumerate(sols):
+        w.write("solution", encode_solution(s), 1000 * k, 1000 * k)
+    w.close()
+    pos = tmp_path / "fused.pos"
+    assert main(["export", str(tmp_path / "log"), "--pos", str(pos)]) == 0
+    rows = [ln.split() for ln in pos.read_text().splitlines() if not ln.startswith("%")]
+    assert len(rows) == len(sols) - 1                                   # the 'init' one left out
+    for row, s in zip(rows, sols[1:]):
+        lat, lon, h = ecef_to_geodetic(s.r_e)
+        assert float(row[2]) == pytest.approx(math.degrees(lat), abs=1e-9)
+        assert float(row[3]) == pytest.approx(math.degrees(lon), abs=1e-9)
+        assert float(row[4]) == pytest.approx(h, abs=1e-4) and row[5] == "5"
+        n, e, d = s.sigma_r_n_m
+        assert [float(x) for x in row[7:10]] == pytest.approx([n, e, d], abs=1e-4)       # sdn sde sdu
+        assert max(abs(float(x)) for x in row[10:13]) <= 1e-3                            # no correlations
+    if shutil.which("pos2kml") is None:
+        return
+    kml = tmp_path / "fused.kml"
+    subprocess.run(["pos2kml", "-a", "-o", str(kml), str(pos)], check=True, capture_output=True, timeout=30)
+    assert kml.read_text().count("<Point>") == len(rows)
+
+
+def test_fix_state_gives_the_rtklib_quality():
+    import numpy as np
+
+    from companion.gnss.pos_format import pos_records_from_nav_solutions
+    from companion.messages import NavSolution
+    from companion.nav.earth import geodetic_to_ecef
+    r = geodetic_to_ecef(np.radians(-35.36), np.radians(149.16), 584.0)
+    recs = pos_records_from_nav_solutions(
+        [NavSolution(1.0e9 + k, r, np.zeros(3), np.eye(3), np.array([0.01, 0.02, 0.03]), np.zeros(3), np.zeros(3),
+                     "nav", fix_state=fs) for k, fs in enumerate(["fixed", "float", "none"])])
+    assert [x.quality for x in recs] == [1, 2, 5]
+    # the covariance is the NED one turned into ECEF: its trace is kept
+    assert np.trace(recs[0].cov_e) == pytest.approx(0.01 ** 2 + 0.02 ** 2 + 0.03 ** 2, rel=1e-12)
