@@ -20,7 +20,7 @@ import os
 import sys
 from pathlib import Path
 
-from .io.track_export import TrackPoint, gps_to_utc_iso, write_gpx, write_kml
+from .io.track_export import gps_to_utc_iso, write_solution_files
 
 # numpy, pymavlink and the field log are imported where they are used: `companion --help` and
 # `companion config check` must not pay for them (tests/test_packaging.py)
@@ -106,19 +106,13 @@ def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=N
     for s in sols:
         lat, lon, h = ecef_to_geodetic(s.r_e)
         rows.append((s, math.degrees(lat), math.degrees(lon), h))
-    points = [TrackPoint(s.t_gps, lat, lon, h) for s, lat, lon, h in rows]
-    name = f"companion: {Path(str(log)).name}"
-    if kml:
-        write_kml(kml, points, name, leap_seconds=leap_seconds)
-    if gpx:
-        write_gpx(gpx, points, name, leap_seconds=leap_seconds)
     if csv_path:
         _write_csv(csv_path, rows, leap_seconds)
-    if pos:
-        from .gnss.pos_format import pos_records_from_nav_solutions, write_pos
-        write_pos(pos, pos_records_from_nav_solutions(sols), program="companion export (logged solutions)",
-                  inputs=[str(log)], options={"pos": "IMU (the fused solution, not the antenna)",
-                                              "solutions": "injected only" if injected_only else "all but init"})
+    if kml or gpx or pos:
+        write_solution_files(sols, name=f"companion export: {Path(str(log)).name}", pos=pos, kml=kml, gpx=gpx,
+                             inputs=[str(log)], leap_seconds=leap_seconds,
+                             options={"pos": "IMU (the fused solution, not the antenna)",
+                                      "solutions": "injected only" if injected_only else "all but init"})
     return counts
 
 

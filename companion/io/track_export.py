@@ -137,5 +137,23 @@ def write_gpx(path, points, name: str, *, leap_seconds: int | None = None) -> No
     gpx_document(list(points), name, leap_seconds=leap_seconds).write(path, encoding="utf-8", xml_declaration=True)
 
 
-__all__ = ["TrackPoint", "gps_minus_utc_s", "gps_to_utc_iso", "points_from_ecef", "points_from_pos_records",
+def write_solution_files(solutions, *, name: str, pos=None, kml=None, gpx=None, inputs=(),
+                         options: dict | None = None, leap_seconds: int | None = None) -> int:
+    """Fused solutions (:class:`companion.messages.NavSolution`) to any of RTKLIB .pos, KML and
+    GPX, the same epochs in each ('init' and non-finite ones left out; Q from the RTK fix state,
+    :func:`companion.gnss.pos_format.pos_records_from_nav_solutions`).  Returns the epoch count."""
+    from ..gnss.pos_format import pos_records_from_nav_solutions, write_pos
+    records = pos_records_from_nav_solutions(solutions)
+    if pos:
+        write_pos(pos, records, program=name, inputs=inputs, options=options)
+    if kml or gpx:
+        points = points_from_pos_records(records)
+        if kml:
+            write_kml(kml, points, name, leap_seconds=leap_seconds)
+        if gpx:
+            write_gpx(gpx, points, name, leap_seconds=leap_seconds)
+    return len(records)
+
+
+__all__ = ["TrackPoint", "write_solution_files", "gps_minus_utc_s", "gps_to_utc_iso", "points_from_ecef", "points_from_pos_records",
            "kml_document", "gpx_document", "write_kml", "write_gpx"]
