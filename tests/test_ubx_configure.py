@@ -222,3 +222,11 @@ def test_raw_output_that_does_not_fit_the_uart_is_warned_about(capsys):
     assert "warning: at 5 Hz" in capsys.readouterr().err
     assert main(["gnss", "configure", "/dev/ttyNOTHERE", "--dry-run", "--receiver-baud", "460800"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_nothing_at_all_back_says_so(capsys):
+    with socket.socket() as srv:               # accepts, reads, never writes: no receiver behind it
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(1)
+        rc = main(["gnss", "configure", f"tcp://127.0.0.1:{srv.getsockname()[1]}", "--timeout-s", "0.3"])
+    assert rc == 1 and "nothing at all came back" in capsys.readouterr().err
