@@ -164,7 +164,8 @@ def run_export_cli(args) -> int:
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("export", help="a field log's raw UBX/RTCM streams and its solutions (KML, GPX, CSV, .pos)")
+    p = subparsers.add_parser("export",
+                              help="a field log's raw UBX/RTCM streams and its solutions (KML, GPX, CSV, .pos)")
     p.add_argument("log", help="field log file, rotated-log directory or stem")
     p.add_argument("--ubx", help="write the receiver's UBX bytes here (for convbin, u-center)")
     p.add_argument("--device", choices=["auto", *SERIAL_CONTROL_GPS_DEVICES], default="auto",

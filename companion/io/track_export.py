@@ -155,5 +155,5 @@ def write_solution_files(solutions, *, name: str, pos=None, kml=None, gpx=None, 
     return len(records)
 
 
-__all__ = ["TrackPoint", "write_solution_files", "gps_minus_utc_s", "gps_to_utc_iso", "points_from_ecef", "points_from_pos_records",
-           "kml_document", "gpx_document", "write_kml", "write_gpx"]
+__all__ = ["TrackPoint", "write_solution_files", "gps_minus_utc_s", "gps_to_utc_iso", "points_from_ecef",
+           "points_from_pos_records", "kml_document", "gpx_document", "write_kml", "write_gpx"]
