@@ -26,8 +26,13 @@ def _valset_keys(msg) -> dict:
 class FakeReceiver:
     """Answers what it reads; ``reject(msg)`` True -> ACK-NAK; ``silent`` -> no answer at all."""
 
-    def __init__(self, proto: str = "tcp", reject=lambda msg: False, silent: bool = False):
+    def __init__(self, proto: str = "tcp", reject=lambda msg: False, silent=False, output: list[bytes] = (),
+                 output_period_s: float = 0.1):
+        """``output``: frames sent in turn every ``output_period_s`` once a client is connected
+        (tcp), as a receiver streams its messages besides the answers."""
         self.reject, self.silent, self.proto = reject, silent, proto
+        self.output, self.output_period_s = list(output), output_period_s
+        self._send_lock = threading.Lock()
         self.received: list = []                     # parsed pyubx2 messages, in order
         kind = socket.SOCK_STREAM if proto == "tcp" else socket.SOCK_DGRAM
         self.sock = socket.socket(socket.AF_INET, kind)
@@ -47,10 +52,13 @@ class FakeReceiver:
     def _serve(self) -> None:
         if self.proto == "tcp":
             conn, _ = self.sock.accept()
+            if self.output:
+                threading.Thread(target=self._stream, args=(conn,), daemon=True).start()
             with conn, conn.makefile("rb") as stream:
                 for _raw, msg in UBXReader(stream, msgmode=SET):
                     self.received.append(msg)
-                    conn.sendall(self._answer(msg))
+                    with self._send_lock:
+                        conn.sendall(self._answer(msg))
         else:
             while True:
                 try:
@@ -60,6 +68,18 @@ class FakeReceiver:
                 msg = UBXReader.parse(data, msgmode=SET)
                 self.received.append(msg)
                 self.sock.sendto(self._answer(msg), peer)
+
+    def _stream(self, conn) -> None:
+        import time
+        k = 0
+        while True:
+            time.sleep(self.output_period_s)
+            try:
+                with self._send_lock:
+                    conn.sendall(self.output[k % len(self.output)])
+            except OSError:
+                return
+            k += 1
 
     def close(self) -> None:
         self.sock.close()
@@ -230,3 +250,27 @@ def test_nothing_at_all_back_says_so(capsys):
         srv.listen(1)
         rc = main(["gnss", "configure", f"tcp://127.0.0.1:{srv.getsockname()[1]}", "--timeout-s", "0.3"])
     assert rc == 1 and "nothing at all came back" in capsys.readouterr().err
+
+
+def _file_frames(identity: str, n: int) -> list[bytes]:
+    from tests._data import data_path
+    with open(data_path("qzsl6tool-hiroshima-rtcm3-ubx/20230919-114418.ubx"), "rb") as fh:
+        out = [raw for raw, msg in UBXReader(fh, protfilter=pyubx2.UBX_PROTOCOL, quitonerror=pyubx2.ERR_IGNORE)
+               if msg is not None and msg.identity == identity]
+    return out[:n]
+
+
+@pytest.mark.real_data
+def test_verify_counts_the_raw_output_that_follows(receiver, capsys):
+    """--verify-s: after the ACKs, the receiver's RXM-RAWX (here every 0.1 s, with an SFRBX
+    between two) are counted; a receiver that keeps silent about raw data fails the run."""
+    raw, sfrbx = _file_frames("RXM-RAWX", 2), _file_frames("RXM-SFRBX", 2)
+    rx = receiver(output=[raw[0], sfrbx[0], raw[1], sfrbx[1]], output_period_s=0.05)
+    rc = main(["gnss", "configure", rx.address, "--rate-hz", "10", "--verify-s", "1.0"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    n_raw = int(out.split("RXM-RAWX ")[1].split()[0])
+    assert 5 <= n_raw <= 12 and "RXM-SFRBX" in out          # 10 Hz for 1 s, give or take the thread's timing
+    rx2 = receiver(output=[UBXMessage("NAV", "NAV-PVT", pyubx2.GET, iTOW=1, fixType=3).serialize()])
+    assert main(["gnss", "configure", rx2.address, "--verify-s", "0.5"]) == 1
+    assert "no raw observations although acknowledged" in capsys.readouterr().err

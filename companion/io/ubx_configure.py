@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import socket
 import time
+from collections import Counter
 from dataclasses import dataclass
 
 from ..extras import require
@@ -311,6 +312,7 @@ class AckScanner:
         self._buf = bytearray()
         self.bytes_in = 0
         self.frames = 0
+        self.frames_by_id: Counter = Counter()      # (class, id) -> checked frames
 
     def feed(self, data: bytes) -> list[tuple[bool, int, int]]:
         self.bytes_in += len(data)
@@ -337,6 +339,7 @@ class AckScanner:
                 continue
             del buf[:8 + n]
             self.frames += 1
+            self.frames_by_id[(body[0], body[1])] += 1
             if body[0] == ACK_CLASS and body[1] in (ACK_ACK, ACK_NAK) and n == 2:
                 out.append((body[1] == ACK_ACK, body[4], body[5]))
         return out
@@ -368,6 +371,30 @@ def send_items(transport, items: list[ConfigItem], *, timeout_s: float = 1.5, dr
             results += [ItemResult(it, "not sent") for it in items[k + 1:]]
             break
     return results, scanner
+
+
+RXM_RAWX_ID, RXM_SFRBX_ID = (0x02, 0x15), (0x02, 0x13)
+
+
+def watch_output(transport, scanner: AckScanner, seconds: float, clock=time.monotonic) -> Counter:
+    """The UBX frames (by class and id) the receiver sends in the next ``seconds``."""
+    before = Counter(scanner.frames_by_id)
+    t_end = clock() + seconds
+    while clock() < t_end:
+        scanner.feed(transport.read_some(t_end - clock()))
+    return scanner.frames_by_id - before
+
+
+def verify_report(seen: Counter, seconds: float, rate_hz: float) -> tuple[bool, str]:
+    """(raw output flowing, text) from what :func:`watch_output` saw."""
+    n_raw, n_sfrbx = seen[RXM_RAWX_ID], seen[RXM_SFRBX_ID]
+    text = (f"in {seconds:g} s: RXM-RAWX {n_raw} ({n_raw / seconds:.1f} Hz, configured {rate_hz:g} Hz), "
+            f"RXM-SFRBX {n_sfrbx}, other UBX {sum(seen.values()) - n_raw - n_sfrbx}")
+    if n_raw == 0:
+        return False, text + ": no raw observations although acknowledged (another program re-configured it?)"
+    if n_raw / seconds < 0.5 * rate_hz:
+        text += ": fewer than configured (frames lost: baud rate too low for the output?)"
+    return True, text
 
 
 def silence_hint(scanner: AckScanner, address: str, baud: int) -> str:
@@ -426,8 +453,12 @@ def run_configure_cli(args) -> int:
     except ReceiverConfigError as exc:
         print(f"companion gnss configure: error: {exc}", file=sys.stderr)
         return 2
+    seen = None
     try:
         results, scanner = send_items(transport, items, timeout_s=args.timeout_s)
+        # after a baud-rate change the receiver no longer talks at the rate the port is open with
+        if args.verify_s > 0 and all(r.status == "ack" for r in results) and not args.receiver_baud:
+            seen = watch_output(transport, scanner, args.verify_s)
     finally:
         transport.close()
     for r in results:
@@ -453,6 +484,11 @@ def run_configure_cli(args) -> int:
               + hint, file=sys.stderr)
         return 1
     print(f"companion gnss configure: {len(results)} settings acknowledged by the receiver at {where}")
+    if seen is not None:
+        ok, text = verify_report(seen, args.verify_s, args.rate_hz)
+        print(f"companion gnss configure: {'' if ok else 'error: '}output {text}",
+              file=sys.stdout if ok else sys.stderr)
+        return 0 if ok else 1
     return 0
 
 
@@ -489,6 +525,8 @@ def register(gnss_subparsers) -> None:
                    help="f9: also set the receiver's UART baud rate (sent last; then use --baud with it). "
                         "Raw output at 5 Hz needs more than the default 38400")
     p.add_argument("--timeout-s", type=float, default=1.5, help="wait this long for each ACK/NAK")
+    p.add_argument("--verify-s", type=float, default=0.0,
+                   help="afterwards, listen this long and count RXM-RAWX / RXM-SFRBX (exit 1 if no RXM-RAWX)")
     p.add_argument("--dry-run", action="store_true", help="print the frames (hex) instead of sending them")
     p.set_defaults(func=run_configure_cli)
 
