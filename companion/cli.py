@@ -14,9 +14,11 @@ from .extras import MissingExtra
 
 
 def _add_gnss(sub) -> None:
-    p = sub.add_parser("gnss", help="post-process RINEX observations (SPP, DGPS or RTK), RTKLIB-style")
-    p.add_argument("--rover", required=True, help="rover RINEX observation file (2.x or 3.x)")
-    p.add_argument("--nav", required=True, action="append",
+    p = sub.add_parser("gnss", help="post-process RINEX observations (SPP, DGPS or RTK), RTKLIB-style; "
+                                    "'gnss configure': set a u-blox receiver up")
+    # --rover/--nav are checked in _run_gnss, not by argparse: 'companion gnss configure' has neither
+    p.add_argument("--rover", help="rover RINEX observation file (2.x or 3.x); required")
+    p.add_argument("--nav", action="append",
                    help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides); may be repeated")
     p.add_argument("--base", help="base station RINEX observation file (for --mode dgps and rtk)")
     p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header)")
@@ -32,7 +34,18 @@ def _add_gnss(sub) -> None:
     p.add_argument("--elevation-mask-deg", type=float, default=10.0)
     p.add_argument("--json", help="write statistics and per-epoch solutions as JSON here")
     p.add_argument("--pos", help="write per-epoch solutions in RTKLIB's .pos format here (rtkplot, pos2kml)")
-    p.set_defaults(func=lambda a: __import__("companion.gnss.postprocess", fromlist=["run"]).run(a))
+    p.add_argument("--kml", help="write the solutions as a Google Earth KML track (points coloured by quality)")
+    p.add_argument("--gpx", help="write the solutions as a GPX 1.1 track")
+    p.set_defaults(func=lambda a: _run_gnss(p, a))
+    from .io import ubx_configure
+    ubx_configure.register(p.add_subparsers(dest="gnss_command", metavar="{configure}"))
+
+
+def _run_gnss(parser, args) -> int:
+    missing = [o for o, v in (("--rover", args.rover), ("--nav", args.nav)) if not v]
+    if missing:
+        parser.error("the following arguments are required: " + ", ".join(missing))
+    return __import__("companion.gnss.postprocess", fromlist=["run"]).run(args)
 
 
 def build_parser() -> argparse.ArgumentParser:

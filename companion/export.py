@@ -1,13 +1,14 @@
 """``companion export LOG``: a field log's raw streams and its solutions in the formats other tools read.
 
 * ``--ubx PATH``: the receiver's byte stream as it arrived: ``ubx`` records (a receiver on the
-  companion's own serial port) and the payloads of the autopilot's SERIAL_CONTROL replies (a
-  receiver on the autopilot's GPS port, through the tunnel), in log order -- for RTKLIB's
-  ``convbin`` / ``rnx2rtkp`` or u-center.
+  companion's own serial port) and the payloads of the autopilot's SERIAL_CONTROL replies of one
+  GPS port (a receiver on the autopilot's GPS port, through the tunnel), in log order -- for
+  RTKLIB's ``convbin`` / ``rnx2rtkp`` or u-center.
 * ``--rtcm PATH``: the correction bytes as received (NTRIP, radio, MQTT, file).
-* ``--kml PATH`` / ``--gpx PATH`` / ``--csv PATH``: the logged solutions (IMU position) as Google
-  Earth track, GPX track or a table with time, position, sigmas, status and whether it was
-  injected.  ``--injected-only`` keeps the solutions that reached the autopilot.
+* ``--kml PATH`` / ``--gpx PATH`` / ``--csv PATH`` / ``--pos PATH``: the logged solutions (IMU
+  position) as Google Earth track, GPX track, a table with time, position, sigmas, status and
+  whether it was injected, or RTKLIB's solution file (rtkplot, pos2kml; Q 5, the NED sigmas).
+  ``--injected-only`` keeps the solutions that reached the autopilot.
 
 No replay is needed: the solutions are the ones the service computed and logged.
 """
@@ -17,20 +18,14 @@ import csv
 import math
 import os
 import sys
-import xml.etree.ElementTree as ET
 from pathlib import Path
+
+from .io.track_export import gps_to_utc_iso, write_solution_files
 
 # numpy, pymavlink and the field log are imported where they are used: `companion --help` and
 # `companion config check` must not pay for them (tests/test_packaging.py)
 SECONDS_PER_WEEK = 604800.0
-
-
-def gps_to_utc_iso(t_gps: float, leap_seconds: int) -> str:
-    """ISO 8601 UTC of a GPS time (``leap_seconds`` = GPS - UTC)."""
-    from datetime import timedelta
-    from .gnss.pos_format import GPS_EPOCH
-    t = GPS_EPOCH + timedelta(seconds=round(t_gps - leap_seconds, 3))
-    return t.strftime("%Y-%m-%dT%H:%M:%S.") + f"{t.microsecond // 1000:03d}Z"
+SERIAL_CONTROL_GPS_DEVICES = ("GPS1", "GPS2")
 
 
 def _serial_control_parser():
@@ -41,14 +36,22 @@ def _serial_control_parser():
     return m, parser
 
 
-def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=None,
-                     injected_only: bool = False, leap_seconds: int = 18) -> dict:
-    """Write the requested outputs; returns counts of what went into each."""
+def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=None, pos=None,
+                     injected_only: bool = False, leap_seconds: int | None = None,
+                     device: str = "auto") -> dict:
+    """Write the requested outputs; returns counts of what went into each.
+
+    ``device``: whose SERIAL_CONTROL replies are the receiver's bytes: 'GPS1', 'GPS2' or 'auto'
+    (the first GPS port that replies).  Replies of any other device (a ground station's shell
+    session on the same link) would corrupt the UBX stream: skipped and counted."""
     from .io.fieldlog import read_field_log
     from .nav.earth import ecef_to_geodetic
     from .pipeline import decode_solution
-    counts = {"records": 0, "ubx_bytes": 0, "serial_control_replies": 0, "rtcm_bytes": 0, "solutions": 0,
-              "solutions_skipped": 0}
+    counts = {"records": 0, "ubx_bytes": 0, "serial_control_replies": 0, "serial_control_other_devices": 0,
+              "serial_control_device": None, "rtcm_bytes": 0, "solutions": 0, "solutions_skipped": 0}
+    if device not in ("auto", *SERIAL_CONTROL_GPS_DEVICES):
+        raise ValueError(f"device: auto, GPS1 or GPS2; got {device!r}")
+    want_dev = None
     f_ubx = open(ubx, "wb") if ubx else None
     f_rtcm = open(rtcm, "wb") if rtcm else None
     m = parser = None
@@ -65,14 +68,23 @@ def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=N
             elif rec.kind == "mavlink" and f_ubx:
                 if parser is None:
                     m, parser = _serial_control_parser()
+                    gps_ids = {getattr(m, f"SERIAL_CONTROL_DEV_{d}"): d for d in SERIAL_CONTROL_GPS_DEVICES}
+                    if device != "auto":
+                        want_dev = getattr(m, f"SERIAL_CONTROL_DEV_{device}")
                 for msg in parser.parse_buffer(rec.payload) or ():
                     if msg.get_type() == "SERIAL_CONTROL" and msg.flags & m.SERIAL_CONTROL_FLAG_REPLY \
                             and msg.count:
+                        if want_dev is None and msg.device in gps_ids:
+                            want_dev = msg.device
+                        if msg.device != want_dev:
+                            counts["serial_control_other_devices"] += 1
+                            continue
+                        counts["serial_control_device"] = gps_ids[want_dev]
                         data = bytes(msg.data[:msg.count])
                         f_ubx.write(data)
                         counts["ubx_bytes"] += len(data)
                         counts["serial_control_replies"] += 1
-            elif rec.kind == "solution" and (kml or gpx or csv_path):
+            elif rec.kind == "solution" and (kml or gpx or csv_path or pos):
                 try:
                     sol = decode_solution(rec.payload)
                 except Exception:
@@ -94,42 +106,17 @@ def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=N
     for s in sols:
         lat, lon, h = ecef_to_geodetic(s.r_e)
         rows.append((s, math.degrees(lat), math.degrees(lon), h))
-    if kml:
-        _write_kml(kml, rows, str(log))
-    if gpx:
-        _write_gpx(gpx, rows, leap_seconds)
     if csv_path:
         _write_csv(csv_path, rows, leap_seconds)
+    if kml or gpx or pos:
+        write_solution_files(sols, name=f"companion export: {Path(str(log)).name}", pos=pos, kml=kml, gpx=gpx,
+                             inputs=[str(log)], leap_seconds=leap_seconds,
+                             options={"pos": "IMU (the fused solution, not the antenna)",
+                                      "solutions": "injected only" if injected_only else "all but init"})
     return counts
 
 
-def _write_kml(path, rows, name: str) -> None:
-    ns = "http://www.opengis.net/kml/2.2"
-    ET.register_namespace("", ns)
-    kml = ET.Element(f"{{{ns}}}kml")
-    doc = ET.SubElement(kml, f"{{{ns}}}Document")
-    ET.SubElement(doc, f"{{{ns}}}name").text = f"companion: {Path(name).name}"
-    pm = ET.SubElement(doc, f"{{{ns}}}Placemark")
-    ET.SubElement(pm, f"{{{ns}}}name").text = "fused track"
-    ls = ET.SubElement(pm, f"{{{ns}}}LineString")
-    ET.SubElement(ls, f"{{{ns}}}altitudeMode").text = "absolute"
-    ET.SubElement(ls, f"{{{ns}}}coordinates").text = " ".join(f"{lon:.9f},{lat:.9f},{h:.3f}" for _, lat, lon, h in rows)
-    ET.ElementTree(kml).write(path, encoding="utf-8", xml_declaration=True)
-
-
-def _write_gpx(path, rows, leap_seconds: int) -> None:
-    ns = "http://www.topografix.com/GPX/1/1"
-    ET.register_namespace("", ns)
-    gpx = ET.Element(f"{{{ns}}}gpx", {"version": "1.1", "creator": "companion"})
-    seg = ET.SubElement(ET.SubElement(gpx, f"{{{ns}}}trk"), f"{{{ns}}}trkseg")
-    for s, lat, lon, h in rows:
-        pt = ET.SubElement(seg, f"{{{ns}}}trkpt", {"lat": f"{lat:.9f}", "lon": f"{lon:.9f}"})
-        ET.SubElement(pt, f"{{{ns}}}ele").text = f"{h:.3f}"          # ellipsoidal: GPX does not say which
-        ET.SubElement(pt, f"{{{ns}}}time").text = gps_to_utc_iso(s.t_gps, leap_seconds)
-    ET.ElementTree(gpx).write(path, encoding="utf-8", xml_declaration=True)
-
-
-def _write_csv(path, rows, leap_seconds: int) -> None:
+def _write_csv(path, rows, leap_seconds: int | None) -> None:
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["t_gps_s", "gps_week", "tow_s", "utc", "lat_deg", "lon_deg", "h_ellipsoid_m", "sigma_n_m",
@@ -145,13 +132,14 @@ def _write_csv(path, rows, leap_seconds: int) -> None:
 
 
 def run_export_cli(args) -> int:
-    if not (args.ubx or args.rtcm or args.kml or args.gpx or args.csv):
-        print("companion export: nothing to do: give --ubx, --rtcm, --kml, --gpx and/or --csv", file=sys.stderr)
+    if not (args.ubx or args.rtcm or args.kml or args.gpx or args.csv or args.pos):
+        print("companion export: nothing to do: give --ubx, --rtcm, --kml, --gpx, --csv and/or --pos",
+              file=sys.stderr)
         return 2
     try:
         counts = export_field_log(args.log, ubx=args.ubx, rtcm=args.rtcm, kml=args.kml, gpx=args.gpx,
-                                  csv_path=args.csv, injected_only=args.injected_only,
-                                  leap_seconds=args.leap_seconds)
+                                  csv_path=args.csv, pos=args.pos, injected_only=args.injected_only,
+                                  leap_seconds=args.leap_seconds, device=args.device)
     except (OSError, ValueError) as exc:
         print(f"companion export: error: {exc}", file=sys.stderr)
         return 2
@@ -161,24 +149,34 @@ def run_export_cli(args) -> int:
         return 2
     parts = [f"{counts['records']} records"]
     if args.ubx:
-        parts.append(f"{counts['ubx_bytes']} UBX bytes ({counts['serial_control_replies']} SERIAL_CONTROL replies) "
-                     f"-> {args.ubx}")
+        via = (f" ({counts['serial_control_replies']} SERIAL_CONTROL replies of {counts['serial_control_device']})"
+               if counts["serial_control_replies"] else "")
+        other = (f", {counts['serial_control_other_devices']} replies of other devices skipped"
+                 if counts["serial_control_other_devices"] else "")
+        parts.append(f"{counts['ubx_bytes']} UBX bytes{via} -> {args.ubx}{other}")
     if args.rtcm:
         parts.append(f"{counts['rtcm_bytes']} RTCM bytes -> {args.rtcm}")
-    if args.kml or args.gpx or args.csv:
-        parts.append(f"{counts['solutions']} solutions -> " + ", ".join(p for p in (args.kml, args.gpx, args.csv) if p))
+    if args.kml or args.gpx or args.csv or args.pos:
+        parts.append(f"{counts['solutions']} solutions -> "
+                     + ", ".join(p for p in (args.kml, args.gpx, args.csv, args.pos) if p))
     print("companion export: " + "; ".join(parts))
     return 0
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("export", help="a field log's raw UBX/RTCM streams and its solutions (KML, GPX, CSV)")
+    p = subparsers.add_parser("export",
+                              help="a field log's raw UBX/RTCM streams and its solutions (KML, GPX, CSV, .pos)")
     p.add_argument("log", help="field log file, rotated-log directory or stem")
     p.add_argument("--ubx", help="write the receiver's UBX bytes here (for convbin, u-center)")
+    p.add_argument("--device", choices=["auto", *SERIAL_CONTROL_GPS_DEVICES], default="auto",
+                   help="--ubx through the autopilot: whose SERIAL_CONTROL replies (default: the first GPS port "
+                        "that replies; other devices' replies, e.g. a ground station's shell, are skipped)")
     p.add_argument("--rtcm", help="write the correction bytes here (RTCM3)")
     p.add_argument("--kml", help="write the solutions as a KML track")
     p.add_argument("--gpx", help="write the solutions as a GPX track")
     p.add_argument("--csv", help="write the solutions as CSV")
+    p.add_argument("--pos", help="write the solutions in RTKLIB's .pos format (rtkplot, pos2kml)")
     p.add_argument("--injected-only", action="store_true", help="only the solutions sent to the autopilot")
-    p.add_argument("--leap-seconds", type=int, default=18, help="GPS - UTC for the UTC times (default 18)")
+    p.add_argument("--leap-seconds", type=int, default=None,
+                   help="GPS - UTC for the UTC times (default: the leap-second table, 18 since 2017)")
     p.set_defaults(func=lambda a: run_export_cli(a))

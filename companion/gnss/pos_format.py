@@ -95,9 +95,32 @@ def format_pos(records, *, program: str, inputs=(), options: dict | None = None,
     return "\n".join(lines) + "\n"
 
 
+FIX_STATE_Q = {"fixed": Q_FIX, "float": Q_FLOAT}
+
+
+def pos_records_from_nav_solutions(solutions) -> list[PosRecord]:
+    """Fused solutions (:class:`companion.messages.NavSolution`, the IMU's position) as records:
+    the covariance from the north/east/down sigmas (the filter's marginals; their correlations
+    are not in a solution), Q 1/2 from the carrier-phase fix state, 5 otherwise (an INS solution
+    has no RTKLIB class of its own), ns 0 (a solution does not carry it).  'init' solutions and
+    non-finite positions are left out."""
+    out = []
+    for s in solutions:
+        r = np.asarray(s.r_e, dtype=float)
+        sig = np.asarray(s.sigma_r_n_m, dtype=float)
+        if s.status == "init" or not (np.all(np.isfinite(r)) and np.all(np.isfinite(sig))):
+            continue
+        lat, lon, _ = ecef_to_geodetic(r)
+        C = C_n_e(lat, lon)
+        out.append(PosRecord(float(s.t_gps), r, C @ np.diag(sig ** 2) @ C.T,
+                             FIX_STATE_Q.get(getattr(s, "fix_state", "none"), Q_SINGLE), 0))
+    return out
+
+
 def write_pos(path, records, **kw) -> None:
     with open(path, "w") as fh:
         fh.write(format_pos(records, **kw))
 
 
-__all__ = ["PosRecord", "format_pos", "write_pos", "gpst_calendar", "Q_FIX", "Q_FLOAT", "Q_DGPS", "Q_SINGLE"]
+__all__ = ["PosRecord", "format_pos", "write_pos", "gpst_calendar", "pos_records_from_nav_solutions", "Q_FIX",
+           "Q_FLOAT", "Q_DGPS", "Q_SINGLE"]

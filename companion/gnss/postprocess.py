@@ -3,7 +3,7 @@
 Solutions are at the rover's marker and the base antenna is its marker plus the header's
 ``ANTENNA: DELTA H/E/N``, as RTKLIB applies them; ``--pos`` writes RTKLIB's solution format
 (:mod:`companion.gnss.pos_format`: Q 5 single, 4 DGPS, 1 fixed / 2 float RTK) that rtkplot and
-pos2kml read.  ``--mode rtk`` is :mod:`companion.gnss.rtk_post` (L1+L2 double differences, LAMBDA).
+pos2kml read; ``--kml`` / ``--gpx`` the same epochs as tracks (:mod:`companion.io.track_export`).  ``--mode rtk`` is :mod:`companion.gnss.rtk_post` (L1+L2 double differences, LAMBDA).
 
 Pipeline per rover epoch: (optional) divergence-free carrier smoothing of rover and base code
 (:class:`CarrierSmoother`), base corrections from the latest base epoch at or before the rover
@@ -268,15 +268,30 @@ def _run(args) -> int:
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({**summary, "solutions": rows}, fh, indent=1)
+    q = Q_DGPS if args.mode == "dgps" else Q_SINGLE
+    records = [PosRecord(s.t_gps, s.r_e, s.cov_r_e, q, s.n_sats) for s in solved]
+    write_tracks(args, records, f"companion gnss {args.mode}: {Path(args.rover).name}")
     if args.pos:
-        q = Q_DGPS if args.mode == "dgps" else Q_SINGLE
-        write_pos(args.pos, [PosRecord(s.t_gps, s.r_e, s.cov_r_e, q, s.n_sats) for s in solved],
+        write_pos(args.pos, records,
                   program=f"companion gnss {args.mode} ({opts.signal})",
                   inputs=[args.rover, *args.nav, *([args.base] if args.base else [])],
                   options={"pos mode": "single" if args.mode == "spp" else "dgps",
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg", "navi sys": ",".join(systems),
                            "ionos opt": iono})
     return 0
+
+
+def write_tracks(args, records, name: str) -> None:
+    """``--kml`` / ``--gpx``: the epochs of the .pos file as tracks (companion.io.track_export)."""
+    kml, gpx = getattr(args, "kml", None), getattr(args, "gpx", None)
+    if not (kml or gpx):
+        return
+    from ..io.track_export import points_from_pos_records, write_gpx, write_kml
+    points = points_from_pos_records(records)
+    if kml:
+        write_kml(kml, points, name)
+    if gpx:
+        write_gpx(gpx, points, name)
 
 
 def _run_rtk(args) -> int:
@@ -317,8 +332,10 @@ def _run_rtk(args) -> int:
                 for s in sols]
         with open(args.json, "w") as fh:
             json.dump({**summary, "solutions": rows}, fh, indent=1)
+    records = pos_records(sols)
+    write_tracks(args, records, f"companion gnss rtk: {Path(args.rover).name}")
     if args.pos:
-        write_pos(args.pos, pos_records(sols), program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
+        write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
                   inputs=[args.rover, args.base, *args.nav],
                   options={"pos mode": "kinematic", "freqs": "L1+L2", "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"})
