@@ -5,7 +5,7 @@ the simulator are extras (``pyproject.toml``)::
 
     plot = matplotlib (every --plot)      mqtt = aiomqtt (telemetry, corrections.source = 'mqtt')
     sitl = the simulator (pyubx2, plots)  rinex = hatanaka (compressed RINEX)
-    ulog = pyulog (PX4 .ulg replay)
+    ulog = pyulog (PX4 .ulg replay)      receiver = pyubx2 (companion gnss configure)
     test = everything the test suite needs
 
 ``require("aiomqtt", "mqtt", "MQTT telemetry")`` returns the module, or raises :class:`MissingExtra`

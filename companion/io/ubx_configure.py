@@ -77,7 +77,7 @@ class ItemResult:
 
 
 def _pyubx2():
-    return require("pyubx2", None, "companion gnss configure")
+    return require("pyubx2", "receiver", "companion gnss configure")
 
 
 def layers_mask(layers: str) -> int:
