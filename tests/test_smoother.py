@@ -9,6 +9,7 @@ steps, which the test solves densely.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from companion.messages import NavSolution
 from companion.nav.smoother import SmootherRecorder
@@ -188,3 +189,32 @@ def test_rts_matches_batch_least_squares_through_outage_and_layout_changes():
     # the comparison is not vacuous: in the outage the forward solution is far from the smoothed one
     assert worst_forward_gap > 0.1
 
+
+
+@pytest.mark.real_data
+def test_replay_smooth_on_a_real_ulog():
+    """`replay(..., smooth=True)` on the PX4 SIH box flight (tests/data): every solution is the
+    smoothed counterpart of a forward one (same time), with a covariance no larger than the
+    forward filter's, and the forward pass is scored beside it."""
+    from companion.pipeline import decode_solution
+    from companion.replay import replay
+    from tests._data import data_path
+    res = replay(data_path("px4-sih-ulog/box-flight.ulg.xz"), smooth=True)
+    forward = [decode_solution(b) for b in res.produced]
+    assert len(forward) == len(res.solutions) > 400
+    assert all(s.extras.get("smoothed") for s in res.solutions)
+    assert [s.t_gps for s in forward] == [s.t_gps for s in res.solutions]
+    sig_f = np.array([np.hypot(*s.sigma_r_n_m[:2]) for s in forward])
+    sig_s = np.array([np.hypot(*s.sigma_r_n_m[:2]) for s in res.solutions])
+    assert np.all(sig_s <= sig_f * (1.0 + 1e-6))
+    assert np.mean(sig_s) < np.mean(sig_f)
+    moved = np.array([np.linalg.norm(a.r_e - b.r_e) for a, b in zip(forward, res.solutions)])
+    assert np.max(moved) > 0.01
+    assert res.forward_score["ours"]["horizontal"]["n"] == res.truth_score["ours"]["horizontal"]["n"]
+
+
+def test_cli_smooth_refuses_a_tlog(tmp_path):
+    from companion.run_cli import main
+    tlog = tmp_path / "flight.tlog"
+    tlog.write_bytes(b"")
+    assert main(["replay", str(tlog), "--smooth"]) == 2

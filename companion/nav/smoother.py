@@ -119,6 +119,12 @@ class SmootherRecorder:
         self._layout = None
         self._nav_idx = None
 
+    @classmethod
+    def attached_to(cls, engine, checkpoint_interval_s: float = 1.0) -> "SmootherRecorder":
+        rec = cls(checkpoint_interval_s)
+        rec.attach(engine)
+        return rec
+
     # ------------------------------------------------------------------ forward hooks (engine)
     def attach(self, engine) -> None:
         engine.smoother = self
@@ -263,6 +269,13 @@ class SmootherRecorder:
                 P = (1.0 - f) * Ps[k] + f * Ps[k + 1]
             out.append(_corrected(sol, d, P))
         return out
+
+
+    def smoothed(self, forward: list[NavSolution]) -> list[NavSolution]:
+        """The smoothed counterpart of each of ``forward`` (solutions of the recorded engine, e.g.
+        a pipeline's output); one the engine did not produce while recording is returned as it is."""
+        by_id = {id(sol): sm for (sol, _, _), sm in zip(self._solutions, self.smoothed_solutions())}
+        return [by_id.get(id(s), s) for s in forward]
 
 
 def _corrected(sol: NavSolution, d: np.ndarray, P: np.ndarray) -> NavSolution:
