@@ -29,7 +29,12 @@ def run_smoothing(scenario_name: str = "uav", seed: int = 1, mode: str = "tdcp_d
     tuning = tuning_for(scenario)
     sim = simulate(scenario, seed)
     truth = sim.truth
-    eng = NavEngine(mode_config(mode, tuning, sim.lever_arm_b))
+    if mode == "rtk":             # carrier-phase RTK: float ambiguity blocks come and go (layout changes)
+        from .rtk_score import rtk_config
+        cfg = rtk_config(scenario, tuning)
+    else:
+        cfg = mode_config(mode, tuning, sim.lever_arm_b)
+    eng = NavEngine(cfg)
     rec = SmootherRecorder()
     rec.attach(eng)
     for eph in sim.ephemerides:
@@ -153,7 +158,8 @@ def register(sub) -> None:
                                       "(horizontal RMS over the rover outages and overall)")
     p.add_argument("--scenario", default="uav", help="simulated flight (default uav: 30-s rover outage)")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--mode", default="tdcp_dgps", help="navigation mode of sitl.paper (default tdcp_dgps)")
+    p.add_argument("--mode", default="tdcp_dgps", help="navigation mode of sitl.paper (default tdcp_dgps), or rtk "
+                   "(with --scenario rtk)")
     p.add_argument("--rate", type=float, default=10.0, help="solution rate, Hz")
     p.add_argument("--json", help="write the figures and curves as JSON here")
     p.add_argument("--plot", help="write a PNG of the errors and sigmas against time here")
