@@ -107,10 +107,12 @@ def format_smoothing(r: dict) -> str:
     w = r["whole"]
     lines = [f"{r['scenario']} seed {r['seed']}, {r['mode']}, {r['solutions']} solutions at {r['rate_hz']:g} Hz, "
              f"{r['checkpoints']} checkpoints",
-             f"whole flight: horizontal RMS forward {w['rms_h_forward_m']:.3f} m, smoothed {w['rms_h_smoothed_m']:.3f} m; "
+             f"whole flight: horizontal RMS forward {w['rms_h_forward_m']:.3f} m, "
+             f"smoothed {w['rms_h_smoothed_m']:.3f} m; "
              f"position NEES (3 dof) forward {w['nees_pos_forward']:.2f}, smoothed {w['nees_pos_smoothed']:.2f}"]
     for o in r["outages"]:
-        lines.append(f"outage {o['start_s']:.0f}-{o['end_s']:.0f} s: horizontal RMS forward {o['rms_h_forward_m']:.3f} m, "
+        lines.append(f"outage {o['start_s']:.0f}-{o['end_s']:.0f} s: "
+                     f"horizontal RMS forward {o['rms_h_forward_m']:.3f} m, "
                      f"smoothed {o['rms_h_smoothed_m']:.3f} m ({100 * o['reduction']:.0f} % lower); max "
                      f"{o['max_h_forward_m']:.2f} / {o['max_h_smoothed_m']:.2f} m; position NEES "
                      f"{o['nees_pos_forward']:.2f} / {o['nees_pos_smoothed']:.2f}")

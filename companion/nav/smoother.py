@@ -41,7 +41,6 @@ of the dense Phi with the accumulated transition per IMU step and one Cholesky s
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve
@@ -291,11 +290,3 @@ def _corrected(sol: NavSolution, d: np.ndarray, P: np.ndarray) -> NavSolution:
         sigma_att_rad=np.sqrt(np.maximum(np.diag(P[0:3, 0:3]), 0.0)),
         extras={**sol.extras, "smoothed": True, "smoothed_cov_nav_e": P})
 
-
-def horizontal_rms_m(errors_e: np.ndarray, r_e) -> float:
-    """RMS of the horizontal part of ECEF error vectors (one local vertical, at ``r_e``)."""
-    lat, lon, _ = ecef_to_geodetic(np.asarray(r_e, float))
-    up = -C_n_e(lat, lon)[:, 2]
-    e = np.asarray(errors_e, float)
-    h = e - np.outer(e @ up, up)
-    return float(math.sqrt(np.mean(np.sum(h * h, axis=1)))) if len(e) else math.nan
