@@ -278,8 +278,8 @@ class ErrorStateKalmanFilter:
         return phi
 
     def dense_transition(self) -> np.ndarray:
-        """Phi of the densely propagated group (the first ``len`` states, the identity beyond) of
-        the last propagation step: a view, valid until the next step (companion.nav.smoother)."""
+        """Phi of the densely propagated group (the leading k x k block; the identity beyond it)
+        of the last propagation step: a view, valid until the next step (companion.nav.smoother)."""
         return self._phi
 
     def process_noise_matrix(self) -> np.ndarray:
