@@ -131,13 +131,13 @@ def _config_from_event(payload: bytes):
     return None
 
 
-def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
+def replay_field_log(path, config=None, progress: bool = False, smooth: bool = False) -> ReplayResult:
     from .io.fieldlog import FieldLogReader
     reader = FieldLogReader(path)
     total = sum(f.stat().st_size for f in reader.files)
     res = ReplayResult(config_from="--config" if config is not None else "")
     pipe = NavPipeline(config) if config is not None else None
-    pacer = None
+    pacer = recorder = None
     prog = _Progress(total, progress)
     done_files = 0
     cur_file = None
@@ -172,6 +172,7 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
             continue
         if pacer is None:
             pacer = AidStatusPacer(getattr(pipe.cfg.log, "aid_status_rate_hz", 0.0))
+            recorder = SmootherRecorder.attached_to(pipe.engine) if smooth else None
         sols = pipe.feed(k, rec.t_mono_ns, rec.payload)
         for sol in sols:
             res.solutions.append(sol)
@@ -187,6 +188,9 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
                      "bad_records": st.bad_records, "truncated_tails": len(st.truncated_tails)}
     if pipe is not None:
         res.pipeline_health = pipe.health()
+    if recorder is not None:       # the backward (RTS) pass; the comparison with the log stays on the forward one
+        res.solutions = recorder.smoothed(res.solutions)
+        res.notes.append(f"solutions RTS-smoothed over {recorder.n_checkpoints} checkpoints (companion.nav.smoother)")
     return res
 
 
@@ -485,11 +489,11 @@ def replay(path, config=None, progress: bool = False, *, needed_imu_hz: float = 
         return replay_dataflash(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth)
     if Path(p).is_file() and (p.lower().endswith((".ulg", ".ulg.xz", ".ulg.gz")) or _is_ulog(p)):
         return replay_ulog(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth)
-    if smooth:
-        raise ValueError("smoothing is implemented for DataFlash and ULog replays only")
     if p.endswith(".tlog") or p.endswith(".mavlink"):
+        if smooth:
+            raise ValueError("smoothing is implemented for field logs, DataFlash and ULog replays")
         return replay_tlog(path, config, progress, needed_imu_hz)
-    return replay_field_log(path, config, progress)
+    return replay_field_log(path, config, progress, smooth)
 
 
 def _cli_options(args) -> dict:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 
 
@@ -45,14 +44,11 @@ def cmd_run(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from .replay import _is_dataflash, _is_ulog, run_replay_cli
-    if getattr(args, "smooth", False):
-        p = str(args.log)
-        if not (os.path.isfile(p) and (p.lower().endswith((".bin", ".ulg", ".ulg.xz", ".ulg.gz"))
-                                       or _is_dataflash(p) or _is_ulog(p))):
-            print(f"error: {p}: --smooth post-processes a DataFlash .BIN or a PX4 .ulg (not yet a field log "
-                  f"or a tlog)", file=sys.stderr)
-            return 2
+    from .replay import run_replay_cli
+    if getattr(args, "smooth", False) and str(args.log).endswith((".tlog", ".mavlink")):
+        print(f"error: {args.log}: --smooth post-processes a field log, a DataFlash .BIN or a PX4 .ulg "
+              f"(not yet a tlog)", file=sys.stderr)
+        return 2
     return run_replay_cli(args)
 
 
@@ -74,8 +70,9 @@ def register(subparsers) -> None:
     r.add_argument("--imu-instance", type=int, help="DataFlash: IMU instance (default 0)")
     r.add_argument("--start", type=float, help="DataFlash: first boot time used, s")
     r.add_argument("--end", type=float, help="DataFlash: last boot time used, s")
-    r.add_argument("--smooth", action="store_true", help="DataFlash/ULog: RTS-smooth the forward solutions "
-                   "(post-flight: the best trajectory, through GNSS outages); the forward pass is scored beside it")
+    r.add_argument("--smooth", action="store_true", help="field log, DataFlash, ULog: RTS-smooth the forward solutions "
+                   "(post-flight: the best trajectory, through GNSS outages); with a truth the forward pass is "
+                   "scored beside it")
     r.set_defaults(func=cmd_replay)
 
 
