@@ -30,7 +30,8 @@ the same pipeline.  Without ``--config`` the configuration is the default one ad
 log holds (:func:`dataflash_config`: loose coupling on the GPS fixes, the IMU rate found, the lever
 arm from ``GPS_POS``/``INS_POS``, SITL's simulated gyro drift).  When the log has the simulator's
 truth (``SIM``) the trajectory is scored against it beside the autopilot EKF's ``POS`` over the
-same span (:mod:`companion.post_report`).  The filter runs forward only (no smoothing).
+same span (:mod:`companion.post_report`).  With ``smooth`` (``--smooth``) the solutions are the
+RTS-smoothed ones (:mod:`companion.nav.smoother`) and the forward pass is scored beside them.
 """
 from __future__ import annotations
 
@@ -46,6 +47,7 @@ import numpy as np
 
 from .aid_status_record import KIND as AID_KIND
 from .aid_status_record import AidStatusPacer
+from .nav.smoother import SmootherRecorder
 from .pipeline import NavPipeline, encode_solution, solution_records_equal
 
 log = logging.getLogger(__name__)
@@ -74,6 +76,7 @@ class ReplayResult:
     refusal: str = ""               # why this log cannot give a solution (nothing was run)
     notes: list = field(default_factory=list)       # what was assumed or adapted, for the report
     truth_score: dict = field(default_factory=dict)  # against the log's truth (SIM), if any
+    forward_score: dict = field(default_factory=dict)  # with smoothing: the forward pass's truth_score
     time_base: dict = field(default_factory=dict)   # DataFlash: boot -> GPS time
     tracks: dict = field(default_factory=dict)      # name -> (N, 3) lat deg, lon deg, alt m (plot)
     # per aid source status (companion.aid_status_record): recomputed by the replay (objects) and
@@ -128,13 +131,13 @@ def _config_from_event(payload: bytes):
     return None
 
 
-def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
+def replay_field_log(path, config=None, progress: bool = False, smooth: bool = False) -> ReplayResult:
     from .io.fieldlog import FieldLogReader
     reader = FieldLogReader(path)
     total = sum(f.stat().st_size for f in reader.files)
     res = ReplayResult(config_from="--config" if config is not None else "")
     pipe = NavPipeline(config) if config is not None else None
-    pacer = None
+    pacer = recorder = None
     prog = _Progress(total, progress)
     done_files = 0
     cur_file = None
@@ -169,6 +172,7 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
             continue
         if pacer is None:
             pacer = AidStatusPacer(getattr(pipe.cfg.log, "aid_status_rate_hz", 0.0))
+            recorder = SmootherRecorder.attached_to(pipe.engine) if smooth else None
         sols = pipe.feed(k, rec.t_mono_ns, rec.payload)
         for sol in sols:
             res.solutions.append(sol)
@@ -184,6 +188,9 @@ def replay_field_log(path, config=None, progress: bool = False) -> ReplayResult:
                      "bad_records": st.bad_records, "truncated_tails": len(st.truncated_tails)}
     if pipe is not None:
         res.pipeline_health = pipe.health()
+    if recorder is not None:       # the backward (RTS) pass; the comparison with the log stays on the forward one
+        res.solutions = recorder.smoothed(res.solutions)
+        res.notes.append(f"solutions RTS-smoothed over {recorder.n_checkpoints} checkpoints (companion.nav.smoother)")
     return res
 
 
@@ -356,17 +363,17 @@ def imu_noise_at_rest(dlog, instance: int = 0, min_s: float = 10.0):
 
 def replay_dataflash(path, config=None, progress: bool = False, t_start_s: float | None = None,
                      t_end_s: float | None = None, options=None,
-                     needed_imu_hz: float = IMU_RATE_NEEDED_HZ) -> ReplayResult:
+                     needed_imu_hz: float = IMU_RATE_NEEDED_HZ, smooth: bool = False) -> ReplayResult:
     """Post-process an ArduPilot DataFlash log through the pipeline (boot-time window optional)."""
     from .io.dataflash import read_dataflash
     t0 = time.perf_counter()
     dlog = read_dataflash(path, t_start_s, t_end_s)
-    return _replay_autopilot_log(dlog, "dataflash", t0, config, progress, options, needed_imu_hz)
+    return _replay_autopilot_log(dlog, "dataflash", t0, config, progress, options, needed_imu_hz, smooth=smooth)
 
 
 def replay_ulog(path, config=None, progress: bool = False, t_start_s: float | None = None,
                 t_end_s: float | None = None, options=None,
-                needed_imu_hz: float = IMU_RATE_NEEDED_HZ) -> ReplayResult:
+                needed_imu_hz: float = IMU_RATE_NEEDED_HZ, smooth: bool = False) -> ReplayResult:
     """Post-process a PX4 ULog through the pipeline (:mod:`companion.io.ulog`: the same adapter as
     DataFlash after reading; SIH truth scored beside EKF2's vehicle_global_position)."""
     import dataclasses
@@ -377,7 +384,7 @@ def replay_ulog(path, config=None, progress: bool = False, t_start_s: float | No
     opts = options or AdapterOptions()
     if opts.earth_rate is None:
         opts = dataclasses.replace(opts, earth_rate=is_sih(dlog))
-    return _replay_autopilot_log(dlog, "ulog", t0, config, progress, opts, needed_imu_hz, notes)
+    return _replay_autopilot_log(dlog, "ulog", t0, config, progress, opts, needed_imu_hz, notes, smooth=smooth)
 
 
 _AUTOPILOT_LOG = {"dataflash": {"imu": "IMU", "estimate": "EKF3 POS", "truth": "SIM truth",
@@ -391,7 +398,7 @@ _AUTOPILOT_LOG = {"dataflash": {"imu": "IMU", "estimate": "EKF3 POS", "truth": "
 
 
 def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options, needed_imu_hz,
-                          notes: list | None = None) -> ReplayResult:
+                          notes: list | None = None, smooth: bool = False) -> ReplayResult:
     """An autopilot's own log (DataFlash or ULog, read into a DataFlashLog) through the pipeline."""
     import dataclasses
     from .io.dataflash import AdapterOptions, iter_mavlink_messages, time_base
@@ -435,6 +442,7 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
     if earth:
         res.notes.append("simulated gyros do not sense the Earth's rotation: added from the attitude")
     pipe = NavPipeline(cfg)
+    recorder = SmootherRecorder.attached_to(pipe.engine) if smooth else None
     pacer = AidStatusPacer(cfg.log.aid_status_rate_hz)
     prog = _Progress(len(imu), progress)          # about one message per IMU sample
     for t_us, msg in iter_mavlink_messages(dlog, dataclasses.replace(opts, earth_rate=earth), tb):
@@ -448,15 +456,21 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
         res.aid_status += [obj for obj, _ in pacer.records(pipe, sols)] if sols else []
     prog.update(len(imu), final=True)
     res.pipeline_health = pipe.health()
-    sols = [s for s in res.solutions if np.all(np.isfinite(s.r_e))]
-    if sols:
-        llh = np.array([ecef_to_geodetic(s.r_e) for s in sols])
-        ours = np.c_[np.degrees(llh[:, 0]), np.degrees(llh[:, 1]), llh[:, 2]]
-        t_boot = np.array([tb.to_boot(s.t_gps) for s in sols])
-        res.tracks["ours"] = ours
-        if len(dlog.sim) >= 2:
-            res.truth_score = score_against_truth(t_boot, ours[:, 0], ours[:, 1], ours[:, 2], dlog.sim,
-                                                  dlog.pos if len(dlog.pos) else None, names["estimate"])
+    forward = res.solutions
+    if recorder is not None:       # the backward (RTS) pass: the smoothed solutions replace the forward ones
+        res.solutions = recorder.smoothed(forward)
+        res.notes.append(f"solutions RTS-smoothed over {recorder.n_checkpoints} checkpoints (companion.nav.smoother)")
+    for which, solutions in (("", res.solutions),) + ((("forward", forward),) if recorder is not None else ()):
+        sols = [s for s in solutions if np.all(np.isfinite(s.r_e))]
+        if sols:
+            llh = np.array([ecef_to_geodetic(s.r_e) for s in sols])
+            ours = np.c_[np.degrees(llh[:, 0]), np.degrees(llh[:, 1]), llh[:, 2]]
+            t_boot = np.array([tb.to_boot(s.t_gps) for s in sols])
+            res.tracks["ours" + (f" ({which})" if which else "")] = ours
+            if len(dlog.sim) >= 2:
+                score = score_against_truth(t_boot, ours[:, 0], ours[:, 1], ours[:, 2], dlog.sim,
+                                            dlog.pos if len(dlog.pos) else None, names["estimate"])
+                setattr(res, "forward_score" if which else "truth_score", score)
     for name, arr in ((names["truth"], dlog.sim), (names["estimate"], dlog.pos)):
         if len(arr):
             res.tracks[name] = arr[:, 1:4]
@@ -465,18 +479,21 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
 
 
 def replay(path, config=None, progress: bool = False, *, needed_imu_hz: float = IMU_RATE_NEEDED_HZ,
-           dataflash_options=None, t_start_s: float | None = None, t_end_s: float | None = None) -> ReplayResult:
+           dataflash_options=None, t_start_s: float | None = None, t_end_s: float | None = None,
+           smooth: bool = False) -> ReplayResult:
     """Replay any log: a DataFlash .BIN or a PX4 .ulg (by its first bytes or name), a .tlog, else a
     field log.  ``dataflash_options`` (:class:`~companion.io.dataflash.AdapterOptions`) and the
     boot-time window apply to DataFlash and ULog logs only."""
     p = str(path)
     if Path(p).is_file() and (p.lower().endswith(".bin") or _is_dataflash(p)):
-        return replay_dataflash(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz)
+        return replay_dataflash(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth)
     if Path(p).is_file() and (p.lower().endswith((".ulg", ".ulg.xz", ".ulg.gz")) or _is_ulog(p)):
-        return replay_ulog(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz)
+        return replay_ulog(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth)
     if p.endswith(".tlog") or p.endswith(".mavlink"):
+        if smooth:
+            raise ValueError("smoothing is implemented for field logs, DataFlash and ULog replays")
         return replay_tlog(path, config, progress, needed_imu_hz)
-    return replay_field_log(path, config, progress)
+    return replay_field_log(path, config, progress, smooth)
 
 
 def _cli_options(args) -> dict:
@@ -487,7 +504,8 @@ def _cli_options(args) -> dict:
     opts = AdapterOptions(imu_instance=int(getattr(args, "imu_instance", None) or 0),
                           gps_latency_s=None if lat_ms is None else float(lat_ms) * 1e-3)
     return {"needed_imu_hz": float(getattr(args, "min_imu_rate_hz", None) or IMU_RATE_NEEDED_HZ),
-            "dataflash_options": opts, "t_start_s": getattr(args, "start", None), "t_end_s": getattr(args, "end", None)}
+            "dataflash_options": opts, "t_start_s": getattr(args, "start", None), "t_end_s": getattr(args, "end", None),
+            "smooth": bool(getattr(args, "smooth", False))}
 
 
 def _is_ulog(p) -> bool:
@@ -675,14 +693,19 @@ def _print_summary(res: ReplayResult, c: dict) -> None:
             print(f"aid status records: {a['replayed']} replayed, {a['logged']} logged; identical {a['identical']}")
     else:
         modes = sorted({str(s.extras.get("mode")) for s in res.solutions})
-        print(f"solutions: {len(res.solutions)} (mode {', '.join(modes) or 'none'}; forward filter only)")
+        print(f"solutions: {len(res.solutions)} (mode {', '.join(modes) or 'none'}; "
+              f"{'RTS-smoothed' if res.forward_score else 'forward filter only'})")
     if res.solutions:
         last = res.solutions[-1]
         print(f"last solution: status {last.status}, sigma NED {np.round(last.sigma_r_n_m, 3).tolist()} m")
     if res.truth_score:
         from .post_report import format_score
         for line in format_score(res.truth_score, _AUTOPILOT_LOG.get(res.kind, {}).get("truth", "SIM truth")):
-            print(line)
+            print(line.replace("forward filter only", "RTS-smoothed") if res.forward_score else line)
+    if res.forward_score:
+        print("forward pass alone (before smoothing):")
+        for line in format_score(res.forward_score, _AUTOPILOT_LOG.get(res.kind, {}).get("truth", "SIM truth")):
+            print("  " + line)
 
 
 def run_replay_cli(args) -> int:
@@ -699,7 +722,8 @@ def run_replay_cli(args) -> int:
     if args.json:
         obj = {"log": str(args.log), "kind": res.kind, "records": res.records, "elapsed_s": res.elapsed_s,
                "config_from": res.config_from, "imu": res.imu_check, "refusal": res.refusal, "notes": res.notes,
-               "forward_only": True, "comparison": c, "truth": res.truth_score, "time_base": res.time_base,
+               "forward_only": not res.forward_score, "comparison": c, "truth": res.truth_score,
+               "truth_forward_pass": res.forward_score, "time_base": res.time_base,
                "log_stats": res.log_stats, "pipeline": res.pipeline_health,
                "solutions": [_sol_json(s) for s in res.solutions]}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -45,6 +45,10 @@ def cmd_run(args) -> int:
 
 def cmd_replay(args) -> int:
     from .replay import run_replay_cli
+    if getattr(args, "smooth", False) and str(args.log).endswith((".tlog", ".mavlink")):
+        print(f"error: {args.log}: --smooth post-processes a field log, a DataFlash .BIN or a PX4 .ulg "
+              f"(not yet a tlog)", file=sys.stderr)
+        return 2
     return run_replay_cli(args)
 
 
@@ -66,6 +70,9 @@ def register(subparsers) -> None:
     r.add_argument("--imu-instance", type=int, help="DataFlash: IMU instance (default 0)")
     r.add_argument("--start", type=float, help="DataFlash: first boot time used, s")
     r.add_argument("--end", type=float, help="DataFlash: last boot time used, s")
+    r.add_argument("--smooth", action="store_true", help="field log, DataFlash, ULog: RTS-smooth the forward solutions "
+                   "(post-flight: the best trajectory, through GNSS outages); with a truth the forward pass is "
+                   "scored beside it")
     r.set_defaults(func=cmd_replay)
 
 

@@ -97,7 +97,8 @@ def main(argv=None) -> int:
     pb.add_argument("--duration", type=float, default=None, help="seconds of the uav flight to use (default: all)")
     pb.add_argument("--json", help="write the figures as JSON here")
     pb.set_defaults(func=cmd_bench)
-    from . import attack, faults, fly, ins_errors, rtk_score, slips
+    from . import attack, faults, fly, ins_errors, rtk_score, slips, smooth
+    smooth.register(sub)
     rtk_score.register(sub)
     fly.register(sub)
     faults.register(sub)

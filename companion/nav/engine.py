@@ -259,6 +259,7 @@ class NavEngine:
         self.reset_counter = 0
         self.epoch_reports: deque = deque(maxlen=16)
         self.on_epoch = None  # optional callback(EpochReport)
+        self.smoother = None  # optional companion.nav.smoother.SmootherRecorder (post-flight RTS)
         self.rtk = RtkUpdate(config.rtk_config(), self.counters) if config.rtk_enabled else None
 
     # ------------------------------------------------------------------ set-up
@@ -328,6 +329,8 @@ class NavEngine:
         self.integrity.restart(t_gps, probation and self.cfg.integrity_enabled)
         self.initialized = True
         self.reset_counter += 1
+        if self.smoother is not None:
+            self.smoother.start(self)
 
     @property
     def layout(self) -> StateLayout:
@@ -341,11 +344,15 @@ class NavEngine:
         again drops it (the layout is rebuilt from the configuration)."""
         self.kf.add_block(name, size, initial_sigma, random_walk_psd)
         self.block_states[name] = np.broadcast_to(np.asarray(value, float), (size,)).copy()
+        if self.smoother is not None:
+            self.smoother.layout_changed(self)
 
     def remove_state_block(self, name: str) -> None:
         """Remove a block added with :meth:`add_state_block` (a satellite set or slipped)."""
         self.kf.remove_block(name)
         del self.block_states[name]
+        if self.smoother is not None:
+            self.smoother.layout_changed(self)
 
     def process(self, msg):
         """Dispatch any core message.  Returns an EpochReport for GNSS epochs, else None."""
@@ -446,6 +453,8 @@ class NavEngine:
             if not scr.bridged:
                 return None            # nothing good to hold yet (counted by the screen)
             th, dvl, bridged = scr.dtheta_b, scr.dv_b, True
+        if self.smoother is not None:
+            self.smoother.before_step(self)
         tau_sample = tau
         gap = s.t_gps - self.t_gps - tau
         if abs(gap) > 0.5 * tau:
@@ -482,6 +491,8 @@ class NavEngine:
         self.kf.propagate(C0, dv_e, self._grad, tau)
         if bridged:
             self.kf.add_body_noise(C0, scr.var_dtheta_b, scr.var_dv_b)    # what the sample could have hidden
+        if self.smoother is not None:
+            self.smoother.after_step(self)
         self._last_dtheta = dtheta
         self._last_tau = tau
         self.clock_bias_m += self.clock_drift_mps * (s.t_gps - self.t_gps)
@@ -1021,6 +1032,8 @@ class NavEngine:
         self._history = deque((t, r, v + dv, R @ C) for t, r, v, C in self._history)
         self._phase.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
         self._prev_epoch_v = None
+        if self.smoother is not None:
+            self.smoother.start(self)     # a jump of the nominal state: the smoothing restarts here
 
     def heading_and_sigma(self) -> tuple[float, float]:
         """The filter's heading (rad, clockwise from true north) and its 1-sigma (rad)."""
@@ -1194,7 +1207,7 @@ class NavEngine:
         rtk = self.rtk.status if self.rtk is not None else None
         if rtk is not None and self.t_gps - rtk.t_gps <= self.cfg.coasting_after_s:
             fix_state, fix_ratio = rtk.fix_state, rtk.ratio
-        return NavSolution(self.t_gps, self.r_e.copy(), self.v_e.copy(), self.C_b_e.copy(), sig_r, sig_v, sig_a,
+        sol = NavSolution(self.t_gps, self.r_e.copy(), self.v_e.copy(), self.C_b_e.copy(), sig_r, sig_v, sig_a,
                            status, self.last_gnss_update_t, self.reset_counter,
                            {"clock_bias_m": self.clock_bias_m, "clock_drift_mps": self.clock_drift_mps,
                             "b_a": self.b_a.copy(), "b_g": self.b_g.copy(), "integrity": integrity,
@@ -1204,6 +1217,9 @@ class NavEngine:
                             "imu_time_offset_s": self.imu_time_offset_s,
                             "imu_time_offset_sigma_s": math.sqrt(max(float(P[L.toff, L.toff]), 0.0))},
                            fix_state=fix_state, fix_ratio=fix_ratio)
+        if self.smoother is not None:
+            self.smoother.note_solution(sol)
+        return sol
 
 
 def _stale_corrections(rejected: dict[str, str]) -> bool:

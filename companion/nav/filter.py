@@ -102,6 +102,8 @@ class ErrorStateKalmanFilter:
     process noise alone, their cross-covariance with the core by Phi_core (see :meth:`propagate`).
     """
 
+    on_update = None   # optional callable(P_prior, dx) at every update (companion.nav.smoother)
+
     def __init__(self, P0: np.ndarray, noise: ProcessNoise, gate_probability: float = 0.999,
                  layout: StateLayout = LAYOUT):
         self.layout = layout.copy()
@@ -275,6 +277,11 @@ class ErrorStateKalmanFilter:
         phi[:nd, :nd] = self._phi
         return phi
 
+    def dense_transition(self) -> np.ndarray:
+        """Phi of the densely propagated group (the leading k x k block; the identity beyond it)
+        of the last propagation step: a view, valid until the next step (companion.nav.smoother)."""
+        return self._phi
+
     def process_noise_matrix(self) -> np.ndarray:
         """The dense n x n Qd of the last propagation step: a reference."""
         L, nd = self.layout, self._n_dense
@@ -356,6 +363,8 @@ class ErrorStateKalmanFilter:
         c, low = _cho_factor(S)
         K = _cho_solve((c, low), PHt.T).T
         dx = K @ z
+        if self.on_update is not None:
+            self.on_update(P, dx)
         IKH = np.eye(n) - K @ H
         P = IKH @ P @ IKH.T + (K * r) @ K.T
         self.P = 0.5 * (P + P.T)
