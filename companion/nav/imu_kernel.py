@@ -1,0 +1,172 @@
+"""Compiled IMU-rate kernels (numba): the strapdown step and the covariance propagation.
+
+At 200-400 Hz the IMU path is a few hundred floating-point operations spread over dozens of
+Python-level calls; their interpretation, not the arithmetic, is the cost.  These are the same
+equations as the readable references, :func:`.strapdown.strapdown_step_with_force_reference` and
+:meth:`.filter.ErrorStateKalmanFilter.propagate_reference`, written as loops that numba compiles
+to machine code.  The public functions in those modules call a kernel when it is available and
+fall back to the reference otherwise, with the same signatures and return types.
+
+* **Strapdown**: the reference's float arithmetic term for term, in the same order (numba keeps
+  IEEE semantics and evaluation order without ``fastmath``), so both give the same numbers.
+* **Propagation**: ``P_cc <- Phi_c P_cc Phi_c^T + Q_c``, ``P_cx <- Phi_c P_cx``, ``P_xx += Q_x`` in
+  place, the products by the same BLAS routine as the reference's numpy (``np.dot`` in numba
+  calls dgemm), so that both give the same numbers when numpy and scipy use the same BLAS
+  (their wheels do); tests/test_imu_kernel.py checks it and bounds the difference otherwise.
+  What the kernel saves is the Python around them: ~15 numpy calls and element writes per step.
+  (A loop that skips Phi's zeros -- ~60 of its 324 core entries are non-zero -- is ~1 us faster
+  at n = 18, but sums in another order: results would move by rounding from the reference.)
+
+Compilation happens on first use, not on import (numba itself costs ~0.3 s and ~40 MB to
+import, which a process that never runs the filter should not pay), and is cached on disk
+(``cache=True``: in ``__pycache__`` beside this file, or numba's user-wide cache directory when
+that is not writable), so a restart loads machine code instead of compiling again.
+
+``COMPANION_NUMBA=0`` in the environment disables the kernels (the pure-Python reference runs);
+without numba installed (it is optional: ``pip install 'companion[fast]'``) that is the default.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+ENV_SWITCH = "COMPANION_NUMBA"
+
+_kernels = None       # the compiled namespace once built
+_tried = False        # compilation attempted (successfully or not)
+
+
+def strapdown(r, v, C, ax, ay, az, bx, by, bz, tau, gx, gy, gz, co, si, omega):
+    """One strapdown step (see :func:`.strapdown.strapdown_step_with_force_reference`): returns
+    (r_new, v_new, C_new, dvx, dvy, dvz); ``co, si``: cos/sin of the earth's turn over ``tau``."""
+    cx = bx + 0.5 * (ay * bz - az * by)
+    cy = by + 0.5 * (az * bx - ax * bz)
+    cz = bz + 0.5 * (ax * by - ay * bx)
+    c00, c01, c02 = C[0, 0], C[0, 1], C[0, 2]
+    c10, c11, c12 = C[1, 0], C[1, 1], C[1, 2]
+    c20, c21, c22 = C[2, 0], C[2, 1], C[2, 2]
+    dvx = c00 * cx + c01 * cy + c02 * cz
+    dvy = c10 * cx + c11 * cy + c12 * cz
+    dvz = c20 * cx + c21 * cy + c22 * cz
+    vx, vy, vz = v[0], v[1], v[2]
+    w2t = 2.0 * omega * tau
+    nvx = vx + dvx + gx * tau + w2t * vy
+    nvy = vy + dvy + gy * tau - w2t * vx
+    nvz = vz + dvz + gz * tau
+    h = 0.5 * tau
+    r_new = np.empty(3)
+    r_new[0] = r[0] + (vx + nvx) * h
+    r_new[1] = r[1] + (vy + nvy) * h
+    r_new[2] = r[2] + (vz + nvz) * h
+    v_new = np.empty(3)
+    v_new[0] = nvx
+    v_new[1] = nvy
+    v_new[2] = nvz
+    a2 = ax * ax + ay * ay + az * az
+    if a2 < 1e-12:
+        sa = 1.0 - a2 / 6.0
+        ca = 0.5 - a2 / 24.0
+    else:
+        a = math.sqrt(a2)
+        sa = math.sin(a) / a
+        ca = (1.0 - math.cos(a)) / a2
+    R00 = 1.0 - ca * (ay * ay + az * az)
+    R11 = 1.0 - ca * (ax * ax + az * az)
+    R22 = 1.0 - ca * (ax * ax + ay * ay)
+    R01 = -sa * az + ca * ax * ay
+    R10 = sa * az + ca * ax * ay
+    R02 = sa * ay + ca * ax * az
+    R20 = -sa * ay + ca * ax * az
+    R12 = -sa * ax + ca * ay * az
+    R21 = sa * ax + ca * ay * az
+    m00 = c00 * R00 + c01 * R10 + c02 * R20
+    m01 = c00 * R01 + c01 * R11 + c02 * R21
+    m02 = c00 * R02 + c01 * R12 + c02 * R22
+    m10 = c10 * R00 + c11 * R10 + c12 * R20
+    m11 = c10 * R01 + c11 * R11 + c12 * R21
+    m12 = c10 * R02 + c11 * R12 + c12 * R22
+    m20 = c20 * R00 + c21 * R10 + c22 * R20
+    m21 = c20 * R01 + c21 * R11 + c22 * R21
+    m22 = c20 * R02 + c21 * R12 + c22 * R22
+    C_new = np.empty((3, 3))
+    C_new[0, 0] = co * m00 + si * m10
+    C_new[0, 1] = co * m01 + si * m11
+    C_new[0, 2] = co * m02 + si * m12
+    C_new[1, 0] = co * m10 - si * m00
+    C_new[1, 1] = co * m11 - si * m01
+    C_new[1, 2] = co * m12 - si * m02
+    C_new[2, 0] = m20
+    C_new[2, 1] = m21
+    C_new[2, 2] = m22
+    return r_new, v_new, C_new, dvx, dvy, dvz
+
+
+def propagate(phi, P, Qd, tail_q, C, fx, fy, fz, tau, i_att, i_vel, i_ba, i_bg, work, work_cc):
+    """Covariance propagation in place (see :meth:`.filter.ErrorStateKalmanFilter.propagate`).
+
+    ``phi`` (nc x nc): the densely propagated group's transition, its attitude-dependent entries
+    rewritten here (-C tau for the biases, -[f x] tau for the attitude); ``Qd`` its process noise;
+    ``tail_q`` (n - nc): the noise of the identity states after it; ``work`` (nc x n) and
+    ``work_cc`` (nc x nc): buffers.  The products are BLAS's (np.dot), as in the reference."""
+    for a in range(3):
+        for b in range(3):
+            x = C[a, b] * -tau
+            phi[i_att + a, i_bg + b] = x
+            phi[i_vel + a, i_ba + b] = x
+    phi[i_vel + 0, i_att + 1] = fz
+    phi[i_vel + 0, i_att + 2] = -fy
+    phi[i_vel + 1, i_att + 0] = -fz
+    phi[i_vel + 1, i_att + 2] = fx
+    phi[i_vel + 2, i_att + 0] = fy
+    phi[i_vel + 2, i_att + 1] = -fx
+    nc = phi.shape[0]
+    n = P.shape[0]
+    if nc == n:                                   # the whole state densely
+        np.dot(phi, P, work)
+        np.dot(work, phi.T, work_cc)
+        for i in range(n):
+            for j in range(n):
+                P[i, j] = work_cc[i, j] + Qd[i, j]
+        return
+    np.dot(phi, P[:nc], work)                     # [Phi_c P_cc | Phi_c P_cx]
+    np.dot(np.ascontiguousarray(work[:, :nc]), phi.T, work_cc)
+    for i in range(nc):
+        for j in range(nc):
+            P[i, j] = work_cc[i, j] + Qd[i, j]
+        for j in range(nc, n):
+            P[i, j] = work[i, j]
+            P[j, i] = work[i, j]
+    for t in range(n - nc):
+        P[nc + t, nc + t] += tail_q[t]
+
+
+class _Compiled:
+    """The jitted kernels (attributes named as the Python functions above)."""
+
+    def __init__(self, numba):
+        jit = numba.njit(cache=True, nogil=True)
+        self.strapdown = jit(strapdown)
+        self.propagate = jit(propagate)
+
+
+def enabled_by_environment() -> bool:
+    return os.environ.get(ENV_SWITCH, "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def compiled():
+    """The compiled kernels, or None (numba not installed, or ``COMPANION_NUMBA=0``).  The first
+    call imports numba; each kernel compiles (or loads from the disk cache) on its first call."""
+    global _kernels, _tried
+    if _tried:
+        return _kernels
+    _tried = True
+    if not enabled_by_environment():
+        return None
+    try:
+        import numba
+    except ImportError:
+        return None
+    _kernels = _Compiled(numba)
+    return _kernels
