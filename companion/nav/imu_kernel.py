@@ -23,7 +23,8 @@ import, which a process that never runs the filter should not pay), and is cache
 that is not writable), so a restart loads machine code instead of compiling again.
 
 ``COMPANION_NUMBA=0`` in the environment disables the kernels (the pure-Python reference runs);
-without numba installed (it is optional: ``pip install 'companion[fast]'``) that is the default.
+without numba installed (a dependency where it has wheels, x86_64 and aarch64; not on 32-bit
+Raspberry Pi OS) that is the default.
 """
 from __future__ import annotations
 
