@@ -156,6 +156,17 @@ def enabled_by_environment() -> bool:
     return os.environ.get(ENV_SWITCH, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
+def numba_or_none():
+    """The numba module, or None (not installed, or disabled by ``COMPANION_NUMBA=0``)."""
+    if not enabled_by_environment():
+        return None
+    try:
+        import numba
+    except ImportError:
+        return None
+    return numba
+
+
 def compiled():
     """The compiled kernels, or None (numba not installed, or ``COMPANION_NUMBA=0``).  The first
     call imports numba; each kernel compiles (or loads from the disk cache) on its first call."""
@@ -163,11 +174,7 @@ def compiled():
     if _tried:
         return _kernels
     _tried = True
-    if not enabled_by_environment():
-        return None
-    try:
-        import numba
-    except ImportError:
-        return None
-    _kernels = _Compiled(numba)
+    numba = numba_or_none()
+    if numba is not None:
+        _kernels = _Compiled(numba)
     return _kernels
