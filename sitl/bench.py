@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import gc
 import math
+import os
 import resource
 import subprocess
 import sys
@@ -194,8 +195,16 @@ def run_bench(duration_s: float | None = None) -> dict:
         "propagation_58_states_dense_us": round(prop_dense_us, 2),
         "propagation_58_states_blocks_us": round(prop_blocks_us, 2),
         **rtk,
+        "compiled_kernels": _kernels_on(),
+        "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS", "default"),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
     }
+
+
+def _kernels_on() -> bool:
+    """Whether the engine ran the compiled kernels (numba) or the pure-Python references."""
+    from companion.nav import imu_kernel
+    return imu_kernel.compiled() is not None
 
 
 def _rtk_load(duration_s: float | None) -> dict:
@@ -246,5 +255,6 @@ def format_bench(r: dict) -> str:
         f"cost ratio with/without GNSS {r['gnss_cost_ratio']}",
         f"  covariance propagation with 40 identity states (n = 58): dense {r['propagation_58_states_dense_us']} us, "
         f"by blocks {r['propagation_58_states_blocks_us']} us of CPU per IMU sample",
-        f"  peak RSS {r['peak_rss_mb']} MB",
+        f"  peak RSS {r['peak_rss_mb']} MB; compiled kernels {'on' if r['compiled_kernels'] else 'off (pure Python)'}, "
+        f"OPENBLAS_NUM_THREADS {r['openblas_num_threads']}",
     ])
