@@ -112,3 +112,12 @@ def test_engine_replay_is_deterministic_through_the_kernels(monkeypatch):
     assert np.max(np.abs(a[2] - ref[2])) < 1e-12
     scale = np.sqrt(np.outer(np.diag(ref[3]), np.diag(ref[3])))
     assert np.all(np.abs(a[3] - ref[3]) <= 1e-9 * scale)
+
+
+def test_warm_up_compiles_every_kernel():
+    from companion.gnss import lambda_kernel
+    assert imu_kernel.warm_up() >= 0.0
+    k, lk = imu_kernel.compiled(), lambda_kernel.compiled()
+    # every dispatcher has a compiled (or cache-loaded) specialisation: the first flight pays nothing
+    for disp in (k.strapdown, k.propagate, lk.ldl, lk.reduce, lk.search):
+        assert disp.signatures, disp
