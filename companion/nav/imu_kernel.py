@@ -39,9 +39,11 @@ _kernels = None       # the compiled namespace once built
 _tried = False        # compilation attempted (successfully or not)
 
 
-def strapdown(r, v, C, ax, ay, az, bx, by, bz, tau, gx, gy, gz, co, si, omega):
-    """One strapdown step (see :func:`.strapdown.strapdown_step_with_force_reference`): returns
-    (r_new, v_new, C_new, dvx, dvy, dvz); ``co, si``: cos/sin of the earth's turn over ``tau``."""
+def strapdown(r, v, C, ax, ay, az, bx, by, bz, tau, gx, gy, gz, co, si, omega, r_new, v_new, C_new):
+    """One strapdown step (see :func:`.strapdown.strapdown_step_with_force_reference`) into
+    ``r_new``, ``v_new``, ``C_new`` (allocated by the caller: an array returned by a kernel costs
+    ~0.7 us to box, three times the allocation); returns (dvx, dvy, dvz).  ``co, si``: cos/sin of
+    the earth's turn over ``tau``."""
     cx = bx + 0.5 * (ay * bz - az * by)
     cy = by + 0.5 * (az * bx - ax * bz)
     cz = bz + 0.5 * (ax * by - ay * bx)
@@ -57,11 +59,9 @@ def strapdown(r, v, C, ax, ay, az, bx, by, bz, tau, gx, gy, gz, co, si, omega):
     nvy = vy + dvy + gy * tau - w2t * vx
     nvz = vz + dvz + gz * tau
     h = 0.5 * tau
-    r_new = np.empty(3)
     r_new[0] = r[0] + (vx + nvx) * h
     r_new[1] = r[1] + (vy + nvy) * h
     r_new[2] = r[2] + (vz + nvz) * h
-    v_new = np.empty(3)
     v_new[0] = nvx
     v_new[1] = nvy
     v_new[2] = nvz
@@ -91,7 +91,6 @@ def strapdown(r, v, C, ax, ay, az, bx, by, bz, tau, gx, gy, gz, co, si, omega):
     m20 = c20 * R00 + c21 * R10 + c22 * R20
     m21 = c20 * R01 + c21 * R11 + c22 * R21
     m22 = c20 * R02 + c21 * R12 + c22 * R22
-    C_new = np.empty((3, 3))
     C_new[0, 0] = co * m00 + si * m10
     C_new[0, 1] = co * m01 + si * m11
     C_new[0, 2] = co * m02 + si * m12
@@ -101,7 +100,7 @@ def strapdown(r, v, C, ax, ay, az, bx, by, bz, tau, gx, gy, gz, co, si, omega):
     C_new[2, 0] = m20
     C_new[2, 1] = m21
     C_new[2, 2] = m22
-    return r_new, v_new, C_new, dvx, dvy, dvz
+    return dvx, dvy, dvz
 
 
 def propagate(phi, P, Qd, tail_q, C, fx, fy, fz, tau, i_att, i_vel, i_ba, i_bg, work, work_cc):

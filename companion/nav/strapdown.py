@@ -66,9 +66,10 @@ def strapdown_step_with_force(r_e, v_e, C_b_e, dtheta_b, dv_b, tau_s: float, g_e
     if turn is None:
         ang = OMEGA_IE_RADPS * tau_s
         turn = _EARTH_TURN[tau_s] = (math.cos(ang), math.sin(ang))
-    r_new, v_new, C_new, dvx, dvy, dvz = k.strapdown(r_e, v_e, C_b_e, ax, ay, az, bx, by, bz, tau_s,
-                                                     gx, gy, gz, turn[0], turn[1], OMEGA_IE_RADPS)
-    return r_new, v_new, C_new, (dvx, dvy, dvz)
+    r_new, v_new, C_new = np.empty(3), np.empty(3), np.empty((3, 3))
+    dv_e = k.strapdown(r_e, v_e, C_b_e, ax, ay, az, bx, by, bz, tau_s, gx, gy, gz, turn[0], turn[1],
+                       OMEGA_IE_RADPS, r_new, v_new, C_new)
+    return r_new, v_new, C_new, dv_e
 
 
 def strapdown_step_with_force_reference(r_e, v_e, C_b_e, dtheta_b, dv_b, tau_s: float, g_e=None):
