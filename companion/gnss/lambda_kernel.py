@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from ..nav.imu_kernel import numba_or_none
+from ..nav.imu_kernel import jit_options, numba_or_none
 from . import lambda_ils as reference
 
 _kernels = None
@@ -151,7 +151,7 @@ def search(L, D, zs, m, max_loops):
 
 class _Compiled:
     def __init__(self, numba):
-        jit = numba.njit(cache=True, nogil=True)
+        jit = numba.njit(**jit_options(numba))
         self.ldl = jit(ldl)
         self.reduce = jit(reduce)
         self.search = jit(search)

@@ -28,10 +28,13 @@ Raspberry Pi OS) that is the default.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 ENV_SWITCH = "COMPANION_NUMBA"
 
@@ -142,11 +145,26 @@ def propagate(phi, P, Qd, tail_q, C, fx, fy, fz, tau, i_att, i_vel, i_ba, i_bg, 
         P[nc + t, nc + t] += tail_q[t]
 
 
+def jit_options(numba) -> dict:
+    """numba.njit options: cached on disk when numba finds a writable cache directory (beside the
+    source, or the user's cache; ``NUMBA_CACHE_DIR`` overrides both), else compiled in memory at
+    every start (numba refuses ``cache=True`` without a place to write: say so, go on)."""
+    def probe(x):
+        return x
+    try:
+        numba.njit(cache=True)(probe)
+        return {"cache": True, "nogil": True}
+    except RuntimeError as e:          # "cannot cache function ...: no locator available"
+        log.warning("numba cannot cache its compiled kernels (%s): they compile at every start; "
+                    "set NUMBA_CACHE_DIR to a writable directory", e)
+        return {"cache": False, "nogil": True}
+
+
 class _Compiled:
     """The jitted kernels (attributes named as the Python functions above)."""
 
     def __init__(self, numba):
-        jit = numba.njit(cache=True, nogil=True)
+        jit = numba.njit(**jit_options(numba))
         self.strapdown = jit(strapdown)
         self.propagate = jit(propagate)
 
