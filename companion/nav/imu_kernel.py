@@ -181,6 +181,9 @@ def numba_or_none():
         import numba
     except ImportError:
         return None
+    except Exception as e:             # e.g. a numba too old for this numpy refuses to import
+        log.warning("numba does not import (%s): the pure-Python IMU path runs", e)
+        return None
     return numba
 
 
