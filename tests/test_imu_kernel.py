@@ -121,3 +121,18 @@ def test_warm_up_compiles_every_kernel():
     # every dispatcher has a compiled (or cache-loaded) specialisation: the first flight pays nothing
     for disp in (k.strapdown, k.propagate, lk.ldl, lk.reduce, lk.search):
         assert disp.signatures, disp
+
+
+def test_without_a_cache_directory_the_kernels_compile_in_memory(caplog):
+    """numba refuses cache=True when it finds nowhere to write (a read-only install under a
+    sandboxed service): the kernels must still come, uncached, with a warning."""
+    class NoCacheNumba:
+        @staticmethod
+        def njit(**options):
+            if options.get("cache"):
+                raise RuntimeError("cannot cache function 'probe': no locator available for file")
+            return lambda f: f
+    assert imu_kernel.jit_options(NoCacheNumba) == {"cache": False, "nogil": True}
+    assert "NUMBA_CACHE_DIR" in caplog.text
+    import numba
+    assert imu_kernel.jit_options(numba)["cache"] is True
