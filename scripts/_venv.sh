@@ -48,4 +48,6 @@ companion_venv() {
 companion_install() {
   echo "installing companion and its Python packages ($1) into .venv/ (first time 1-3 min, then seconds)"
   python -m pip install -q --disable-pip-version-check -e ".[$1]"
+  # compile the IMU-rate and LAMBDA kernels once now (numba's disk cache), not at the first flight
+  python -m companion.nav.imu_kernel || true
 }

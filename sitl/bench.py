@@ -10,7 +10,9 @@ consumes the same samples twice in one process:
 Throughput comes from untimed passes, as wall-clock *and* CPU-time rates (process_time: what the
 process itself used, which is what means something on a shared, loaded machine); latency from
 separate passes that time every IMU sample (including any GNSS epoch it releases) with
-perf_counter_ns.  Also: the cost of one carrier-phase RTK epoch (companion.gnss.rtk, GEONET
+perf_counter_ns.  The same for carrier-phase RTK inside the filter (:mod:`companion.nav.rtk_update`):
+the 'rtk' scenario (dual-frequency rover, short baseline) with the mask at 0 deg, ~10-11 GPS
+satellites and ~21 signals per epoch.  Also: the cost of one carrier-phase RTK epoch (companion.gnss.rtk, GEONET
 0759/3040, L1+L2) in CPU time, the start-up time of ``import companion.service`` in a fresh
 interpreter, and one covariance propagation step with 40 identity states (float ambiguities) beside
 the standard 18, dense against by blocks (companion.nav.filter).
@@ -20,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import gc
 import math
+import os
 import resource
 import subprocess
 import sys
@@ -35,12 +38,20 @@ from .scenario import build_scenario
 from .simulate import simulate
 from .tuning import tuning_for
 
+#: the RTK load's elevation mask: as low as the simulator's sky allows, for the most satellites
+RTK_MASK_DEG = 0.0
 
-def _run(sim, tuning, with_gnss: bool, seed: int = 0, timed: bool = False):
+
+def _run(sim, tuning, with_gnss: bool, seed: int = 0, timed: bool = False, cfg=None, gnss_latency_s: float = 0.0,
+         epoch_mask: np.ndarray | None = None):
     """One pass of the engine over the flight.  ``timed``: also time every sample (that timing
-    costs a few microseconds itself, so throughput comes from an untimed pass)."""
-    cfg = mode_config("tdcp_dgps", tuning, sim.lever_arm_b)
-    cfg.elevation_mask_deg = 0.0
+    costs a few microseconds itself, so throughput comes from an untimed pass).  ``cfg``: the
+    engine's configuration (default: tdcp_dgps with the mask at 0 deg); ``gnss_latency_s``: GNSS
+    epochs are handed over this long after their time (as :mod:`sitl.rtk_score` does);
+    ``epoch_mask`` (bool, one per IMU sample): set where a rover epoch was handed over."""
+    if cfg is None:
+        cfg = mode_config("tdcp_dgps", tuning, sim.lever_arm_b)
+        cfg.elevation_mask_deg = 0.0
     eng = NavEngine(cfg)
     for eph in sim.ephemerides:
         eng.process(eph)
@@ -54,18 +65,21 @@ def _run(sim, tuning, with_gnss: bool, seed: int = 0, timed: bool = False):
     lat_ns = np.zeros(len(sim.imu), dtype=np.int64)
     clock = time.perf_counter_ns
     n_b, n_r = len(base), len(rover)
+    lat_s = gnss_latency_s
     gc.disable()
     cpu_start = time.process_time_ns()
     t_start = clock()
     for k, s in enumerate(sim.imu):
         t0 = clock() if timed else 0
         if with_gnss:
-            while i_b < n_b and base[i_b].t_gps <= s.t_gps:
+            while i_b < n_b and base[i_b].t_gps + lat_s <= s.t_gps:
                 eng.process(base[i_b])
                 i_b += 1
-            while i_r < n_r and rover[i_r].t_gps <= s.t_gps:
+            while i_r < n_r and rover[i_r].t_gps + lat_s <= s.t_gps:
                 eng.process(rover[i_r])
                 i_r += 1
+                if epoch_mask is not None:
+                    epoch_mask[k] = True
         eng.process_imu(s)
         if timed:
             lat_ns[k] = clock() - t0
@@ -73,6 +87,20 @@ def _run(sim, tuning, with_gnss: bool, seed: int = 0, timed: bool = False):
     cpu = (time.process_time_ns() - cpu_start) * 1e-9
     gc.enable()
     return (len(sim.imu) / elapsed, len(sim.imu) / max(cpu, 1e-9)), lat_ns, dict(eng.counters)
+
+
+def rtk_workload(duration_s: float | None = None, mask_deg: float = RTK_MASK_DEG):
+    """The 'rtk' scenario (dual-frequency rover, base 0.1-0.5 km away) with the elevation mask at
+    ``mask_deg`` for simulator and engine, simulated once: (sim, tuning, engine configuration).
+    The 2005 GPS-only sky gives ~10-11 satellites above 0 deg (the issue's 20-satellite load does
+    not exist in it: 10-11 satellites x 2 frequencies = 20-22 ambiguities, ~40 DD rows)."""
+    from .rtk_score import rtk_config
+    scn = dataclasses.replace(build_scenario("rtk"), mask_deg=mask_deg)
+    if duration_s is not None:
+        scn = dataclasses.replace(scn, duration_s=float(duration_s))
+    sim = simulate(scn, 0)
+    tuning = tuning_for(scn)
+    return sim, tuning, rtk_config(scn, tuning)
 
 
 def _rtk_epoch_cpu_s() -> tuple[float, int, float]:
@@ -146,6 +174,7 @@ def run_bench(duration_s: float | None = None) -> dict:
     prop_dense_us, prop_blocks_us = propagation_us()
     _, lat_imu, _ = _run(sim, tuning, False, timed=True)
     _, lat_gnss, _ = _run(sim, tuning, True, timed=True)
+    rtk = _rtk_load(duration_s)
     n_sats = np.mean([len({o.sat for o in e.observations}) for e in sim.rover_epochs])
     return {
         "imu_rate_hz": scenario.imu.rate_hz,
@@ -169,7 +198,47 @@ def run_bench(duration_s: float | None = None) -> dict:
         "gnss_cost_ratio": round(rate_imu / rate_gnss, 3),
         "propagation_58_states_dense_us": round(prop_dense_us, 2),
         "propagation_58_states_blocks_us": round(prop_blocks_us, 2),
+        **rtk,
+        "compiled_kernels": _kernels_on(),
+        "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS", "default"),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+    }
+
+
+def _kernels_on() -> bool:
+    """Whether the engine ran the compiled kernels (numba) or the pure-Python references."""
+    from companion.nav import imu_kernel
+    return imu_kernel.compiled() is not None
+
+
+def _rtk_load(duration_s: float | None) -> dict:
+    """RTK inside the filter at IMU rate (the 'rtk' scenario, :func:`rtk_workload`): throughput
+    from an untimed pass after a warm-up, latency from a timed one."""
+    sim, tuning, cfg = rtk_workload(duration_s)
+    lat = tuning.gnss_latency_s
+    _run(sim, tuning, True, cfg=cfg, gnss_latency_s=lat)  # warm-up
+    (rate, cpu_rate), _, counters = _run(sim, tuning, True, cfg=cfg, gnss_latency_s=lat)
+    at_epoch = np.zeros(len(sim.imu), bool)
+    _, lat_ns, _ = _run(sim, tuning, True, timed=True, cfg=cfg, gnss_latency_s=lat, epoch_mask=at_epoch)
+    lat_epoch = lat_ns[at_epoch] if at_epoch.any() else np.full(1, np.nan)
+    sats = [len({o.sat for o in e.observations}) for e in sim.rover_epochs]
+    signals = [len({(o.sat, o.signal) for o in e.observations}) for e in sim.rover_epochs]
+    return {
+        "rtk_imu_samples": len(sim.imu),
+        "rtk_mask_deg": cfg.elevation_mask_deg,
+        "rtk_mean_rover_satellites": round(float(np.mean(sats)), 2) if sats else 0.0,
+        "rtk_mean_rover_signals": round(float(np.mean(signals)), 2) if signals else 0.0,
+        "rtk_phase_rows": counters.get("rtk_phase used", 0),
+        "rtk_code_rows": counters.get("rtk_code used", 0),
+        "rtk_fixed_epochs": counters.get("rtk fixed epochs", 0),
+        "imu_samples_per_s_with_rtk": round(rate, 1),
+        "imu_samples_per_cpu_s_with_rtk": round(cpu_rate, 1),
+        "latency_us_p50_with_rtk": round(float(np.percentile(lat_ns, 50)) / 1e3, 2),
+        "latency_us_p99_with_rtk": round(float(np.percentile(lat_ns, 99)) / 1e3, 2),
+        "latency_us_max_with_rtk": round(float(lat_ns.max()) / 1e3, 2),
+        # the samples that carry a rover epoch (1 in 200: invisible in the p99 of all samples)
+        "rtk_epoch_latency_ms_p50": round(float(np.percentile(lat_epoch, 50)) / 1e6, 3),
+        "rtk_epoch_latency_ms_p99": round(float(np.percentile(lat_epoch, 99)) / 1e6, 3),
     }
 
 
@@ -182,6 +251,13 @@ def format_bench(r: dict) -> str:
         f"  IMU + GNSS (PR+TDCP): {r['imu_samples_per_cpu_s_with_gnss']:>10,.0f} samples/CPU-s "
         f"({r['imu_samples_per_s_with_gnss']:,.0f}/s wall; p50 {r['latency_us_p50']} us, p99 {r['latency_us_p99']} us, "
         f"max {r['latency_us_max']} us)",
+        f"  IMU + RTK (L1+L2)   : {r['imu_samples_per_cpu_s_with_rtk']:>10,.0f} samples/CPU-s "
+        f"({r['imu_samples_per_s_with_rtk']:,.0f}/s wall; p50 {r['latency_us_p50_with_rtk']} us, "
+        f"p99 {r['latency_us_p99_with_rtk']} us, max {r['latency_us_max_with_rtk']} us)",
+        f"    'rtk' scenario, mask {r['rtk_mask_deg']:g} deg: {r['rtk_mean_rover_satellites']} satellites, "
+        f"{r['rtk_mean_rover_signals']} signals/epoch; {r['rtk_phase_rows']} DD phase + {r['rtk_code_rows']} DD code rows, "
+        f"{r['rtk_fixed_epochs']} fixed epochs; a sample with an RTK epoch: p50 {r['rtk_epoch_latency_ms_p50']} ms, "
+        f"p99 {r['rtk_epoch_latency_ms_p99']} ms",
         f"  RTK epoch (GEONET, L1+L2, {r['rtk_mean_satellites']} satellites): {r['rtk_epoch_cpu_ms']} ms CPU "
         f"over {r['rtk_epochs']} epochs",
         f"  start-up (import companion.service): {r['startup_import_service_s']} s",
@@ -189,5 +265,6 @@ def format_bench(r: dict) -> str:
         f"cost ratio with/without GNSS {r['gnss_cost_ratio']}",
         f"  covariance propagation with 40 identity states (n = 58): dense {r['propagation_58_states_dense_us']} us, "
         f"by blocks {r['propagation_58_states_blocks_us']} us of CPU per IMU sample",
-        f"  peak RSS {r['peak_rss_mb']} MB",
+        f"  peak RSS {r['peak_rss_mb']} MB; compiled kernels {'on' if r['compiled_kernels'] else 'off (pure Python)'}, "
+        f"OPENBLAS_NUM_THREADS {r['openblas_num_threads']}",
     ])

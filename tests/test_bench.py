@@ -10,8 +10,16 @@ def test_bench_reports_cpu_time_rates_latency_rtk_and_startup():
     for k in ("imu_samples_per_s", "imu_samples_per_s_with_gnss", "imu_samples_per_cpu_s",
               "imu_samples_per_cpu_s_with_gnss", "latency_us_p50", "latency_us_p99", "rtk_epoch_cpu_ms",
               "startup_import_service_s", "peak_rss_mb",
-              "propagation_58_states_dense_us", "propagation_58_states_blocks_us"):
+              "propagation_58_states_dense_us", "propagation_58_states_blocks_us",
+              "imu_samples_per_cpu_s_with_rtk", "imu_samples_per_s_with_rtk", "latency_us_p50_with_rtk",
+              "latency_us_p99_with_rtk", "rtk_mean_rover_satellites", "rtk_epoch_latency_ms_p50"):
         assert math.isfinite(r[k]) and r[k] > 0, (k, r[k])
     assert r["imu_samples"] == 1000 and r["rtk_epochs"] >= 115
     assert r["latency_us_p50"] <= r["latency_us_p99"]
-    assert "samples/CPU-s" in format_bench(r)
+    # the RTK load really runs RTK: DD phase rows on two frequencies from the 0-deg sky
+    assert r["rtk_imu_samples"] == 1000 and r["rtk_phase_rows"] > 0 and r["rtk_code_rows"] > 0
+    assert r["rtk_mean_rover_signals"] > 1.5 * r["rtk_mean_rover_satellites"]
+    assert r["latency_us_p50_with_rtk"] <= r["latency_us_p99_with_rtk"]
+    assert r["rtk_epoch_latency_ms_p50"] * 1e3 >= r["latency_us_p50_with_rtk"]   # an epoch costs more than a sample
+    text = format_bench(r)
+    assert "samples/CPU-s" in text and "IMU + RTK" in text

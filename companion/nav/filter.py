@@ -40,6 +40,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from .chi2 import chi2_ppf
 
+from . import imu_kernel
 from .earth import OMEGA_IE_RADPS, skew
 from .state_layout import DEFAULT_LAYOUT, DT_IMU, StateLayout, delete_block, insert_block, isb_block_name
 
@@ -168,6 +169,11 @@ class ErrorStateKalmanFilter:
             self._tail_psd[b.start - L.n_core:b.stop - L.n_core] = self._block_psd.get(b.name, 0.0)
         self._tail_q_scalar = []
         self._views_of = None
+        # the compiled kernel's arguments: block starts, the identity tail's noise, a work buffer
+        self._kernel_idx = (L.att.start, L.vel.start, L.ba.start, L.bg.start)
+        self._kernel_tail_q = np.zeros(L.n - nd)
+        self._kernel_work = np.empty((nd, L.n))
+        self._kernel_work_cc = np.empty((nd, nd))
 
     def _set_interval(self, tau: float) -> None:
         """Entries of Phi and Qd that depend only on the interval length (constant at a fixed IMU rate)."""
@@ -194,6 +200,7 @@ class ErrorStateKalmanFilter:
         nz = np.flatnonzero(self._tail_q) if nd < L.n else []
         self._tail_q_scalar = ([((nc + int(i), nc + int(i)), float(self._tail_q[i])) for i in nz]
                                if len(nz) <= self._SCALAR_TAIL_NOISE_MAX else None)
+        self._kernel_tail_q = np.ascontiguousarray(self._tail_q[nd - nc:])
         self._last_tau = tau
         self._grad_tau = None  # the gravity-gradient block scales with tau: rewrite it
 
@@ -218,6 +225,28 @@ class ErrorStateKalmanFilter:
         self._views_of = P
 
     def propagate(self, C_b_e: np.ndarray, dv_e: np.ndarray, gravity_gradient: np.ndarray, tau: float) -> None:
+        """P <- Phi P Phi^T + Qd over one IMU interval (see :meth:`propagate_reference`), by the
+        compiled kernel (:mod:`.imu_kernel`: the same BLAS products, P updated in place, the
+        Python around them gone) when numba is there, else by :meth:`propagate_reference`."""
+        k = imu_kernel.compiled()
+        if k is None:
+            self.propagate_reference(C_b_e, dv_e, gravity_gradient, tau)
+            return
+        if tau != self._last_tau:
+            self._set_interval(tau)
+        if gravity_gradient is not self._grad_tau:
+            np.multiply(gravity_gradient, tau, out=self._phi_vel_pos)
+            self._grad_tau = gravity_gradient
+        P = self.P
+        if not P.flags.c_contiguous or P.dtype != np.float64:
+            P = self.P = np.ascontiguousarray(P, dtype=float)    # one compiled specialisation
+        fx, fy, fz = dv_e
+        i_att, i_vel, i_ba, i_bg = self._kernel_idx
+        k.propagate(self._phi, P, self._Qd, self._kernel_tail_q, C_b_e, fx, fy, fz, tau,
+                    i_att, i_vel, i_ba, i_bg, self._kernel_work, self._kernel_work_cc)
+
+    def propagate_reference(self, C_b_e: np.ndarray, dv_e: np.ndarray, gravity_gradient: np.ndarray,
+                            tau: float) -> None:
         """P <- Phi P Phi^T + Qd over one IMU interval, by blocks (c: the core, x: identity blocks):
 
             P_cc <- Phi_c P_cc Phi_c^T + Q_c,   P_cx <- Phi_c P_cx,   P_xx <- P_xx + Q_x

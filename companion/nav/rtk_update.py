@@ -53,7 +53,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from ..gnss.double_difference import dd_covariance, model_range_m, receiver_sats, sd_variance_m2
-from ..gnss.lambda_ils import lambda_ils
+from ..gnss.lambda_kernel import lambda_ils      # compiled when numba is there, same results
 from ..messages import GnssEpoch
 from .chi2 import chi2_ppf
 from .earth import ecef_to_geodetic, skew

@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from . import imu_kernel
 from .earth import OMEGA_IE_RADPS, gravity_ecef, skew
 
 
@@ -49,6 +50,30 @@ _EARTH_TURN = {}   # tau -> (cos, sin) of the earth's rotation over the interval
 def strapdown_step_with_force(r_e, v_e, C_b_e, dtheta_b, dv_b, tau_s: float, g_e=None):
     """:func:`strapdown_step` that also returns the specific-force velocity increment in ECEF
     (C_b_e (dv + dtheta x dv / 2)) as a tuple, which the covariance propagation needs as f_e * tau.
+
+    Runs the compiled kernel (:mod:`.imu_kernel`, the same arithmetic in the same order) when numba
+    is there, else :func:`strapdown_step_with_force_reference`.
+    """
+    k = imu_kernel.compiled()
+    if k is None:
+        return strapdown_step_with_force_reference(r_e, v_e, C_b_e, dtheta_b, dv_b, tau_s, g_e)
+    if g_e is None:
+        g_e = gravity_ecef(r_e)
+    ax, ay, az = dtheta_b
+    bx, by, bz = dv_b
+    gx, gy, gz = g_e.tolist() if hasattr(g_e, "tolist") else g_e
+    turn = _EARTH_TURN.get(tau_s)
+    if turn is None:
+        ang = OMEGA_IE_RADPS * tau_s
+        turn = _EARTH_TURN[tau_s] = (math.cos(ang), math.sin(ang))
+    r_new, v_new, C_new = np.empty(3), np.empty(3), np.empty((3, 3))
+    dv_e = k.strapdown(r_e, v_e, C_b_e, ax, ay, az, bx, by, bz, tau_s, gx, gy, gz, turn[0], turn[1],
+                       OMEGA_IE_RADPS, r_new, v_new, C_new)
+    return r_new, v_new, C_new, dv_e
+
+
+def strapdown_step_with_force_reference(r_e, v_e, C_b_e, dtheta_b, dv_b, tau_s: float, g_e=None):
+    """The readable reference of :func:`strapdown_step_with_force` (and its fallback without numba).
 
     Written out in float arithmetic: at IMU rate the 3x3 work is cheaper in plain Python than
     through numpy's per-call overhead (about half the time); the equations are those of the
