@@ -729,6 +729,13 @@ def run_replay_cli(args) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(obj, default=str))
         print(f"wrote {args.json}")
+    if res.solutions and any(getattr(args, k, None) for k in ("pos", "kml", "gpx")):
+        from .io.track_export import write_solution_files
+        n = write_solution_files(res.solutions, name=f"companion replay ({res.kind}): {Path(args.log).name}",
+                                 pos=args.pos, kml=args.kml, gpx=args.gpx, inputs=[str(args.log)],
+                                 options={"pos": "IMU (the fused solution, not the antenna)",
+                                          "solution": "smoothed (forward + backward RTS)" if getattr(args, "smooth", False) else "forward"})
+        print(f"wrote {n} epochs to " + ", ".join(p for p in (args.pos, args.kml, args.gpx) if p))
     if args.plot and res.solutions:
         plot_replay(res, args.plot)
         print(f"wrote {args.plot} and {aid_status_plot_path(args.plot)}")

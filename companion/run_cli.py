@@ -63,6 +63,9 @@ def register(subparsers) -> None:
     r.add_argument("--config", help="TOML configuration (default: the one recorded in the field log)")
     r.add_argument("--json", help="write solutions and the comparison as JSON here")
     r.add_argument("--plot", help="write a PNG of the track and sigmas here")
+    r.add_argument("--pos", help="write the replayed solutions in RTKLIB's .pos format (rtkplot, pos2kml)")
+    r.add_argument("--kml", help="write the replayed solutions as a KML track (Google Earth)")
+    r.add_argument("--gpx", help="write the replayed solutions as a GPX track")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.add_argument("--min-imu-rate-hz", type=float, help="refuse a log whose IMU is slower (default 20)")
     r.add_argument("--gps-latency-ms", type=float, help="DataFlash: GPS fix age at its record "

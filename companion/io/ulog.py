@@ -35,7 +35,7 @@ from ..messages import SECONDS_PER_WEEK
 from .dataflash import DataFlashLog
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
-#: GPS time taken for boot time 0 when the log has no UTC (PX4 SIH): 2026-01-04 00:00 GPS, a week start
+#: GPS time taken for boot time 0 when the log has no UTC (PX4 SIH): 2025-12-28 00:00 GPS, a week start
 NO_UTC_EPOCH_GPS_S = 2399 * SECONDS_PER_WEEK
 GPS_EPOCH_UNIX_S = 315964800.0            # 1980-01-06 00:00:00 UTC
 ARMING_STATE_ARMED = 2                     # vehicle_status.arming_state (PX4 v1.14+)
