@@ -76,7 +76,14 @@ def test_replay_is_scored_against_sih_truth():
 
 
 def test_cli_replays_a_ulog(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "companion", "replay", str(ULG), "--no-progress"],
-                         capture_output=True, text=True, timeout=120)
+    pos, kml = tmp_path / "flight.pos", tmp_path / "flight.kml"
+    out = subprocess.run([sys.executable, "-m", "companion", "replay", str(ULG), "--no-progress",
+                          "--pos", str(pos), "--kml", str(kml)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert "against SIH truth" in out.stdout and "EKF2 vehicle_global_position" in out.stdout
+    epochs = [line.split() for line in pos.read_text().splitlines() if not line.startswith("%")]
+    assert len(epochs) > 400 and all(len(e) >= 14 for e in epochs)
+    lat = np.array([float(e[2]) for e in epochs])
+    assert np.all(np.abs(lat - 45.467) < 0.01)            # SIH's home (SIH_LOC_LAT0)
+    import xml.etree.ElementTree as ET
+    assert ET.parse(kml).getroot().tag.endswith("kml")
