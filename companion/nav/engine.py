@@ -9,8 +9,12 @@ engine keeps a short history of the INS state at every IMU sample and evaluates 
 model at the INS state *linearly interpolated to t_gps* (seed 000 eqs 31-32), never at the nearest
 sample.  An epoch that arrives before the IMU has passed its time waits in a queue; one that
 arrives late (the usual case in the field: receivers report 20-100 ms after the epoch) is
-interpolated from the history.  The correction is applied at the current IMU time, treating the
-error state as constant over the latency (it changes by ~v_err * latency, far below the noise).
+interpolated from the history.  The correction is applied at the current IMU time: the epoch's rows
+are referred across the latency with the error dynamics (velocity <- tilt x specific force and
+accelerometer bias, position <- velocity, ...; :class:`.measurements.LatencyTransition`), and the
+next TDCP interval starts from the correction referred back to the epoch.  Taking the errors as
+constant over the latency cost nothing with a well-known attitude, but after an initialisation
+in flight it was several TDCP sigmas and turned the heading the wrong way.
 
 The IMU's time tags are the autopilot's boot time mapped to GPS time by SYSTEM_TIME, which lags by
 the receiver latency; the filter estimates that offset (state ``dt_imu``, :mod:`.filter`).  The INS
@@ -43,8 +47,8 @@ from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .state_layout import DEFAULT_LAYOUT, StateLayout, isb_block_name
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
-from .measurements import (InsPoint, LatencyTransition, PhaseRecord, antenna_state, attitude_batch, attitude_rate_e, baseline_batch,
-                           doppler_batch,
+from .measurements import (InsPoint, LatencyTransition, PhaseRecord, antenna_state, attitude_batch, attitude_rate_e,
+                           baseline_batch, doppler_batch,
                            horizontal_velocity_fix_batch, line_of_sight, nhc_batch, position_fix_batch,
                            pseudorange_batch, single_difference, tdcp_batch, velocity_fix_batch, zero_rate_batch,
                            zero_velocity_batch)
@@ -708,10 +712,10 @@ class NavEngine:
                     tdcp.H[:, self.layout.toff] = 0.0
                 batches.append(tdcp)
         batches = [b for b in batches if len(b)]
-        lat = self._latency_transition(ins)
-        if lat is not None:
+        latency = self._latency_transition(ins)      # rows in the errors of now (RTK rows: as built)
+        if latency is not None:
             for b in batches:
-                b.H = lat.rows_of_now(b.H, self.layout)
+                b.H = latency.rows_of_now(b.H, self.layout)
         if cfg.measurement_form == "single_difference" and batches and len(prep.sats):
             # reference: the highest satellite that every GNSS batch contains
             common = set.intersection(*(set(b.labels) for b in batches))
@@ -746,7 +750,7 @@ class NavEngine:
                     dx_total = dx + self.rtk.last_hold_dx
                 rep.fix_state, rep.fix_ratio, rep.n_fixed = st.fix_state, st.ratio, st.n_fixed
             self.rtk.finish(self, rtk_rows, dx_total)
-        self._remember_phase(ins, dx if lat is None else lat.correction_then(dx, self.layout), prep)
+        self._remember_phase(ins, dx if latency is None else latency.correction_then(dx, self.layout), prep)
         self._last_epoch_t = epoch.t_gps
         self._check_integrity(epoch.t_gps)
         self.epoch_reports.append(rep)
