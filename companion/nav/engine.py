@@ -9,8 +9,12 @@ engine keeps a short history of the INS state at every IMU sample and evaluates 
 model at the INS state *linearly interpolated to t_gps* (seed 000 eqs 31-32), never at the nearest
 sample.  An epoch that arrives before the IMU has passed its time waits in a queue; one that
 arrives late (the usual case in the field: receivers report 20-100 ms after the epoch) is
-interpolated from the history.  The correction is applied at the current IMU time, treating the
-error state as constant over the latency (it changes by ~v_err * latency, far below the noise).
+interpolated from the history.  The correction is applied at the current IMU time: the epoch's rows
+are referred across the latency with the error dynamics (velocity <- tilt x specific force and
+accelerometer bias, position <- velocity, ...; :class:`.measurements.LatencyTransition`), and the
+next TDCP interval starts from the correction referred back to the epoch.  Taking the errors as
+constant over the latency cost nothing with a well-known attitude, but after an initialisation
+in flight it was several TDCP sigmas and turned the heading the wrong way.
 
 The IMU's time tags are the autopilot's boot time mapped to GPS time by SYSTEM_TIME, which lags by
 the receiver latency; the filter estimates that offset (state ``dt_imu``, :mod:`.filter`).  The INS
@@ -43,8 +47,8 @@ from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .state_layout import DEFAULT_LAYOUT, StateLayout, isb_block_name
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
-from .measurements import (InsPoint, PhaseRecord, antenna_state, attitude_batch, attitude_rate_e, baseline_batch,
-                           doppler_batch,
+from .measurements import (InsPoint, LatencyTransition, PhaseRecord, antenna_state, attitude_batch, attitude_rate_e,
+                           baseline_batch, doppler_batch,
                            horizontal_velocity_fix_batch, line_of_sight, nhc_batch, position_fix_batch,
                            pseudorange_batch, single_difference, tdcp_batch, velocity_fix_batch, zero_rate_batch,
                            zero_velocity_batch)
@@ -719,6 +723,10 @@ class NavEngine:
                     tdcp.H[:, self.layout.toff] = 0.0
                 batches.append(tdcp)
         batches = [b for b in batches if len(b)]
+        latency = self._latency_transition(ins)      # rows in the errors of now (RTK rows: as built)
+        if latency is not None:
+            for b in batches:
+                b.H = latency.rows_of_now(b.H, self.layout)
         if cfg.measurement_form == "single_difference" and batches and len(prep.sats):
             # reference: the highest satellite that every GNSS batch contains
             common = set.intersection(*(set(b.labels) for b in batches))
@@ -753,7 +761,7 @@ class NavEngine:
                     dx_total = dx + self.rtk.last_hold_dx
                 rep.fix_state, rep.fix_ratio, rep.n_fixed = st.fix_state, st.ratio, st.n_fixed
             self.rtk.finish(self, rtk_rows, dx_total)
-        self._remember_phase(ins, dx, prep)
+        self._remember_phase(ins, dx if latency is None else latency.correction_then(dx, self.layout), prep)
         self._last_epoch_t = epoch.t_gps
         self._check_integrity(epoch.t_gps)
         self.epoch_reports.append(rep)
@@ -1127,6 +1135,20 @@ class NavEngine:
                     or (math.isfinite(lock) and math.isfinite(prev.lock_time_s) and lock < prev.lock_time_s)):
                 del self._phase[sat]
                 self.counters["carrier bookkeeping restarted (slip flag / lock time)"] += 1
+
+    LATENCY_MIN_S = 1e-3
+
+    def _latency_transition(self, ins: InsPoint) -> LatencyTransition | None:
+        """The error dynamics from the INS point a measurement was predicted at to now (the IMU
+        sample the correction is applied at), with the mean specific force in between from the
+        velocity change (the ECEF mechanisation, as :meth:`_mean_specific_force_e`); None when
+        the measurement is (nearly) current."""
+        d = self.t_gps - ins.t_gps
+        if not d > self.LATENCY_MIN_S:
+            return None
+        omega = np.array([0.0, 0.0, OMEGA_IE_RADPS])
+        f_e = (self.v_e - ins.v_e) / d - gravity_ecef(self.r_e) + 2.0 * np.cross(omega, self.v_e)
+        return LatencyTransition(d, f_e, self.C_b_e)
 
     def _mean_specific_force_e(self, ins: InsPoint) -> np.ndarray | None:
         """Mean specific force (ECEF, m/s^2) since the last epoch, from the velocity change and the

@@ -366,6 +366,51 @@ def _wrap_pi(a: np.ndarray) -> np.ndarray:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
+@dataclass(frozen=True)
+class LatencyTransition:
+    """The INS error dynamics over a measurement's latency ``latency_s`` = (current IMU time) -
+    (the time the measurement was predicted at), to first order: x_then = (I - F latency) x_now
+    with the core of the filter's F (position <- velocity, velocity <- attitude -[f x] and
+    accelerometer bias -C, attitude <- gyro bias -C, clock <- drift).
+
+    The engine keeps one error state, at the current IMU time, and corrects the nominal state
+    there.  A GNSS epoch arrives 0.1-0.25 s after its time (receiver output, corrections
+    waited for); its rows see the errors of *then*.  Taking those as the errors of now was
+    harmless with a well-known attitude, but after an initialisation in flight (heading
+    uncertain by degrees, tilt by 2, biases unknown) the velocity error changes by f x psi over
+    the latency -- 0.05 m/s at 2 deg of tilt and 0.15 s, four TDCP sigmas -- and the TDCP rows
+    then pushed the heading and the gyro bias 4-5 sigma the wrong way (the in-flight start
+    without ATTITUDE wandered 20-60 deg within 25 s; tests/test_inflight_init.py)."""
+
+    latency_s: float
+    specific_force_e: np.ndarray
+    C_b_e: np.ndarray
+
+    def rows_of_now(self, H: np.ndarray, layout=LAYOUT) -> np.ndarray:
+        """Measurement rows H (in the errors at the measurement's time) as rows in the errors
+        now: H (I - F latency)."""
+        L = layout
+        d = self.latency_s
+        out = H.copy()
+        out[:, L.vel] -= d * H[:, L.pos]
+        out[:, L.att] += d * (H[:, L.vel] @ skew(self.specific_force_e))
+        out[:, L.ba] += d * (H[:, L.vel] @ self.C_b_e)
+        out[:, L.bg] += d * (H[:, L.att] @ self.C_b_e)
+        out[:, L.drift] -= d * H[:, L.clk]
+        return out
+
+    def correction_then(self, dx: np.ndarray, layout=LAYOUT) -> np.ndarray:
+        """A correction of the errors now, referred back to the measurement's time: (I - F latency) dx."""
+        L = layout
+        d = self.latency_s
+        out = dx.copy()
+        out[L.pos] -= d * dx[L.vel]
+        out[L.vel] += d * (skew(self.specific_force_e) @ dx[L.att] + self.C_b_e @ dx[L.ba])
+        out[L.att] += d * (self.C_b_e @ dx[L.bg])
+        out[L.clk] -= d * dx[L.drift]
+        return out
+
+
 def single_difference(batch: MeasurementBatch, ref_label: str) -> MeasurementBatch:
     """Between-satellite single differences (seed 004): every row minus the reference satellite's.
     The receiver clock bias and drift columns cancel exactly, so no clock state is needed.  The
