@@ -123,6 +123,8 @@ GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a r
                               # (the GSF's convergence took several already; at 1 Hz a wrong heading
                               # in motion costs metres per second)
 TRUSTED_HEADING_MAX_AGE_S = 5.0   # a dual-antenna heading fused this recently vouches for our heading
+GSF_RESTART_PROBATION_S = 30.0    # a yaw-from-motion bank restarted after a GNSS gap does not overrule
+                                  # a heading more certain than its own for this long (GPS time)
 
 
 #: constellations the navigation engine fuses (its prepare_epoch default: GPS only); ephemerides of
@@ -297,6 +299,8 @@ class NavPipeline:
         self._gsf_r_e = None                      # last SPP position of the GSF's velocities (next start)
         self._gsf_disagreements = 0
         self.gsf_heading_resets = 0
+        self._gsf_gap_restarts = 0                # the estimator's bank restarts after GNSS gaps seen so far
+        self._gsf_restart_t = -math.inf           # GPS time of the last one
         self.attitude_yaw_trusted = True          # False for the run once the yaw from motion contradicted it
         self.heading_confirmed = False            # the filter's heading came from, or agreed with, the yaw from motion
         self._t_last_motion = -math.inf           # last solution in (or starting) horizontal motion
@@ -706,6 +710,10 @@ class NavPipeline:
         update cannot turn a heading by tens of degrees), its velocity onto the GNSS one; the
         autopilot's ATTITUDE yaw is not trusted again in this run."""
         g, eng = self.gsf, self.engine
+        restarts = int(getattr(g, "gap_restarts", 0))
+        if restarts != self._gsf_gap_restarts:
+            self._gsf_gap_restarts = restarts
+            self._gsf_restart_t = eng.t_gps if eng.initialized else -math.inf
         if not (eng.initialized and g.converged):
             self._gsf_disagreements = 0
             self._confirm_attitude_heading()
@@ -717,6 +725,14 @@ class NavPipeline:
             self.heading_confirmed = True
             if self._heading_from_attitude and self.attitude_yaw_trusted:
                 self.attitude_yaw_confirmed = True
+            return
+        if self._gsf_restarted_and_less_certain(sigma):
+            # the bank started over after a GNSS gap and converged again within seconds: a heading
+            # it has not yet watched for long, against ours that is more certain and was fused
+            # through the gap (rtk flight, 30-s outage: a restarted bank converged 164 deg off at
+            # 9.5 deg sigma and its reset of a 1-deg heading brought a 0.26-m wrong RTK fix)
+            self._gsf_disagreements = 0
+            self.counters["heading reset refused: yaw from motion restarted recently, less certain"] += 1
             return
         self._gsf_disagreements += 1
         if self._gsf_disagreements < GSF_RESET_AFTER:
@@ -750,6 +766,12 @@ class NavPipeline:
             self._heading_from_attitude = False
         self._event(m.MAV_SEVERITY_WARNING, f"heading reset {math.degrees(delta):+.0f} deg onto the yaw from "
                                             f"motion (sigma {math.degrees(g.yaw_sigma_rad):.1f} deg)")
+
+    def _gsf_restarted_and_less_certain(self, our_sigma_rad: float) -> bool:
+        """The yaw from motion restarted after a GNSS gap less than GSF_RESTART_PROBATION_S ago
+        and is less certain than our heading: it neither overrules nor withholds ours."""
+        return (our_sigma_rad < self.gsf.yaw_sigma_rad
+                and self.engine.t_gps - self._gsf_restart_t < GSF_RESTART_PROBATION_S)
 
     def _confirm_attitude_heading(self) -> None:
         """A heading taken from the autopilot's ATTITUDE is confirmed in motion by a yaw from motion
@@ -805,7 +827,7 @@ class NavPipeline:
         if not eng.initialized or eng.kf is None:
             return True           # no heading to judge (the status gate decides)
         heading, sigma = eng.heading_and_sigma()
-        if self.gsf.settled and self._gsf_disagrees(heading, sigma):
+        if self.gsf.settled and self._gsf_disagrees(heading, sigma) and not self._gsf_restarted_and_less_certain(sigma):
             self.counters["solutions withheld: heading contradicts the yaw from motion"] += 1
             return False
         if self.gsf.converged:
