@@ -353,6 +353,25 @@ class FilterConfig:
                                      doc="missed-detection probability of the solution-separation (one faulty "
                                      "satellite) part of the protection level")
     gravity_gradient_refresh_m: float = _f(200.0, min=0.0, max=1e6, min_exclusive=True)
+    # carrier-phase RTK (companion.nav.rtk_update).  Off by default: it changes what an existing
+    # DGPS installation gets (DD code and phase replace the DGPS pseudoranges and TDCP whenever a
+    # base epoch is near), it needs a base within ~10 km sending carrier phase (MSM4/5/7 or 1004,
+    # best dual-frequency), and its simulated figures still miss the issue's 2-cm RMS after the
+    # first fix (the float seconds after an outage); turning it on is a decision about the base.
+    rtk_enabled: bool = _f(False, doc="carrier-phase RTK against the correction stream's base (double-"
+                           "differenced L1 C/A, L2C and L2 P(Y) phase and code, integer ambiguities; "
+                           "GPS_INPUT fix type 5/6). Needs corrections with carrier phase from a base "
+                           "within ~10 km. Off by default: DD code and phase then replace the DGPS "
+                           "pseudoranges and TDCP whenever a base epoch is near")
+    rtk_ratio_threshold: float = _f(3.0, min=1.0, max=100.0,
+                                    doc="LAMBDA ratio test: second-best / best squared norm at least this")
+    rtk_sigma_phase_a_m: float = _f(0.003, min=0.0, max=0.1, min_exclusive=True,
+                                    doc="carrier noise per receiver, elevation-independent part (RTKLIB's "
+                                    "a in a^2 + b^2 / sin^2 el)")
+    rtk_sigma_phase_b_m: float = _f(0.003, min=0.0, max=0.1,
+                                    doc="carrier noise per receiver, part growing as 1/sin(elevation)")
+    rtk_code_phase_ratio: float = _f(100.0, min=1.0, max=10000.0,
+                                     doc="code sigma / carrier sigma of the double-differenced rows")
 
     def process_noise(self):
         from .nav.filter import ProcessNoise
@@ -438,9 +457,12 @@ class Config:
     def engine_config(self):
         """The nav engine configuration (filter section + the GNSS installation)."""
         g = self.gnss
+        from .rtk_signals import RTK_SIGNALS
         return dataclasses.replace(self.filter.engine_config(g.lever_arm_b_m),
                                    moving_baseline_b_m=g.moving_baseline_b_m,
-                                   baseline_length_tol_m=g.baseline_length_tol_m)
+                                   baseline_length_tol_m=g.baseline_length_tol_m,
+                                   # the canonical tracking families the pipeline renames to
+                                   **({"rtk_signals": RTK_SIGNALS} if self.filter.rtk_enabled else {}))
 
     def to_toml(self, comments: bool = True, redact: bool = False) -> str:
         """TOML that :func:`loads_config` reads back; ``redact`` writes secrets as ``***``."""
@@ -560,6 +582,16 @@ def _cross_checks(cfg: Config, where: str) -> None:
         raise ConfigError(f"{where}: corrections.ntrip.mountpoint: required when corrections.source = 'ntrip'")
     if c.source == "file" and not c.file.path:
         raise ConfigError(f"{where}: corrections.file.path: required when corrections.source = 'file'")
+    if cfg.filter.rtk_enabled:
+        if c.source == "none":
+            raise ConfigError(f"{where}: filter.rtk_enabled: needs a base station: set corrections.source "
+                              f"(ntrip, serial, mqtt or file) to a stream with carrier phase (RTCM MSM4/5/7 or 1004)")
+        if cfg.gnss.source == "none":
+            raise ConfigError(f"{where}: filter.rtk_enabled: needs the rover's raw observations (carrier "
+                              f"phase): gnss.source = 'none' gives GPS_RAW_INT fixes only")
+        if cfg.filter.use_loose:
+            raise ConfigError(f"{where}: filter.rtk_enabled: cannot be combined with filter.use_loose = true "
+                              f"(loose coupling fuses receiver fixes, not carrier phase)")
     if c.source == "serial" and cfg.gnss.source == "serial" and c.serial.port == cfg.gnss.serial.port:
         raise ConfigError(f"{where}: corrections.serial.port: {c.serial.port!r} is also gnss.serial.port; "
                           f"one serial port cannot carry both")

@@ -232,3 +232,4 @@ class NavSolution:
     # ambiguities validated at the last epoch), and the LAMBDA ratio of that fix
     fix_state: str = "none"
     fix_ratio: float = float("nan")
+    n_fixed: int = 0                  # DD ambiguities fixed in that epoch (0 unless 'fixed')

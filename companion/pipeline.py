@@ -103,6 +103,7 @@ from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
 from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale, ImuScreen  # noqa: E402
 from .nav.integrity import GNSS_SOURCES, POSITION_SOURCES  # noqa: E402
 from .nav.yaw_gsf import YawGsf  # noqa: E402
+from .rtk_signals import RTK_SYSTEMS, rtk_epoch  # noqa: E402
 
 log = logging.getLogger(__name__)
 m = mavlink2
@@ -122,6 +123,8 @@ GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a r
                               # (the GSF's convergence took several already; at 1 Hz a wrong heading
                               # in motion costs metres per second)
 TRUSTED_HEADING_MAX_AGE_S = 5.0   # a dual-antenna heading fused this recently vouches for our heading
+GSF_RESTART_PROBATION_S = 30.0    # a yaw-from-motion bank restarted after a GNSS gap does not overrule
+                                  # a heading more certain than its own for this long (GPS time)
 
 
 #: constellations the navigation engine fuses (its prepare_epoch default: GPS only); ephemerides of
@@ -152,10 +155,19 @@ MODE_NAMES = {v: k for k, v in MODE_CODES.items()}
 
 # solution record: version, status, inject, mode, reset_counter, imu_count, t_boot_us, t_gps,
 # r_e(3) v_e(3) C_b_e(9) sigma_r(3) sigma_v(3) sigma_att(3), last_gnss_update_t_gps;
-# version 2 appends hpl_m (the horizontal protection level, NaN when there is none)
+# version 2 appends hpl_m (the horizontal protection level, NaN when there is none);
+# version 3 appends the RTK fix state (code of FIX_CODES), the number of fixed DD ambiguities
+# and the LAMBDA ratio (NaN when not fixed)
 _SOL_V1 = struct.Struct("<BBBBIQq d 3d 3d 9d 3d 3d 3d d".replace(" ", ""))
-_SOL = struct.Struct("<BBBBIQq d 3d 3d 9d 3d 3d 3d d d".replace(" ", ""))
-SOLUTION_RECORD_VERSION = 2
+_SOL_V2 = struct.Struct("<BBBBIQq d 3d 3d 9d 3d 3d 3d d d".replace(" ", ""))
+_SOL = struct.Struct("<BBBBIQq d 3d 3d 9d 3d 3d 3d d d BH d".replace(" ", ""))
+_SOL_BY_VERSION = {1: _SOL_V1, 2: _SOL_V2, 3: _SOL}
+SOLUTION_RECORD_VERSION = 3
+FIX_CODES = {"none": 0, "float": 1, "fixed": 2}
+FIX_NAMES = {v: k for k, v in FIX_CODES.items()}
+#: a new RTK fix state is announced (STATUSTEXT) only once it has held this long (GPS time): a fix
+#: lost for one epoch and regained, or a float epoch between fixed ones, is not a change to announce
+FIX_ANNOUNCE_HOLD_S = 3.0
 
 
 def encode_solution(sol: NavSolution) -> bytes:
@@ -168,26 +180,34 @@ def encode_solution(sol: NavSolution) -> bytes:
                      *np.asarray(sol.C_b_e, float).reshape(9).tolist(),
                      *np.asarray(sol.sigma_r_n_m, float).tolist(), *np.asarray(sol.sigma_v_n_mps, float).tolist(),
                      *np.asarray(sol.sigma_att_rad, float).tolist(), float(sol.last_gnss_update_t_gps),
-                     float(x.get("hpl_m", math.nan)))
+                     float(x.get("hpl_m", math.nan)), FIX_CODES.get(sol.fix_state, 0),
+                     max(0, min(int(sol.n_fixed), 0xFFFF)), float(sol.fix_ratio))
 
 
 def decode_solution(data: bytes) -> NavSolution:
-    """Either record version (1: old field logs, without the protection level)."""
-    v = (_SOL_V1 if data[:1] == b"\x01" else _SOL).unpack(data)
+    """Any record version (1: old field logs without the protection level, 2: without the RTK
+    fix state)."""
+    rec = _SOL_BY_VERSION.get(data[0], _SOL) if data else _SOL
+    v = rec.unpack(data)
     _ver, st, inj, mode, rc, n, tb, t = v[:8]
-    f = np.array(v[8:], float)
+    f = np.array(v[8:34], float)
     extras = {"inject": bool(inj), "mode": MODE_NAMES.get(mode, "none"), "imu_count": n, "t_boot_us": tb}
     if len(f) > 25:
         extras["hpl_m"] = float(f[25])
+    fix = {}
+    if len(v) > 34:
+        fix = {"fix_state": FIX_NAMES.get(v[34], "none"), "n_fixed": int(v[35]), "fix_ratio": float(v[36])}
     return NavSolution(t, f[0:3], f[3:6], f[6:15].reshape(3, 3), f[15:18], f[18:21], f[21:24],
-                       STATUS_NAMES.get(st, "untrusted"), float(f[24]), rc, extras)
+                       STATUS_NAMES.get(st, "untrusted"), float(f[24]), rc, extras, **fix)
 
 
 def solution_records_equal(logged: bytes, produced: bytes) -> bool:
-    """A logged solution record against one this version produced: a version-1 record (an old
-    field log) is compared on the fields it has."""
-    if logged[:1] == b"\x01" and produced[:1] == bytes([SOLUTION_RECORD_VERSION]) and len(logged) == _SOL_V1.size:
-        return logged[1:] == produced[1:_SOL_V1.size]
+    """A logged solution record against one this version produced: an older record (an old
+    field log: version 1 or 2) is compared on the fields it has."""
+    old = _SOL_BY_VERSION.get(logged[0]) if logged else None
+    if (old is not None and old is not _SOL and produced[:1] == bytes([SOLUTION_RECORD_VERSION])
+            and len(logged) == old.size):
+        return logged[1:] == produced[1:old.size]
     return logged == produced
 
 
@@ -249,6 +269,12 @@ class NavPipeline:
         self._held: list[GnssEpoch] = []          # rover epochs waiting for their base epoch
         self._base_times: list[float] = []        # recent base epoch times
         self.wait_for_base = config.corrections.source != "none" and config.filter.use_dgps
+        # carrier-phase RTK: tracking families renamed alike on both sides (companion.rtk_signals)
+        self.rtk_enabled = bool(getattr(config.filter, "rtk_enabled", False))
+        if self.rtk_enabled:
+            self.wait_for_base = config.corrections.source != "none"
+        self._fix_announced = "none"              # RTK fix state last announced
+        self._fix_candidate: tuple[str, float] | None = None   # (new state, GPS time it started)
         self._probation_next = False              # the next initialisation follows a divergence
         self._position_hold = False               # the engine holds the GNSS position back
         self._keep_biases_next = False            # ... follows a re-init of the same IMU in flight
@@ -273,6 +299,8 @@ class NavPipeline:
         self._gsf_r_e = None                      # last SPP position of the GSF's velocities (next start)
         self._gsf_disagreements = 0
         self.gsf_heading_resets = 0
+        self._gsf_gap_restarts = 0                # the estimator's bank restarts after GNSS gaps seen so far
+        self._gsf_restart_t = -math.inf           # GPS time of the last one
         self.attitude_yaw_trusted = True          # False for the run once the yaw from motion contradicted it
         self.heading_confirmed = False            # the filter's heading came from, or agreed with, the yaw from motion
         self._t_last_motion = -math.inf           # last solution in (or starting) horizontal motion
@@ -461,6 +489,8 @@ class NavPipeline:
             self._adopt_broadcast_klobuchar()
         for msg in msgs:
             if isinstance(msg, GnssEpoch):
+                if self.rtk_enabled:
+                    msg = self._rtk_epoch(msg)
                 if msg.source == "base":
                     self.engine.process(msg)       # counts an epoch it cannot use yet
                     if self.engine.base is None:
@@ -484,6 +514,20 @@ class NavPipeline:
                     if msg.carrier_fixed and self.cfg.gnss.moving_baseline_b_m is not None:
                         self._last_trusted_heading_t = msg.t_gps
         return []
+
+    def _rtk_epoch(self, epoch: GnssEpoch) -> GnssEpoch:
+        """With RTK on: GPS tracking families renamed to one code on both receivers (a u-blox
+        rover's L2L pairs with a base's 2X, never with its 2W: companion.rtk_signals), and a
+        base epoch cut to the systems the engine positions with (no GPS-Galileo double
+        differences on the shared 'L1C' name: their inter-system phase bias is not modelled)."""
+        out = rtk_epoch(epoch)
+        if out is not epoch:
+            self.counters[f"rtk: {epoch.source} epochs with signals renamed to their family"] += 1
+        if out.source == "base":
+            kept = tuple(o for o in out.observations if o.sat[:1] in RTK_SYSTEMS)
+            if len(kept) != len(out.observations):
+                out = dataclasses.replace(out, observations=kept)
+        return out
 
     # ------------------------------------------------------------------ IMU
     def _new_cluster(self) -> ImuCluster:
@@ -666,6 +710,10 @@ class NavPipeline:
         update cannot turn a heading by tens of degrees), its velocity onto the GNSS one; the
         autopilot's ATTITUDE yaw is not trusted again in this run."""
         g, eng = self.gsf, self.engine
+        restarts = int(getattr(g, "gap_restarts", 0))
+        if restarts != self._gsf_gap_restarts:
+            self._gsf_gap_restarts = restarts
+            self._gsf_restart_t = eng.t_gps if eng.initialized else -math.inf
         if not (eng.initialized and g.converged):
             self._gsf_disagreements = 0
             self._confirm_attitude_heading()
@@ -677,6 +725,14 @@ class NavPipeline:
             self.heading_confirmed = True
             if self._heading_from_attitude and self.attitude_yaw_trusted:
                 self.attitude_yaw_confirmed = True
+            return
+        if self._gsf_restarted_and_less_certain(sigma):
+            # the bank started over after a GNSS gap and converged again within seconds: a heading
+            # it has not yet watched for long, against ours that is more certain and was fused
+            # through the gap (rtk flight, 30-s outage: a restarted bank converged 164 deg off at
+            # 9.5 deg sigma and its reset of a 1-deg heading brought a 0.26-m wrong RTK fix)
+            self._gsf_disagreements = 0
+            self.counters["heading reset refused: yaw from motion restarted recently, less certain"] += 1
             return
         self._gsf_disagreements += 1
         if self._gsf_disagreements < GSF_RESET_AFTER:
@@ -710,6 +766,12 @@ class NavPipeline:
             self._heading_from_attitude = False
         self._event(m.MAV_SEVERITY_WARNING, f"heading reset {math.degrees(delta):+.0f} deg onto the yaw from "
                                             f"motion (sigma {math.degrees(g.yaw_sigma_rad):.1f} deg)")
+
+    def _gsf_restarted_and_less_certain(self, our_sigma_rad: float) -> bool:
+        """The yaw from motion restarted after a GNSS gap less than GSF_RESTART_PROBATION_S ago
+        and is less certain than our heading: it neither overrules nor withholds ours."""
+        return (our_sigma_rad < self.gsf.yaw_sigma_rad
+                and self.engine.t_gps - self._gsf_restart_t < GSF_RESTART_PROBATION_S)
 
     def _confirm_attitude_heading(self) -> None:
         """A heading taken from the autopilot's ATTITUDE is confirmed in motion by a yaw from motion
@@ -765,7 +827,7 @@ class NavPipeline:
         if not eng.initialized or eng.kf is None:
             return True           # no heading to judge (the status gate decides)
         heading, sigma = eng.heading_and_sigma()
-        if self.gsf.settled and self._gsf_disagrees(heading, sigma):
+        if self.gsf.settled and self._gsf_disagrees(heading, sigma) and not self._gsf_restarted_and_less_certain(sigma):
             self.counters["solutions withheld: heading contradicts the yaw from motion"] += 1
             return False
         if self.gsf.converged:
@@ -843,6 +905,7 @@ class NavPipeline:
             self._hpl_hold = False
         sol.extras.update({"inject": inject, "mode": self.mode, "imu_count": self.imu_count,
                            "t_boot_us": self.last_imu_boot_us})
+        sol = self._with_fix(sol)
         state = "injecting" if inject else f"not injecting ({sol.status})"
         if sol.status == "suspect":
             state = self.output_state     # a pause of one epoch or two is not a change to announce
@@ -858,6 +921,36 @@ class NavPipeline:
         self.counters["solutions injectable" if inject else "solutions withheld"] += 1
         self.last_solution = sol
         return sol
+
+    def _with_fix(self, sol: NavSolution) -> NavSolution:
+        """The solution with the number of fixed DD ambiguities of its fix, and the fix state
+        announced on a change that held FIX_ANNOUNCE_HOLD_S (no STATUSTEXT per flapping epoch)."""
+        rtk = getattr(self.engine, "rtk", None)
+        if sol.fix_state == "fixed" and rtk is not None:
+            sol = dataclasses.replace(sol, n_fixed=int(rtk.status.n_fixed))
+        self._announce_fix(sol)
+        return sol
+
+    def _announce_fix(self, sol: NavSolution) -> None:
+        state = sol.fix_state
+        if not self.rtk_enabled:
+            return
+        if state == self._fix_announced:
+            self._fix_candidate = None
+            return
+        if self._fix_candidate is None or self._fix_candidate[0] != state:
+            self._fix_candidate = (state, sol.t_gps)
+        if sol.t_gps - self._fix_candidate[1] < FIX_ANNOUNCE_HOLD_S:
+            return
+        before, self._fix_announced, self._fix_candidate = self._fix_announced, state, None
+        self.counters[f"rtk fix state announced: {state}"] += 1
+        if state == "fixed":
+            self._event(m.MAV_SEVERITY_INFO, f"RTK fixed: {sol.n_fixed} amb, ratio {sol.fix_ratio:.1f}")
+        elif state == "float":
+            self._event(m.MAV_SEVERITY_INFO if before == "none" else m.MAV_SEVERITY_WARNING,
+                        "RTK float" + (" (fix lost)" if before == "fixed" else ""))
+        else:
+            self._event(m.MAV_SEVERITY_WARNING, f"RTK none (was {before})")
 
     def _hpl_ok(self, sol: NavSolution) -> bool:
         """HPL within output.max_hpl_m (below resume_hpl_fraction of it after a stop on it).  The
@@ -1127,6 +1220,14 @@ class NavPipeline:
                          "inject": sol.extras.get("inject"),
                          "protection_level": {k: _round_or_none(sol.extras.get(k)) for k in
                                               ("hpl_m", "hpl_cov_m", "hpl_ss_m")}})
+            if self.rtk_enabled:
+                rtk = getattr(self.engine, "rtk", None)
+                st = rtk.status if rtk is not None else None
+                filt["rtk"] = {"fix_state": sol.fix_state, "fix_ratio": _round_or_none(sol.fix_ratio, 2),
+                               "n_fixed": int(sol.n_fixed),
+                               "n_ambiguities": int(st.n_ambiguities) if st is not None else 0,
+                               "success_rate": _round_or_none(st.success_rate, 6) if st is not None else None,
+                               "fix_state_announced": self._fix_announced}
             if "imu_time_offset_s" in sol.extras:     # dt_imu: GPS time of an IMU sample = tag + this
                 filt.update({"imu_time_offset_s": round(float(sol.extras["imu_time_offset_s"]), 5),
                              "imu_time_offset_sigma_s": round(float(sol.extras["imu_time_offset_sigma_s"]), 5)})
@@ -1154,4 +1255,5 @@ def _round_or_none(x, nd: int = 3):
 
 
 __all__ = ["NavPipeline", "solution_records_equal", "InitSigmas", "encode_solution", "decode_solution", "config_event",
+           "FIX_CODES", "FIX_ANNOUNCE_HOLD_S",
            "STATUS_CODES", "REINIT_GAP_S", "RAW_TIMEOUT_S"]

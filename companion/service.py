@@ -632,7 +632,9 @@ class Service:
                     + ("" if not h["origin"]["mismatch_m"] else f" (ours {h['origin']['mismatch_m']} m off)"))
                 + ("" if "state" not in h.get("serial_control", {}) else f"; GPS port {h['serial_control']['state']}")
                 + ("" if "imu_cluster" not in h else "; IMUs healthy " + ",".join(
-                    name for name, u in h["imu_cluster"]["units"].items() if u["healthy"])))
+                    name for name, u in h["imu_cluster"]["units"].items() if u["healthy"]))
+                + ("" if "rtk" not in f else f"; RTK {f['rtk']['fix_state']} ({f['rtk']['n_fixed']} fixed of "
+                   f"{f['rtk']['n_ambiguities']}, ratio {f['rtk']['fix_ratio']})"))
 
     def _log_full_health(self) -> None:
         log.warning("health report (SIGUSR1): %s", json.dumps(self.health(), default=str, indent=1))

@@ -114,15 +114,22 @@ def relposned_frame(t_gps: float, ned_m, sigma_ned_m) -> bytes:
     return msg.serialize()
 
 
+#: simulator signal -> UBX sigId (gnssId 0, GPS) the emulated receiver reports it as: a u-blox F9
+#: tracks L1 C/A and L2C(L) (sigId 3, RINEX L2L), not P(Y): the dual-frequency simulator's one L2
+#: observable goes out as L2C, as from an F9P
+RAWX_GPS_SIG_ID = {"L1C": 0, "L2W": 3}
+
+
 def rawx_frame(epoch, leap_seconds: int) -> bytes:
-    """UBX RXM-RAWX for a rover GnssEpoch (GPS L1C/A), built with pyubx2."""
+    """UBX RXM-RAWX for a rover GnssEpoch (GPS L1C/A, and L2 as L2C(L) when the scenario is dual
+    frequency), built with pyubx2."""
     from pyubx2 import GET, UBXMessage
     week = int(epoch.t_gps // SECONDS_PER_WEEK)
     tow = epoch.t_gps - week * SECONDS_PER_WEEK
     kw = {}
     n = 0
     for o in epoch.observations:
-        if not o.sat.startswith("G") or o.signal != "L1C":
+        if not o.sat.startswith("G") or o.signal not in RAWX_GPS_SIG_ID:
             continue
         n += 1
         s = f"_{n:02d}"
@@ -131,7 +138,7 @@ def rawx_frame(epoch, leap_seconds: int) -> bytes:
         kw.update({f"prMes{s}": o.pseudorange_m if pr_ok else 0.0,
                    f"cpMes{s}": o.carrier_cycles if cp_ok else 0.0,
                    f"doMes{s}": o.doppler_hz if math.isfinite(o.doppler_hz) else 0.0,
-                   f"gnssId{s}": 0, f"svId{s}": int(o.sat[1:]), f"sigId{s}": 0, f"freqId{s}": 0,
+                   f"gnssId{s}": 0, f"svId{s}": int(o.sat[1:]), f"sigId{s}": RAWX_GPS_SIG_ID[o.signal], f"freqId{s}": 0,
                    f"locktime{s}": int(min(64500, max(0, round((o.lock_time_s if math.isfinite(o.lock_time_s) else 0) * 1000)))),
                    f"cno{s}": int(max(0, min(255, round(o.cn0_dbhz if math.isfinite(o.cn0_dbhz) else 0)))),
                    f"prStdev{s}": 5, f"cpStdev{s}": 2, f"doStdev{s}": 4,

@@ -13,6 +13,8 @@ cross-checked by decoding them back with :class:`companion.io.rtcm.RtcmDecoder` 
   referenced to the *quantised* pseudorange so that its 0.5 mm resolution survives; its integer
   cycle offset (DF012 only spans +-262 m) is chosen per satellite at the first epoch of a lock and
   kept constant (the decoder's roll-over logic does the rest), so time-differenced carrier is exact;
+* or, with ``observations='msm7'`` (the dual-frequency ``rtk`` scenario), **1077** GPS MSM7 L1 C/A
+  and L2 (as 2W and 2X) with Doppler: :class:`sitl.rtcm_msm.Msm7Encoder`;
 * **1019** GPS ephemerides (the ephemerides go to the companion this way instead of as UBX
   RXM-SFRBX subframes from the rover: simpler and documented in :mod:`sitl.autopilot`).
 
@@ -258,14 +260,20 @@ class RtcmSource(RtcmServer):
 
     def __init__(self, base_epochs: list[GnssEpoch], ephemerides: list[GpsEphemeris], base: BaseStationPosition,
                  clock, *, host: str = "127.0.0.1", port: int = 0, latency_s: float = 0.15,
-                 station_interval_s: float = 5.0, ephemeris_interval_s: float = 10.0):
+                 station_interval_s: float = 5.0, ephemeris_interval_s: float = 10.0, observations: str = "1004"):
         super().__init__(host=host, port=port)
         self.epochs = sorted(base_epochs, key=lambda e: e.t_gps)
         self.ephemerides = list(ephemerides)
         self.base, self.clock = base, clock
         self.latency_s = latency_s
         self.station_interval_s, self.ephemeris_interval_s = station_interval_s, ephemeris_interval_s
-        self.enc = Rtcm1004Encoder(base.station_id)
+        if observations == "msm7":        # L1 + L2 with Doppler (sitl.rtcm_msm; the rtk scenario)
+            from .rtcm_msm import Msm7Encoder
+            self.enc = Msm7Encoder(base.station_id)
+        elif observations == "1004":
+            self.enc = Rtcm1004Encoder(base.station_id)
+        else:
+            raise ValueError(f"observations: '1004' or 'msm7', got {observations!r}")
         self.paused = False          # fault injection: corrections outage
 
     async def run(self, t_end_gps: float | None = None) -> None:

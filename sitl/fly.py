@@ -111,10 +111,22 @@ def companion_config_toml(sim, *, udp_port: int, caster, log_dir: str, rate_hz: 
         f"accel_bias_rw_mps2_per_sqrt_s = {n.accel_bias_rw_mps2_per_sqrt_s!r}",
         f"clock_bias_psd_m2ps = {n.clock_bias_psd_m2ps!r}", f"clock_drift_psd_m2ps3 = {n.clock_drift_psd_m2ps3!r}",
         "use_pseudorange = true", f"use_dgps = {'true' if caster is not None else 'false'}", "use_tdcp = true",
-        *_tuning_lines(t), f"elevation_mask_deg = {float(sim.scenario.mask_deg)}", "",
+        *_tuning_lines(t), f"elevation_mask_deg = {float(sim.scenario.mask_deg)}",
+        *(_rtk_lines(sim.scenario, t) if caster is not None and sim.scenario.dual_frequency else []), "",
         "[log]", f'dir = "{log_dir}"', "fsync_interval_s = 1.0", "",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _rtk_lines(scenario, tuning) -> list[str]:
+    """[filter] RTK keys for a dual-frequency scenario: on, with the single-difference phase and
+    code sigmas of the scenario's two receivers (sitl.rtk_score.rtk_config: the simulator's noise
+    models, as every other tuning line; nothing fitted to the truth)."""
+    from .rtk_score import rtk_config
+    c = rtk_config(scenario, tuning)
+    return ["rtk_enabled = true", f"rtk_sigma_phase_a_m = {float(c.rtk_sigma_phase_a_m)!r}",
+            f"rtk_sigma_phase_b_m = {float(c.rtk_sigma_phase_b_m)!r}",
+            f"rtk_code_phase_ratio = {float(c.rtk_code_phase_ratio)!r}"]
 
 
 def set_config_keys(cfg_text: str, keys: dict) -> str:
@@ -290,6 +302,71 @@ def score(ap, sim, rate_hz: float, duration_s: float) -> dict:
     return out
 
 
+WRONG_FIX_H_M = 0.1      # a fixed estimate whose true horizontal error exceeds this is a wrong fix
+
+
+def _fix_states_by_boot_us(field_log_dir) -> dict:
+    """t_boot_us -> (fix_state, n_fixed) of every solution the companion logged."""
+    from companion.io.fieldlog import read_field_log
+    from companion.pipeline import decode_solution
+    out = {}
+    for rec in read_field_log(field_log_dir):
+        if rec.kind == "solution":
+            s = decode_solution(rec.payload)
+            out[int(s.extras.get("t_boot_us", -1))] = (s.fix_state, s.n_fixed)
+    return out
+
+
+def rtk_score(ap, sim, field_log_dir, outages) -> dict:
+    """The RTK figures of a flight, over the estimates the autopilot received (each one's fix state
+    is the logged solution's of the same IMU sample; errors against the truth as :func:`score`):
+
+    * ``first_fix_s``: flight time of the first estimate with fix state 'fixed';
+    * ``rms_h_after_first_fix_m``: horizontal RMS of every estimate from the first fix on, those
+      inside a rover outage (flight seconds ``outages``) left out, fixed or not; and over the
+      fixed estimates only;
+    * ``fixed_share``: fixed estimates / estimates from the first fix on, outside outages;
+    * ``refix_after_outage_s``: per outage, from its end to the first fixed estimate after it
+      (None: never again);
+    * ``wrong_fixes``: fixed estimates with a true horizontal error above WRONG_FIX_H_M (and
+      ``wrong_fixes_3d``: 3-D error above it);
+    * ``fix_types``: GPS_INPUT fix_type counts (gps_input output only)."""
+    states = _fix_states_by_boot_us(field_log_dir)
+    rows = []                  # (t flight s, fix state, err 3d, err h)
+    fix_types: dict = {}
+    for r, e in scored_estimates(ap, sim):
+        if r.msg_type == "GPS_INPUT":
+            fix_types[int(r.msg.fix_type)] = fix_types.get(int(r.msg.fix_type), 0) + 1
+        if e is None:
+            continue
+        boot_us = r.msg.usec if r.msg_type == "VISION_POSITION_ESTIMATE" else r.msg.time_usec
+        rows.append((e[1] - ap.t0, states.get(int(boot_us), ("none", 0))[0], e[2], e[3]))
+
+    def inside(t):
+        return any(a <= t < b for a, b in outages)
+    fixed_t = [t for t, st, _, _ in rows if st == "fixed"]
+    first = min(fixed_t) if fixed_t else None
+    after = [x for x in rows if first is not None and x[0] >= first and not inside(x[0])]
+    eh = np.array([x[3] for x in after])
+    eh_fixed = np.array([x[3] for x in after if x[1] == "fixed"])
+    refix = []
+    for a, b in outages:
+        nxt = [t for t in fixed_t if t >= b]
+        refix.append(round(min(nxt) - b, 2) if nxt else None)
+    counts: dict = {}
+    for x in rows:
+        counts[x[1]] = counts.get(x[1], 0) + 1
+    return {"first_fix_s": None if first is None else round(first, 2),
+            "rms_h_after_first_fix_m": round(float(np.sqrt(np.mean(eh ** 2))), 4) if len(eh) else None,
+            "rms_h_fixed_m": round(float(np.sqrt(np.mean(eh_fixed ** 2))), 4) if len(eh_fixed) else None,
+            "max_h_after_first_fix_m": round(float(eh.max()), 4) if len(eh) else None,
+            "fixed_share": round(len(eh_fixed) / len(eh), 4) if len(eh) else None,
+            "outages_s": [list(o) for o in outages], "refix_after_outage_s": refix,
+            "wrong_fixes": sum(1 for x in rows if x[1] == "fixed" and x[3] > WRONG_FIX_H_M),
+            "wrong_fixes_3d": sum(1 for x in rows if x[1] == "fixed" and x[2] > WRONG_FIX_H_M),
+            "estimates_by_fix_state": counts, "gps_input_fix_types": fix_types}
+
+
 class _Progress:
     """Set-up steps and a status line every ``every_s`` of wall clock while the flight runs (stderr)."""
 
@@ -375,7 +452,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               base_outage_s: tuple[float, float] | None = None, keep_autopilot: dict | None = None,
               extra_config: str = "", named_value_rate_hz: float | None = None,
               max_hpl_m: float | None = None, caster_factory=None, config_keys: dict | None = None,
-              during=None, signing_key: bytes | None = None) -> dict:
+              during=None, signing_key: bytes | None = None,
+              rover_outage_s: tuple[float, float] | None = None) -> dict:
     """Fly once; ``progress`` prints set-up steps and status lines to stderr, ``handle_signals`` makes
     the first SIGINT/SIGTERM a clean stop (the result then has ``interrupted`` True and the figures
     of the part that was flown).  ``base_outage_s`` (start, end from the start of the flight): the
@@ -392,7 +470,11 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     the harness's own value of a key); ``during`` (``async f(FlightContext)``) runs beside the
     flight from the moment the autopilot starts streaming and is cancelled when the flight ends
     (an exception of its own fails the flight); ``signing_key`` (32 bytes): the emulated autopilot
-    signs (give the companion the same key with ``config_keys``)."""
+    signs (give the companion the same key with ``config_keys``).  ``rover_outage_s`` (start,
+    end from the start of the flight): the rover receiver outputs nothing then (a
+    ``Faults.gnss_outage``), e.g. the rtk scenario's 30-s outage inside a flight shorter than the
+    scenario's own (130-160 s).  A dual-frequency scenario (rtk) runs with RTK on and MSM7 from the
+    base, and the result gains ``rtk`` (:func:`rtk_score`)."""
     from .autopilot import EmulatedAutopilot, SimClock
     from .caster import RtcmSource, start_caster
     prog = _Progress(progress)
@@ -425,7 +507,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                 t_b0 = float(sim.truth.t_gps[0])
                 base_epochs = [e for e in base_epochs
                                if not base_outage_s[0] <= e.t_gps - t_b0 < base_outage_s[1]]
-            src = RtcmSource(base_epochs, sim.ephemerides, sim.base, clock)
+            src = RtcmSource(base_epochs, sim.ephemerides, sim.base, clock,
+                             observations="msm7" if sim.scenario.dual_frequency else "1004")
             src_port = await src.start()
             if caster_factory is not None:
                 caster = await caster_factory(src_port, out)
@@ -446,6 +529,10 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
             cfg_text = set_config_keys(cfg_text, config_keys)
         cfg_path = out / "companion.toml"
         cfg_path.write_text(cfg_text + ("\n" + extra_config if extra_config else ""))
+        if rover_outage_s is not None:
+            from .autopilot import Faults
+            faults = dataclasses.replace(faults or Faults(),
+                                         gnss_outage=[*(faults.gnss_outage if faults else []), tuple(rover_outage_s)])
         ap = EmulatedAutopilot(sim, companion_port=udp_port, speedup=speedup, clock=clock, faults=faults,
                                leap_seconds=leap_seconds, imu_message=imu_message, seed=seed, imu_units=imu_units,
                                max_imu_rate_hz=max_imu_rate_hz, moving_baseline_b_m=moving_baseline_b_m,
@@ -529,6 +616,10 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
         "run_s": round(time.monotonic() - t_setup, 1)})
     if imu_units > 1:
         res["imu_cluster"] = _final_cluster_health(log_dir)
+    if use_caster and sim.scenario.dual_frequency and clock.started.is_set():
+        outages = [(a - ap.t0, b - ap.t0) for a, b in sim.scenario.rover_outages]
+        outages += [tuple(o) for o in (faults.gnss_outage if faults is not None else [])]
+        res["rtk"] = rtk_score(ap, sim, log_dir, [o for o in outages if o[0] < flown_s])
     res["_series"] = series
     if keep_autopilot is not None:
         keep_autopilot.update(ap=ap, sim=sim)
@@ -574,7 +665,15 @@ def format_result(r: dict) -> str:
         f"p95 3-D {f(r['p95_3d_m'], '.3f')} m, max {f(r['max_3d_m'], '.3f')} m",
         f"  latency p50 {f(r['latency_ms_p50'], '.2f')} ms, p99 {f(r['latency_ms_p99'], '.2f')} ms",
         f"  companion CPU {f(r['companion_cpu_pct'], '.1f')} % of one core, RSS {f(r['companion_rss_mb'], '.1f')} MB",
-    ] + ([] if not r.get("imu_cluster") else [
+    ] + ([] if not r.get("rtk") else [
+        "  RTK: first fix {} s, fixed {} of the estimates after it, RMS_h after the first fix {} m (fixed only {} m, "
+        "max {} m), re-fix after the outages {} s, wrong fixes {} (3-D {})".format(
+            f(r["rtk"]["first_fix_s"], ".1f"),
+            "n/a" if r["rtk"]["fixed_share"] is None else f"{100 * r['rtk']['fixed_share']:.1f} %",
+            f(r["rtk"]["rms_h_after_first_fix_m"], ".4f"), f(r["rtk"]["rms_h_fixed_m"], ".4f"),
+            f(r["rtk"]["max_h_after_first_fix_m"], ".3f"),
+            r["rtk"]["refix_after_outage_s"], r["rtk"]["wrong_fixes"], r["rtk"]["wrong_fixes_3d"])]) + (
+        [] if not r.get("imu_cluster") else [
         "  IMU cluster: " + ", ".join(f"{name} {'healthy' if u['healthy'] else 'DROPPED'}"
                                       for name, u in r["imu_cluster"]["units"].items())]))
 
@@ -586,7 +685,7 @@ def cmd_fly(args) -> int:
         res = asyncio.run(fly(args.scenario, args.duration, args.speedup, rate_hz=args.rate, seed=args.seed,
                               out_dir=args.out, output_mode=args.output, imu_units=args.imu_units, faults=faults,
                               system_time_late_s=args.system_time_late, progress=not args.quiet,
-                              handle_signals=True))
+                              handle_signals=True, rover_outage_s=_rover_outage(args)))
     except KeyboardInterrupt:
         # interrupted before the flight started (during the simulation): nothing to score
         print("sitl fly: interrupted before the flight started", file=sys.stderr)
@@ -609,6 +708,23 @@ def cmd_fly(args) -> int:
         print("sitl fly: INTERRUPTED: the figures above cover only the part that was flown", file=sys.stderr)
         return 130
     return 0 if res["estimates_received"] else 1
+
+
+#: the rtk scenario's 30-s outage moved into a flight too short for its own (130-160 s): after the
+#: first slip (60 s), swallowing the second (95 s), 20 s left to re-fix in a 120-s flight
+RTK_FLY_OUTAGE_S = (70.0, 100.0)
+
+
+def _rover_outage(args):
+    """--rover-outage, or for the rtk scenario a flight that ends before its own outage is over:
+    RTK_FLY_OUTAGE_S (the acceptance asks for a re-fix after a 30-s outage within 120 s)."""
+    if args.rover_outage is not None:
+        return tuple(args.rover_outage) if args.rover_outage[1] > args.rover_outage[0] else None
+    if args.scenario == "rtk":
+        from .scenario import RTK_OUTAGE_S
+        if args.duration < RTK_OUTAGE_S[1] + 10.0:
+            return RTK_FLY_OUTAGE_S
+    return None
 
 
 def _write_json(path: str, obj: dict) -> None:
@@ -635,6 +751,10 @@ def register(subparsers) -> None:
                         "GPS fixes as they arrive; default 0 = exact)")
     p.add_argument("--imu-fault", type=float, nargs=3, action="append", metavar=("T_S", "UNIT", "BIAS_RADPS"),
                    help="from T_S on, unit UNIT's x gyro reads BIAS_RADPS too much (repeatable)")
+    p.add_argument("--rover-outage", type=float, nargs=2, metavar=("START_S", "END_S"),
+                   help="the rover receiver outputs nothing from START_S to END_S of the flight (0 0: none); "
+                        f"default for the rtk scenario when the flight ends before its own 130-160 s outage: "
+                        f"{RTK_FLY_OUTAGE_S[0]:g} {RTK_FLY_OUTAGE_S[1]:g}")
     p.set_defaults(func=cmd_fly)
 
 

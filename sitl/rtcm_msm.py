@@ -1,4 +1,5 @@
-"""RTCM 3 MSM4 (GPS: message 1074) from a simulated base epoch, RTCM 10403.3 3.5.12.
+"""RTCM 3 MSM4 (GPS: message 1074) and MSM7 (1077, L1 + L2) from a simulated base epoch, RTCM
+10403.3 3.5.12.
 
 MSM4 is what a u-blox base sends by default (with 1005): pseudorange, carrier phase range, lock
 time and C/N0 per satellite and signal, no Doppler.  Written with :class:`sitl.caster.BitWriter`
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import math
 
-from companion.io.rtcm import lock_time_df402
+from companion.io.rtcm import lock_time_df402, lock_time_df407
 from companion.messages import SECONDS_PER_WEEK, GnssEpoch
 
 from .caster import LIGHT_MS_M, BitWriter, CarrierReference, frame
@@ -97,4 +98,117 @@ class Msm4Encoder:
         return frame(w.to_bytes())
 
 
-__all__ = ["Msm4Encoder", "lock_indicator_df402"]
+def lock_indicator_df407(lock_s: float) -> int:
+    """Largest DF407 (MSM6/7, 10 bits) indicator whose minimum lock time does not exceed ``lock_s``."""
+    if not math.isfinite(lock_s) or lock_s <= 0:
+        return 0
+    best = 0
+    for i in range(705):
+        if lock_time_df407(i) <= lock_s:
+            best = i
+        else:
+            break
+    return best
+
+
+#: RTCM GPS MSM signal ids (RTCM 10403.3 table 3.5-91) of the codes the simulator's signals go out as
+GPS_MSM_SIGNAL_ID = {"1C": 2, "1P": 3, "1W": 4, "2C": 8, "2P": 9, "2W": 10, "2S": 15, "2L": 16, "2X": 17}
+MSM7_FINE_PR_LSB_MS = 2.0 ** -29
+MSM7_FINE_PH_LSB_MS = 2.0 ** -31
+MSM7_FINE_RATE_LSB_MPS = 1e-4
+
+
+class Msm7Encoder:
+    """Stateful GPS MSM7 (1077) encoder: L1 C/A and L2 per satellite, with Doppler (rough range
+    rate per satellite from L1, fine rate per cell where the cell's signal has a Doppler).
+
+    ``codes``: simulator signal -> the RTCM codes it is sent as.  Default: L1C as ``1C``; the
+    simulator's one L2 observable as ``2W`` and ``2X``, like a geodetic CORS that tracks both
+    L2 P(Y) and L2C (the simulator has no quarter cycle between them; a u-blox rover reports L2C
+    only, so the companion must pair its L2L with the 2X cell and never with 2W).  Each (satellite,
+    code) keeps its own carrier reference while locked (:class:`sitl.caster.CarrierReference`)."""
+
+    def __init__(self, station_id: int, codes: dict | None = None):
+        self.station_id = station_id
+        self.codes = codes if codes is not None else {"L1C": ("1C",), "L2W": ("2W", "2X")}
+        limit = 2.0 ** -8 * LIGHT_MS_M * 0.999          # DF406 spans +-2^-8 ms, as MSM4's DF401
+        self._carrier = {c: CarrierReference(limit_m=limit) for cs in self.codes.values() for c in cs}
+        self._lock_restart: dict[tuple[str, str], float] = {}
+
+    def encode(self, epoch: GnssEpoch) -> bytes:
+        cells: dict[int, dict[int, object]] = {}      # prn -> signal id -> observation
+        code_of = {}
+        for o in epoch.observations:
+            if not (o.sat.startswith("G") and 1 <= int(o.sat[1:]) <= 32 and math.isfinite(o.pseudorange_m)):
+                continue
+            for code in self.codes.get(o.signal, ()):
+                sid = GPS_MSM_SIGNAL_ID[code]
+                cells.setdefault(int(o.sat[1:]), {})[sid] = o
+                code_of[sid] = code
+        prns = sorted(p for p in cells if GPS_MSM_SIGNAL_ID["1C"] in cells[p])   # rough range from L1
+        sids = sorted({sid for p in prns for sid in cells[p]})
+        week = int(epoch.t_gps // SECONDS_PER_WEEK)
+        tow_ms = round((epoch.t_gps - week * SECONDS_PER_WEEK) * 1000.0)
+        w = BitWriter()
+        w.u(12, 1077).u(12, self.station_id).u(30, tow_ms).u(1, 0).u(3, 0).u(7, 0).u(2, 1).u(2, 0).u(1, 0).u(3, 0)
+        w.u(64, sum(1 << (64 - p) for p in prns)).u(32, sum(1 << (32 - sid) for sid in sids))
+        for p in prns:
+            for sid in sids:
+                w.u(1, int(sid in cells[p]))
+        rough, rates, data, seen = [], [], [], set()
+        for p in prns:
+            l1 = cells[p][GPS_MSM_SIGNAL_ID["1C"]]
+            r_ms = round(l1.pseudorange_m / LIGHT_MS_M / ROUGH_LSB_MS) * ROUGH_LSB_MS
+            rough.append(r_ms)
+            rate = -l1.doppler_hz * l1.wavelength_m if math.isfinite(l1.doppler_hz) else math.nan
+            rates.append(round(rate) if math.isfinite(rate) else None)
+            for sid in sids:
+                o = cells[p].get(sid)
+                if o is None:
+                    continue
+                code = code_of[sid]
+                fine_pr = round((o.pseudorange_m / LIGHT_MS_M - r_ms) / MSM7_FINE_PR_LSB_MS)
+                fine_ph, lock = -(1 << 23), 0.0                  # DF406 "invalid"
+                if math.isfinite(o.carrier_cycles):
+                    k, why = self._carrier[code].reference(o, r_ms * LIGHT_MS_M)
+                    lock = o.lock_time_s if math.isfinite(o.lock_time_s) else 0.0
+                    key = (o.sat, code)
+                    if why is not None:
+                        self._lock_restart[key] = lock if why == "range" else 0.0
+                    lock -= self._lock_restart[key]
+                    fine_ph = round(((o.carrier_cycles - k) * o.wavelength_m / LIGHT_MS_M - r_ms) / MSM7_FINE_PH_LSB_MS)
+                    seen.add((o.sat, code))
+                fine_rate = -(1 << 14)                           # DF404 "invalid"
+                if rates[-1] is not None and math.isfinite(o.doppler_hz):
+                    fine_rate = round((-o.doppler_hz * o.wavelength_m - rates[-1]) / MSM7_FINE_RATE_LSB_MPS)
+                cnr = o.cn0_dbhz if math.isfinite(o.cn0_dbhz) else 0.0
+                data.append((fine_pr, fine_ph, lock_indicator_df407(lock), max(0, min(1023, round(cnr * 16))),
+                             fine_rate))
+        for code, ref in self._carrier.items():
+            ref.forget({sat for sat, c in seen if c == code})
+        for key in [k for k in self._lock_restart if k not in seen]:
+            del self._lock_restart[key]
+        for r_ms in rough:
+            w.u(8, int(r_ms))
+        for _ in rough:
+            w.u(4, 0)                                           # DF419 extended info (GLONASS only)
+        for r_ms in rough:
+            w.u(10, round((r_ms - int(r_ms)) / ROUGH_LSB_MS))
+        for r in rates:
+            w.s(14, -(1 << 13) if r is None else r)             # DF399 rough phase range rate, m/s
+        for c in data:
+            w.s(20, c[0])
+        for c in data:
+            w.s(24, c[1])
+        for c in data:
+            w.u(10, c[2])
+        for _ in data:
+            w.u(1, 0)
+        for c in data:
+            w.u(10, c[3])
+        for c in data:
+            w.s(15, c[4])
+        return frame(w.to_bytes())
+
+
+__all__ = ["Msm4Encoder", "Msm7Encoder", "lock_indicator_df402", "lock_indicator_df407", "GPS_MSM_SIGNAL_ID"]

@@ -171,3 +171,33 @@ def test_dual_antenna_heading_end_to_end(tmp_path):
     print(f"heading RMS, second half of the flight: {rms_late:.3f} deg with the dual antenna")
     assert rms_late < 0.15
     assert r["rms_h_m"] < 1.5
+
+
+def test_rtk_scenario_reaches_fixed_through_the_service(tmp_path):
+    """Issue 12 in the product: the rtk scenario's base streams GPS MSM7 (1C, 2W, 2X) + 1005
+    through the NTRIP caster, the F9-like rover reports L1 C/A and L2C(L) over SERIAL_CONTROL, the
+    service runs with ``filter.rtk_enabled``.  Its solutions reach 'fixed' (the rover's L2L paired
+    with the base's 2X, never with 2W), GPS_INPUT carries fix type 6 (5 while float), the ground
+    station hears of the fix once, the fixed estimates are centimetre-class against the truth,
+    and the field log replays bit for bit."""
+    from companion.replay import replay
+    from tests._flyhelp import final_health, run_fly
+    r = run_fly(tmp_path, scenario="rtk", duration_s=40.0, speedup=2.0, output_mode="gps_input")
+    d = r.get("details", r)
+    assert d["companion_exit_code"] == 0
+    rtk = r["rtk"]
+    print(rtk)
+    assert rtk["first_fix_s"] is not None, rtk
+    assert rtk["estimates_by_fix_state"].get("fixed", 0) > 100
+    # what the autopilot got: fix type 6 for the fixed estimates, 5 for the float ones, nothing
+    # else once RTK runs (every estimate has a base within 1.5 s here)
+    assert rtk["gps_input_fix_types"].get(6, 0) == rtk["estimates_by_fix_state"]["fixed"]
+    assert rtk["gps_input_fix_types"].get(5, 0) == rtk["estimates_by_fix_state"].get("float", 0)
+    assert rtk["rms_h_fixed_m"] < 0.05
+    fixed_texts = [t for t in d["statustext"] if t.startswith("CC: RTK fixed")]
+    assert len(fixed_texts) >= 1 and len([t for t in d["statustext"] if "RTK" in t]) <= 4, d["statustext"]
+    h = final_health(d["field_log_dir"])["health"]
+    assert h["filter"]["rtk"]["n_ambiguities"] > 0
+    assert h["pipeline"].get("rtk: rover epochs with signals renamed to their family", 0) > 10
+    c = replay(r["field_log_dir"]).comparison()
+    assert c["bit_for_bit"], c

@@ -36,7 +36,7 @@ def _sol(t=100.0, sig_h=0.5, hpl=2.0, status="nav"):
 
 
 def test_solution_record_v2_round_trip_and_v1_still_decodes():
-    assert SOLUTION_RECORD_VERSION == 2
+    assert SOLUTION_RECORD_VERSION == 3          # version 3 appended the RTK fix state (tests/test_rtk_outputs.py)
     s = _sol(hpl=2.345678901234)
     s.extras.update({"inject": True, "mode": "tight", "imu_count": 7, "t_boot_us": 123})
     b = encode_solution(s)

@@ -591,6 +591,25 @@ def odometry(sol: NavSolution, origin: Origin, reset_counter: int, t_boot_us: in
                                 m.MAV_ESTIMATOR_TYPE_VISION, int(max(-1, min(100, quality))))
 
 
+#: GPS_INPUT fix_type (MAVLink GPS_FIX_TYPE, ArduPilot's AP_GPS::GPS_Status takes it as is)
+GPS_FIX_NO_FIX, GPS_FIX_3D, GPS_FIX_DGPS, GPS_FIX_RTK_FLOAT, GPS_FIX_RTK_FIXED = 1, 3, 4, 5, 6
+
+
+def gps_fix_type(sol: NavSolution) -> int:
+    """GPS_INPUT fix type of a solution: no fix unless navigating (status 'nav' or 'coasting');
+    then RTK fixed (6) / float (5) from the carrier-phase fix state, else DGPS (4) when
+    ``sol.extras['dgps']``, else 3-D (3).  ArduPilot's EKF uses the fix type for its GPS checks
+    and reports it (GPS_RAW_INT, the GCS's "RTK Fixed"); the position accuracy it fuses with is
+    the sigma sent beside it, which for a fixed solution is the filter's own covariance."""
+    if sol.status not in ("nav", "coasting"):
+        return GPS_FIX_NO_FIX
+    if sol.fix_state == "fixed":
+        return GPS_FIX_RTK_FIXED
+    if sol.fix_state == "float":
+        return GPS_FIX_RTK_FLOAT
+    return GPS_FIX_DGPS if sol.extras.get("dgps") else GPS_FIX_3D
+
+
 def gps_input(sol: NavSolution, t_gps: float | None = None, *, t_boot_us: int = 0, gps_id: int = 0,
               fix_type: int | None = None, satellites_visible: int = 10, geoid_undulation_m: float = 0.0,
               uere_m: float = 1.0, min_dop: float = 0.6):
@@ -599,7 +618,7 @@ def gps_input(sol: NavSolution, t_gps: float | None = None, *, t_boot_us: int = 
     ``geoid_undulation_m``.  ArduPilot needs ``fix_type >= 3`` and ``time_week > 0`` to use the
     time stamp; hdop/vdop are synthetic (sigma / ``uere_m``, at least ``min_dop``) because
     ArduPilot's GPS checks look at hdop.  Set the autopilot's ``GPS1_POS`` to 0: this is the IMU
-    position.  ``fix_type`` default: 3 when navigating (4 when ``sol.extras['dgps']``), else 1."""
+    position.  ``fix_type`` default: :func:`gps_fix_type` (6/5 for an RTK fixed/float solution)."""
     t = sol.t_gps if t_gps is None else t_gps
     week, tow = gps_week_tow(t)
     lat, lon, h = ecef_to_geodetic(sol.r_e)
@@ -608,7 +627,7 @@ def gps_input(sol: NavSolution, t_gps: float | None = None, *, t_boot_us: int = 
     sv = np.asarray(sol.sigma_v_n_mps, float)
     sig_h = float(math.hypot(sr[0], sr[1]))
     if fix_type is None:
-        fix_type = (4 if sol.extras.get("dgps") else 3) if sol.status in ("nav", "coasting") else 1
+        fix_type = gps_fix_type(sol)
     return _ENC.gps_input_encode(
         int(t_boot_us), int(gps_id), 0, int(round(tow * 1000.0)) % int(SECONDS_PER_WEEK * 1000), int(week),
         int(fix_type), int(round(math.degrees(lat) * 1e7)), int(round(math.degrees(lon) * 1e7)),
@@ -1178,7 +1197,7 @@ __all__ = ["BootToGpsTime", "ImuDecoder", "IMU_CLUSTER_STREAMS", "parse_imu_stre
            "imu_rates_from_mavlink", "gps_fix_from_gps_raw_int", "Origin", "ardupilot_ned_from_origin", "vision_position_estimate",
            "odometry", "gps_input", "set_gps_global_origin", "set_gps_global_origin_from", "statustext",
            "statustext_chunks", "gps_rtcm_data_messages", "heartbeat", "command_set_message_interval",
-           "serial_control_request", "quality_from_sigma", "upper_triangle_covariance", "pack",
+           "serial_control_request", "quality_from_sigma", "upper_triangle_covariance", "pack", "gps_fix_type",
            "parse_bytes", "LinkMessage", "MavlinkLink", "SerialControlTunnel", "message_rates_from_config",
            "link_from_config", "unix_to_gps_s", "gps_to_unix_s", "DEFAULT_LEAP_SECONDS",
            "SERIAL_CONTROL_DEV_GPS1", "SERIAL_CONTROL_DEV_GPS2", "MAV_COMP_ID_ONBOARD_COMPUTER",

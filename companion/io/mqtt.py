@@ -64,6 +64,9 @@ def solution_to_json(sol: NavSolution) -> dict:
         "last_gnss_update_t_gps": _finite_or_none(sol.last_gnss_update_t_gps),
         "hpl_m": _finite_or_none(float(sol.extras.get("hpl_m", math.nan))),
         "inject": bool(sol.extras.get("inject")),
+        # carrier-phase RTK: 'none' / 'float' / 'fixed', LAMBDA ratio (None unless fixed), DD ambiguities fixed
+        "fix_state": sol.fix_state, "fix_ratio": _finite_or_none(float(sol.fix_ratio)),
+        "n_fixed": int(sol.n_fixed),
     }
 
 
