@@ -19,6 +19,8 @@ Layout (see :func:`example_config_toml` for a complete commented file)::
     [filter]       noise densities, gates, which measurements (-> EngineConfig / ProcessNoise)
     [log]          field log directory, rotation size, fsync interval
     [telemetry]    MQTT telemetry (solution and health JSON)
+    [nmea]         NMEA GGA/RMC/GST to UDP or a serial port
+    [status_page]  the live status page (HTTP, loopback by default)
 
 Every number has a range (``companion.toml: log.fsync_interval_s: must be <= 60.0, got 1e+300``);
 NaN and infinity are refused; an unknown key gets a suggestion (``did you mean ...?``); a directory,
@@ -111,6 +113,12 @@ class MavlinkConfig:
                                "32-byte key of SETUP_SIGNING, other text = a passphrase, key = its SHA-256 "
                                "(MAVProxy 'signing setup'); `companion signing setup --key-file F` makes one; "
                                "empty = no signing")
+    parameters: bool = _f(True, doc="answer the MAVLink parameter protocol on our component (CC_* "
+                          "parameters: lever arm, moving baseline, output mode, rate and thresholds; "
+                          "companion.io.mavlink_params), so Mission Planner / QGC can read and set them")
+    parameters_persist: bool = _f(True, doc="write a parameter the ground station set into this file "
+                                  "(rewritten as `companion config example` writes it: your own comments go; "
+                                  "the file before the first change is kept as FILE.bak)")
     signing_required: bool = _f(False, doc="with a key: drop (and count) unsigned input; false = accept it "
                                 "(an autopilot without signing, e.g. PX4 v1.15), still signing ours. Badly "
                                 "signed input is always dropped")
@@ -443,6 +451,16 @@ class NmeaConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class StatusPageConfig:
+    # it shows where the vehicle is: loopback unless the board's network is trusted
+    enabled: bool = _f(True, doc="a live status page (health, fix, satellites and test ratios, sigma and "
+                       "protection-level plot, events) at http://ADDRESS:PORT/; a port in use is "
+                       "reported and the service goes on without the page")
+    address: str = _f("127.0.0.1", doc="'0.0.0.0' to reach it from the board's Wi-Fi")
+    port: int = _f(8765, min=1, max=65535)
+
+
+@dataclass(frozen=True, slots=True)
 class Config:
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
     gnss: GnssConfig = field(default_factory=GnssConfig)
@@ -452,6 +470,7 @@ class Config:
     log: LogConfig = field(default_factory=LogConfig)
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig)
     nmea: NmeaConfig = field(default_factory=NmeaConfig)
+    status_page: StatusPageConfig = field(default_factory=StatusPageConfig)
     source_path: str = field(default="", compare=False, metadata={"internal": True})
 
     def engine_config(self):

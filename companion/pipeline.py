@@ -338,6 +338,15 @@ class NavPipeline:
             self._event(m.MAV_SEVERITY_WARNING, f"nav re-init: {reason}" + (f" ({detail})" if detail else ""))
 
     # ------------------------------------------------------------------ input
+    def apply_settings(self, cfg) -> None:
+        """A configuration changed while running (ground-station parameters, companion.io.mavlink_params;
+        replayed from the field log's ``config_change`` events): the output thresholds and rate
+        (read from ``self.cfg`` at every solution), the lever arm and the moving baseline (the
+        engine's too) follow from the next record on; the rest keeps its start-up value."""
+        self.cfg = cfg
+        self.lever_b = np.asarray(cfg.gnss.lever_arm_b_m, float)
+        self.engine.set_installation(cfg.gnss.lever_arm_b_m, cfg.gnss.moving_baseline_b_m)
+
     def feed(self, kind: str, t_rx_ns: int, data: bytes) -> list[NavSolution]:
         self.counters[f"records {kind}"] += 1
         try:

@@ -126,7 +126,7 @@ class _Progress:
 def _config_from_event(payload: bytes):
     from .config import loads_config
     obj = json.loads(payload.decode())
-    if obj.get("event") == "config":
+    if obj.get("event") in ("config", "config_change"):
         return loads_config(obj["toml"], "<field log>")
     return None
 
@@ -157,6 +157,9 @@ def replay_field_log(path, config=None, progress: bool = False, smooth: bool = F
             res.aid_status_logged.append(bytes(rec.payload))
             continue
         if k == "event":
+            if pipe is not None and config is None and b'"config_change"' in bytes(rec.payload):
+                pipe.apply_settings(_config_from_event(rec.payload))    # a ground station set a parameter
+                continue
             if pipe is None:
                 try:
                     cfg = _config_from_event(rec.payload)

@@ -47,6 +47,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import logging
 import math
@@ -82,10 +83,11 @@ def _json_default(x):
         return str(x)
 
 
-def redacted_config_event(config) -> bytes:
+def redacted_config_event(config, event: str = "config") -> bytes:
     """The config record for the field log, secrets written as ``***`` (replay does not need them;
-    the logs get shared)."""
-    return json.dumps({"event": "config", "toml": config.to_toml(comments=False, redact=True)}).encode()
+    the logs get shared).  ``event``: 'config' (the start of a file) or 'config_change' (a ground
+    station set a parameter; replay applies it at that record)."""
+    return json.dumps({"event": event, "toml": config.to_toml(comments=False, redact=True)}).encode()
 
 
 class Service:
@@ -127,6 +129,15 @@ class Service:
         self.notifier = SystemdNotifier()       # Type=notify + WatchdogSec under systemd, else no-op
         self._caps: dict = {}                 # input kind -> ByteRateCap
         self._last_drop_log: dict[str, float] = {}
+        from .status_page import StatusBoard
+        self.status_board = StatusBoard()       # what the status page shows (fed even without the page)
+        self.status_server = None
+        self.params = None                      # ParameterServer: the GCS reads/sets CC_* parameters
+        if config.mavlink.parameters:
+            from .io.mavlink_params import ParameterServer
+            self.params = ParameterServer(config, system_id=config.mavlink.source_system,
+                                          component_id=config.mavlink.source_component,
+                                          persist=config.mavlink.parameters_persist, on_change=self._apply_config)
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
@@ -169,6 +180,12 @@ class Service:
             specs.append(("corrections", self._corrections_task))
         if self.cfg.telemetry.enabled:
             specs.append(("telemetry", self._telemetry_task))
+        from .nav.imu_kernel import warm_up
+        t_warm = warm_up()              # compiled kernels now (cache: ~0.5 s), not at the first IMU sample
+        if t_warm > 5.0:
+            log.warning("compiling the IMU kernels took %.1f s (no cache yet: NUMBA_CACHE_DIR, "
+                        "python -m companion.nav.imu_kernel at install)", t_warm)
+        await self._start_status_page()
         self._tasks = [asyncio.create_task(self._supervise(n, f), name=n) for n, f in specs]
         log.info("companion running: %s", ", ".join(n for n, _ in specs))
         self.notifier.ready("running: " + ", ".join(n for n, _ in specs))
@@ -176,6 +193,38 @@ class Service:
             await self._stop.wait()
         finally:
             await self._shutdown()
+
+    async def _start_status_page(self) -> None:
+        sp = self.cfg.status_page
+        if not sp.enabled:
+            return
+        from .status_page import StatusPageServer
+        server = StatusPageServer(self.status_board, sp.address, sp.port)
+        try:
+            await server.start()
+        except OSError as exc:             # port in use, address not on this host: navigate anyway
+            self.counters["status page not started"] += 1
+            log.warning("status page not started on %s:%d: %s", sp.address, sp.port, exc.strerror or exc)
+            self.status_board.add_event(4, f"status page not started on {sp.address}:{sp.port}")
+            return
+        self.status_server = server
+        log.info("status page: http://%s:%d/", sp.address, server.port)
+
+    def _apply_config(self, cfg, keys) -> None:
+        """A parameter the ground station set (companion.io.mavlink_params): thresholds, rates and
+        the installation follow at once (the field log records the change, so a replay applies it
+        at the same record); the output mode is saved but takes effect at the next start (the
+        autopilot's source parameters must change with it)."""
+        live = cfg
+        if cfg.output.mode != self.cfg.output.mode:
+            live = dataclasses.replace(cfg, output=dataclasses.replace(cfg.output, mode=self.cfg.output.mode))
+            self._announce_events([(MAV_SEVERITY_INFO, f"output {cfg.output.mode} after restart")])
+        self.cfg = live
+        self.pipeline.apply_settings(live)
+        self._record("event", time.monotonic_ns(), redacted_config_event(live, event="config_change"))
+        if self.fieldlog is not None:
+            self.fieldlog.set_preamble([("event", redacted_config_event(live))])   # files after this one
+        log.warning("ground station set %s", ", ".join(keys))
 
     def _on_signal(self, sig) -> None:
         log.info("%s received: shutting down", signal.Signals(sig).name)
@@ -192,6 +241,9 @@ class Service:
             await self.link.close()
             self.link = None
         self._event({"event": "stop", "health": h})
+        if self.status_server is not None:
+            await self.status_server.close()
+            self.status_server = None
         if self.nmea is not None:
             self.nmea.close()
         if self.fieldlog is not None:
@@ -258,6 +310,8 @@ class Service:
 
     def _event(self, obj: dict) -> None:
         self._record("event", time.monotonic_ns(), json.dumps(obj, default=_json_default).encode())
+        if obj.get("event") == "status":
+            self.status_board.add_event(obj.get("severity", 6), obj.get("text", ""))
 
     # ------------------------------------------------------------------ MAVLink
     async def _mavlink_task(self) -> None:
@@ -299,10 +353,20 @@ class Service:
             await link.close()
 
     def _subscribe(self, link) -> None:
-        """What the service takes from the link besides the logged stream: GPS_GLOBAL_ORIGIN."""
+        """What the service takes from the link besides the logged stream: GPS_GLOBAL_ORIGIN and
+        the parameter protocol."""
         if self.origin_mgr is not None:
             link.subscribe("GPS_GLOBAL_ORIGIN",
                            lambda msg, t_ns: self.origin_mgr.on_gps_global_origin(msg, time.monotonic()))
+        if self.params is not None:
+            for kind in ("PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"):
+                link.subscribe(kind, self._on_param_message)
+
+    def _on_param_message(self, msg, t_ns) -> None:
+        for reply in self.params.handle(msg):
+            if self.link is not None:
+                self.link.send(reply)
+                self.counters["sent " + reply.get_type()] += 1
 
     def _port_claim(self, link):
         """The SERIAL_CONTROL tunnel to the receiver on the autopilot's GPS port and the state
@@ -330,6 +394,7 @@ class Service:
         for sol in sols:
             self._record("solution", time.monotonic_ns(), encode_solution(sol))
             self.counters["solutions"] += 1
+            self.status_board.add_solution(sol)
             if sol.extras.get("inject"):
                 self._send_estimate(sol)
             else:
@@ -351,6 +416,7 @@ class Service:
         time: a field log record of its own, and MQTT <prefix>/aid_status."""
         for obj, payload in self._aid_status.records(self.pipeline, sols):
             self._record("aid_status", time.monotonic_ns(), payload)
+            self.status_board.set_aid_status(obj)
             if self.telemetry is not None:
                 self.telemetry.publish_aid_status(obj)
 
@@ -646,6 +712,7 @@ class Service:
             self._rate_prev = (time.monotonic(), Counter(self.record_counts))
             log.info("%s", self.health_line(h))
             self._event({"event": "health", "health": h})
+            self.status_board.set_health(h)
             if self.telemetry is not None:
                 self.telemetry.publish_health(h)
 

@@ -172,6 +172,12 @@ class FieldLogWriter:
             self._thread.start()
 
     # -- files (under _io_lock) --------------------------------------------------------------
+
+    def set_preamble(self, preamble: list[tuple[str, bytes]]) -> None:
+        """The records that start every later file (a configuration changed while running, so a
+        file replayed alone starts from the configuration in force when it was opened)."""
+        self._preamble = b"".join(encode_record(k, pl, time.monotonic_ns(), time.time_ns())
+                                  for k, pl in preamble)
     def _write_all(self, data: bytes) -> None:
         view = memoryview(data)
         while view:

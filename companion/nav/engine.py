@@ -525,6 +525,13 @@ class NavEngine:
                     self._process_epoch(e)
         return None
 
+    def set_installation(self, lever_arm_b_m, moving_baseline_b_m) -> None:
+        """A new lever arm (IMU to antenna, body FRD) and moving baseline while running (a ground
+        station set them): used from the next measurement on."""
+        self.cfg = dataclasses.replace(self.cfg, lever_arm_b_m=tuple(float(x) for x in lever_arm_b_m),
+                                       moving_baseline_b_m=moving_baseline_b_m)
+        self.lever_arm_b = np.asarray(self.cfg.lever_arm_b_m, float)
+
     def set_ground_mode(self, on_ground: bool) -> None:
         """The shell tells the engine whether the vehicle is on the ground (e.g. MAVLink
         EXTENDED_SYS_STATE.landed_state); the non-holonomic constraint is off in flight."""
