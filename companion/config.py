@@ -361,6 +361,10 @@ class FilterConfig:
                                      doc="missed-detection probability of the solution-separation (one faulty "
                                      "satellite) part of the protection level")
     gravity_gradient_refresh_m: float = _f(200.0, min=0.0, max=1e6, min_exclusive=True)
+    compiled_kernels: str = _f("auto", choices=("auto", "on", "off"),
+                               doc="numba-compiled IMU-rate and LAMBDA kernels (same results as the pure-Python "
+                               "path): 'auto' = with rtk_enabled, where they halve an RTK epoch's CPU; "
+                               "without RTK they save no measurable CPU in the service and cost ~100 MB")
     # carrier-phase RTK (companion.nav.rtk_update).  Off by default: it changes what an existing
     # DGPS installation gets (DD code and phase replace the DGPS pseudoranges and TDCP whenever a
     # base epoch is near), it needs a base within ~10 km sending carrier phase (MSM4/5/7 or 1004,
@@ -402,7 +406,7 @@ class FilterConfig:
         known = {f.name for f in dataclasses.fields(EngineConfig)}
         kw = {}
         for f in dataclasses.fields(self):
-            if f.name in _NOISE_FIELDS:
+            if f.name in _NOISE_FIELDS or f.name in FILTER_SERVICE_FIELDS:
                 continue
             if f.name in known:
                 kw[f.name] = getattr(self, f.name)
@@ -414,6 +418,8 @@ class FilterConfig:
 _NOISE_FIELDS = {"gyro_arw_rad_per_sqrt_s", "accel_vrw_mps_per_sqrt_s", "gyro_bias_rw_radps_per_sqrt_s",
                  "accel_bias_rw_mps2_per_sqrt_s", "clock_bias_psd_m2ps", "clock_drift_psd_m2ps3",
                  "imu_time_offset_rw_s_per_sqrt_s"}
+#: [filter] keys the service reads itself (how the engine runs, not what it computes)
+FILTER_SERVICE_FIELDS = frozenset({"compiled_kernels"})
 
 
 @dataclass(frozen=True, slots=True)

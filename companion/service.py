@@ -180,7 +180,10 @@ class Service:
             specs.append(("corrections", self._corrections_task))
         if self.cfg.telemetry.enabled:
             specs.append(("telemetry", self._telemetry_task))
-        from .nav.imu_kernel import warm_up
+        from .nav.imu_kernel import use_reference_paths, warm_up
+        kc = self.cfg.filter.compiled_kernels
+        if kc == "off" or (kc == "auto" and not self.cfg.filter.rtk_enabled):
+            use_reference_paths()
         t_warm = warm_up()              # compiled kernels now (cache: ~0.5 s), not at the first IMU sample
         if t_warm > 5.0:
             log.warning("compiling the IMU kernels took %.1f s (no cache yet: NUMBA_CACHE_DIR, "

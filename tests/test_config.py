@@ -106,8 +106,9 @@ def test_missing_file(tmp_path):
 def test_filter_fields_exist_in_engine_config():
     engine_fields = {f.name for f in dataclasses.fields(EngineConfig)}
     noise_fields = {f.name for f in dataclasses.fields(ProcessNoise)}
+    from companion.config import FILTER_SERVICE_FIELDS
     for f in dataclasses.fields(FilterConfig):
-        assert f.name in engine_fields | noise_fields, f.name
+        assert f.name in engine_fields | noise_fields | FILTER_SERVICE_FIELDS, f.name
 
 
 # ---------------------------------------------------------------------------------------------

@@ -202,6 +202,17 @@ def compiled():
     return _kernels
 
 
+def use_reference_paths() -> None:
+    """From now on in this process, the pure-Python references instead of the compiled kernels
+    (IMU and LAMBDA; the results are the same).  The live service without RTK takes them: there
+    the engine is a small part of the service's CPU (`python -m sitl fly --duration 60`: 20.0 %
+    of a core without the kernels, 20.2 % with), and numba costs about 100 MB of memory."""
+    global _kernels, _tried
+    _kernels, _tried = None, True
+    from ..gnss import lambda_kernel
+    lambda_kernel._kernels, lambda_kernel._tried = None, True
+
+
 def warm_up() -> float:
     """Compile (or load from the disk cache) every kernel now, on tiny data: the IMU kernels in
     both propagation forms (dense, by blocks) and LAMBDA's.  Returns the seconds it took.  An
