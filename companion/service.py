@@ -132,6 +132,7 @@ class Service:
         from .status_page import StatusBoard
         self.status_board = StatusBoard()       # what the status page shows (fed even without the page)
         self.status_server = None
+        self._restore_kernels = None            # undoes filter.compiled_kernels at shutdown
         self.params = None                      # ParameterServer: the GCS reads/sets CC_* parameters
         if config.mavlink.parameters:
             from .io.mavlink_params import ParameterServer
@@ -183,7 +184,7 @@ class Service:
         from .nav.imu_kernel import use_reference_paths, warm_up
         kc = self.cfg.filter.compiled_kernels
         if kc == "off" or (kc == "auto" and not self.cfg.filter.rtk_enabled):
-            use_reference_paths()
+            self._restore_kernels = use_reference_paths()
         t_warm = warm_up()              # compiled kernels now (cache: ~0.5 s), not at the first IMU sample
         if t_warm > 5.0:
             log.warning("compiling the IMU kernels took %.1f s (no cache yet: NUMBA_CACHE_DIR, "
@@ -247,6 +248,9 @@ class Service:
         if self.status_server is not None:
             await self.status_server.close()
             self.status_server = None
+        if self._restore_kernels is not None:
+            self._restore_kernels()
+            self._restore_kernels = None
         if self.nmea is not None:
             self.nmea.close()
         if self.fieldlog is not None:

@@ -202,15 +202,22 @@ def compiled():
     return _kernels
 
 
-def use_reference_paths() -> None:
+def use_reference_paths():
     """From now on in this process, the pure-Python references instead of the compiled kernels
     (IMU and LAMBDA; the results are the same).  The live service without RTK takes them: there
     the engine is a small part of the service's CPU (`python -m sitl fly --duration 60`: 20.0 %
-    of a core without the kernels, 20.2 % with), and numba costs about 100 MB of memory."""
+    of a core without the kernels, 20.2 % with), and numba costs about 100 MB of memory.
+    Returns a function that restores the previous choice (the service calls it at shutdown)."""
     global _kernels, _tried
-    _kernels, _tried = None, True
     from ..gnss import lambda_kernel
+    before = (_kernels, _tried, lambda_kernel._kernels, lambda_kernel._tried)
+    _kernels, _tried = None, True
     lambda_kernel._kernels, lambda_kernel._tried = None, True
+
+    def restore() -> None:
+        global _kernels, _tried
+        _kernels, _tried, lambda_kernel._kernels, lambda_kernel._tried = before
+    return restore
 
 
 def warm_up() -> float:
