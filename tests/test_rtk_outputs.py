@@ -192,11 +192,9 @@ def test_rtk_fixes_with_rover_tags_a_millisecond_off_the_base_tags():
     assert r["fixed_epochs"] > 0.8 * r["n_epochs"] and r["wrong_fixes"] == 0 and r["rms_h_fixed_m"] < 0.02
 
 
-@pytest.mark.xfail(strict=True, reason="the engine models the rover at its epoch's tag, not at tag - "
-                   "clock bias / c: a 10-ms receiver clock offset is 12 cm at the drone's 12 m/s "
-                   "(measured: 8 wrong fixes, horizontal RMS over the fixed epochs 0.063 m against 0.012 m "
-                   "without the offset); the rtk_update patch proposed in the rtkwire report gives 0 "
-                   "and 0.012 m")
+# a 10-ms receiver clock offset is 12 cm at the drone's 12 m/s: with the rover modelled at its tag
+# it gave 8 wrong fixes and 0.063 m over the fixed epochs; RtkUpdate.rows now takes the antenna
+# back by the clock bias
 def test_rtk_fixes_with_rover_tags_ten_milliseconds_off_the_base_tags():
     r = _rtk_run_rover_held_for_its_base(0.01)
     print(r)
