@@ -58,6 +58,14 @@ def test_what_is_not_injected_is_no_fix(status, inject, q):
 
 def test_rtk_fix_states():
     assert gga_quality(_sol(rtk_fix="fixed")) == 4 and gga_quality(_sol(rtk_fix="float")) == 5
+    import dataclasses
+    # the filter's own RTK state (NavSolution.fix_state), as companion.nav.rtk_update sets it
+    assert gga_quality(dataclasses.replace(_sol(), fix_state="fixed")) == 4
+    assert gga_quality(dataclasses.replace(_sol(), fix_state="float"), differential=True) == 5
+    from companion.io.gcs_values import named_values
+    vals = {m.name: m.value for m in named_values(dataclasses.replace(_sol(), fix_state="fixed"), 0)}
+    assert vals["CC_RTK"] == 2.0
+    assert {m.name: m.value for m in named_values(_sol(), 0)}["CC_RTK"] == 0.0
 
 
 def test_udp_sink_on_loopback():

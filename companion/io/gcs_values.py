@@ -7,8 +7,8 @@ how good it says it is, without a laptop on the companion.  Names (at most 10 ch
 ``CC_STAT`` solution status code (the field log's ``STATUS_CODES``: 0 init, 1 nav, 2 coasting,
 3 untrusted, 4 diverged, 5 converging, 6 suspect), ``CC_INJ`` 1 while estimates are injected, ``CC_MODE`` 1 tight / 2 loose / 0 none,
 ``CC_SIGH`` / ``CC_SIGV`` horizontal / vertical 1-sigma (m), ``CC_HPL`` the horizontal protection
-level (m) when the solution carries one, ``CC_RTK`` 0 none / 1 float / 2 fixed when it carries an
-RTK state.
+level (m) when the solution carries one, ``CC_RTK`` 0 none / 1 float / 2 fixed (the filter's fix state, or the
+extras' ``rtk_fix``).
 """
 from __future__ import annotations
 
@@ -38,8 +38,8 @@ def named_values(sol: NavSolution, time_boot_ms: int) -> list:
         if key in x and math.isfinite(float(x[key])):
             vals.append((name, float(x[key])))
             break
-    if "rtk_fix" in x:
-        vals.append(("CC_RTK", float(RTK_CODES.get(x["rtk_fix"], 0))))
+    fix = sol.fix_state if sol.fix_state != "none" else x.get("rtk_fix", "none")   # the filter's RTK state
+    vals.append(("CC_RTK", float(RTK_CODES.get(fix, 0))))
     t = int(time_boot_ms) & 0xFFFFFFFF
     return [_ENC.named_value_float_encode(t, name.encode("ascii"), v if math.isfinite(v) else -1.0)
             for name, v in vals]

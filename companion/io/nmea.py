@@ -44,7 +44,7 @@ def gga_quality(sol: NavSolution, differential: bool = False) -> int:
         return 0
     if sol.status == "coasting":
         return 6
-    fix = x.get("rtk_fix")
+    fix = sol.fix_state if sol.fix_state != "none" else x.get("rtk_fix")   # the filter's RTK state
     if fix == "fixed":
         return 4
     if fix == "float":
