@@ -1142,10 +1142,34 @@ class NavPipeline:
             return []
         if self.mode != "loose":
             self.mode = "loose"
-            self._event(m.MAV_SEVERITY_WARNING, "nav: no raw GNSS, loose GPS_RAW_INT fusion")
+            self._announce_loose()
         eng.process(fix)
         self.counters["loose fixes fused"] += 1
         return []
+
+    def raw_missing_reason(self) -> tuple[str, str]:
+        """Why the tight filter has no usable raw observations, naming the missing UBX message (a
+        factory-default u-blox sends neither RXM-RAWX nor RXM-SFRBX; issue 15): (short text for a
+        STATUSTEXT, which the service cuts at 50 bytes with its "CC: ", and the hint for the log)."""
+        configure = "'companion gnss configure' switches RXM-RAWX and RXM-SFRBX on"
+        if not self.raw_expected:
+            return "gnss.source none", "gnss.source is 'none'"
+        if self.counters["rover epochs"] == 0:
+            if self.ubx.counters.get("frames", 0) == 0:
+                g = self.cfg.gnss
+                where = (f"{g.serial_control_device} (SERIAL_CONTROL)" if g.source == "mavlink_serial_control"
+                         else g.serial.port)
+                return "no UBX from receiver", f"no UBX frame from the receiver on {where}"
+            return "UBX but no RXM-RAWX", f"UBX frames arrive but no RXM-RAWX: raw output is off; {configure}"
+        if not self.engine.ephemerides.sats:
+            return ("RXM-RAWX, no ephemeris (SFRBX)",
+                    f"RXM-RAWX but no ephemerides: no RXM-SFRBX and no RTCM 1019; {configure}")
+        return f"no usable RXM-RAWX for {RAW_TIMEOUT_S:g} s", f"no usable RXM-RAWX for {RAW_TIMEOUT_S:g} s"
+
+    def _announce_loose(self) -> None:
+        short, hint = self.raw_missing_reason()
+        self._event(m.MAV_SEVERITY_WARNING, f"nav loose: {short}")
+        log.warning("loose GPS_RAW_INT fusion: %s", hint)
 
     def _try_init_loose(self) -> None:
         fix, s = self.last_fix, self.last_imu
@@ -1166,6 +1190,8 @@ class NavPipeline:
         self._initialize(s.t_gps, r_imu, v, C, max(fix.sigma_h_m, fix.sigma_v_m, 1.0), sv, clock_bias_m=None,
                          clock_drift_mps=0.0, how="GPS_RAW_INT fix (loose)", att_sigmas=att_sigmas)
         self.mode = "loose"
+        if self.raw_expected:        # raw observations were configured: say by name what is missing
+            self._announce_loose()
 
     def _initialize(self, t_gps, r, v, C, sig_pos, sig_vel, *, clock_bias_m, clock_drift_mps, how,
                     pos_cov_e_m2=None, att_sigmas=None) -> None:

@@ -53,7 +53,7 @@ def test_shipped_gnss_source_leaves_arducopter_its_gps_and_the_origin_is_read_ba
         # the probe found no RXM-RAWX and gave the port back: ArduPilot detects its u-blox, 3-D fix
         assert wait(lambda: any(m.fix_type >= 3 for _, m in gcs.records["GPS_RAW_INT"]), 40.0), texts()
         t_fix = next(t for t, m in gcs.records["GPS_RAW_INT"] if m.fix_type >= 3) - t0
-        assert "CC: GPS1: no raw GNSS, port left to autopilot" in texts()
+        assert "CC: GPS1: no RXM-RAWX, port left to autopilot" in texts()
         # the companion initialises loosely on GPS_RAW_INT and EKF3 takes its estimates
         assert wait(lambda: any("is using external nav data" in t for t in texts()), 60.0), texts()
         assert any("CC: nav init #1: GPS_RAW_INT fix (loose)" in t for t in texts()), texts()

@@ -130,7 +130,7 @@ def test_no_raw_observations_the_port_goes_back_and_the_autopilot_keeps_its_gps(
             assert await wait_for(lambda: claim.counters["autopilot GPS back after release"] == n_rel, 1.0)
             assert claim.autopilot_gps_back_s < 0.8      # the next NAV-PVT the driver reads
             texts = [t for _, t in claim.drain_events()]
-            assert texts == ["GPS1: no raw GNSS, port left to autopilot"]      # once, not per probe
+            assert texts == ["GPS1: no RXM-RAWX, port left to autopilot"]      # once, not per probe
             h = claim.health()
             assert h["state"] == "released" and h["next_probe_in_s"] is not None
         finally:

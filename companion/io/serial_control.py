@@ -303,6 +303,7 @@ class PortClaim:
         self._next_probe = -float("inf")          # the first probe as soon as the link is up
         self._retry_s = retry_initial_s
         self._quiet_probe = False                 # a failed probe in a series: no STATUSTEXT again
+        self._probe_frames0 = 0                   # "ubx frames" when the probe started
         self._releases_due: list[float] = []
         self._ever_locked = False
         self._link_down = False
@@ -364,6 +365,7 @@ class PortClaim:
         self._releases_due.clear()
         self.tunnel.resend_baud()
         self.counters["probes"] += 1
+        self._probe_frames0 = self.counters["ubx frames"]
         log.info("%s: probing for raw GNSS (%s, %.1f s)", self.tunnel.device_name, why, self.probe_s)
 
     def _claim(self, now: float) -> None:
@@ -400,7 +402,14 @@ class PortClaim:
             self._retry_s = min(self.retry_max_s, 2.0 * self._retry_s)
             if not self._quiet_probe:
                 self._quiet_probe = True
-                self._event(MAV_SEVERITY_NOTICE, f"{dev}: no raw GNSS, port left to autopilot")
+                # by name: a factory-default u-blox answers with NAV/NMEA but no RXM-RAWX (issue 15);
+                # STATUSTEXT is cut at 50 bytes with the service's "CC: ": the hint goes to the log
+                frames = self.counters["ubx frames"] - self._probe_frames0
+                self._event(MAV_SEVERITY_NOTICE, f"{dev}: {'no RXM-RAWX' if frames else 'no UBX reply'}, "
+                                                 "port left to autopilot")
+                log.warning("%s: %s: 'companion gnss configure --mavlink ...' switches RXM-RAWX and "
+                            "RXM-SFRBX on (with the service stopped)", dev,
+                            f"{frames} UBX frames but no RXM-RAWX" if frames else "no UBX from the receiver")
 
     def _send_due_releases(self, now: float) -> None:
         while self._releases_due and now >= self._releases_due[0]:
