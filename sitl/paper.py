@@ -25,6 +25,7 @@ from companion.nav.engine import EngineConfig, NavEngine
 from companion.nav.earth import C_n_e, ecef_to_geodetic, rotation_from_rotvec
 from companion.nav.chi2 import chi2_ppf
 from companion.nav.filter import ProcessNoise
+from .simulate import feed_engine
 
 MODES = ("ins", "gps", "loose", "tight", "tdcp_dgps")
 # extra modes (not in the paper's table): the proposal with between-satellite single differences
@@ -107,8 +108,6 @@ def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s
     eng.initialize(truth.t_gps[0], truth.r_e[0] + d_pos, truth.v_e[0] + d_vel,
                    rotation_from_rotvec(d_att) @ truth.C_b_e[0], tuning.p0)
     use_gnss = mode != "ins"
-    rover, base = sim.rover_epochs, sim.base_epochs
-    i_rov = i_base = 0
     lat = tuning.gnss_latency_s
     t0 = truth.t_gps[0]
     step = max(1, int(round(record_every_s / (truth.t_gps[1] - truth.t_gps[0]))))
@@ -117,15 +116,7 @@ def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s
     d0 = eng.r_e - truth.r_e[0]
     ts, errs, nees = [0.0], [float(np.linalg.norm(d0))], []
     errs_h = [float(np.linalg.norm(d0 - up_e * (d0 @ up_e)))]
-    for k, s in enumerate(sim.imu, start=1):
-        if use_gnss:
-            while i_base < len(base) and base[i_base].t_gps + lat <= s.t_gps:
-                eng.process(base[i_base])
-                i_base += 1
-            while i_rov < len(rover) and rover[i_rov].t_gps + lat <= s.t_gps:
-                eng.process(rover[i_rov])
-                i_rov += 1
-        eng.process_imu(s)
+    for k, s in feed_engine(eng, sim, lat, use_gnss=use_gnss):
         if k % step == 0:
             d = eng.r_e - truth.r_e[k]
             ts.append(s.t_gps - t0)

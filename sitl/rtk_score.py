@@ -27,6 +27,7 @@ import numpy as np
 
 from companion.nav.earth import C_n_e, ecef_to_geodetic, rotation_from_rotvec
 from companion.nav.engine import EngineConfig, NavEngine
+from .simulate import feed_engine
 
 WRONG_FIX_M = 0.1
 
@@ -86,21 +87,11 @@ def run_rtk(seed: int = 0, duration_s: float | None = None, scenario_name: str =
 
     eng.on_epoch = on_epoch
     lat = tuning.gnss_latency_s
-    rover, base = sim.rover_epochs, sim.base_epochs
-    if rover_hook is not None:
-        rover = rover_hook(rover)
-    i_rov = i_base = 0
+    rover = rover_hook(sim.rover_epochs) if rover_hook is not None else None
     step = max(1, int(round(1.0 / (truth.t_gps[1] - truth.t_gps[0]))))
     ts, err_h = [], []
     t_eng = time.process_time()
-    for k, s in enumerate(sim.imu, start=1):
-        while i_base < len(base) and base[i_base].t_gps + lat <= s.t_gps:
-            eng.process(base[i_base])
-            i_base += 1
-        while i_rov < len(rover) and rover[i_rov].t_gps + lat <= s.t_gps:
-            eng.process(rover[i_rov])
-            i_rov += 1
-        eng.process_imu(s)
+    for k, s in feed_engine(eng, sim, lat, rover=rover):
         if hook is not None:
             hook(eng, s.t_gps - t0)
         if k % step == 0:

@@ -511,3 +511,22 @@ def _euler(Cbn: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, heading) of a body-to-NED rotation (ZYX)."""
     return (math.atan2(Cbn[2, 1], Cbn[2, 2]), -math.asin(max(-1.0, min(1.0, Cbn[2, 0]))),
             math.atan2(Cbn[1, 0], Cbn[0, 0]))
+
+
+def feed_engine(eng, sim: SimData, latency_s: float, *, use_gnss: bool = True, rover=None):
+    """Drive a NavEngine offline through a simulated flight as the service would: every GNSS epoch
+    (base first, then rover; ``rover`` replaces the rover epochs) once ``latency_s`` has passed
+    since its time, then each IMU sample.  Yields ``(k, sample)`` after the k-th sample (from 1)."""
+    rover = sim.rover_epochs if rover is None else rover
+    base = sim.base_epochs
+    i_rov = i_base = 0
+    for k, s in enumerate(sim.imu, start=1):
+        if use_gnss:
+            while i_base < len(base) and base[i_base].t_gps + latency_s <= s.t_gps:
+                eng.process(base[i_base])
+                i_base += 1
+            while i_rov < len(rover) and rover[i_rov].t_gps + latency_s <= s.t_gps:
+                eng.process(rover[i_rov])
+                i_rov += 1
+        eng.process_imu(s)
+        yield k, s

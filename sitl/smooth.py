@@ -17,6 +17,7 @@ import numpy as np
 from companion.nav.earth import C_n_e, ecef_to_geodetic, rotation_from_rotvec
 from companion.nav.engine import NavEngine
 from companion.nav.smoother import SmootherRecorder
+from .simulate import feed_engine
 
 
 def run_smoothing(scenario_name: str = "uav", seed: int = 1, mode: str = "tdcp_dgps", rate_hz: float = 10.0) -> dict:
@@ -45,21 +46,10 @@ def run_smoothing(scenario_name: str = "uav", seed: int = 1, mode: str = "tdcp_d
     eng.initialize(truth.t_gps[0], truth.r_e[0] + d_pos, truth.v_e[0] + d_vel,
                    rotation_from_rotvec(d_att) @ truth.C_b_e[0], tuning.p0)
     use_gnss = mode != "ins"
-    rover, base = sim.rover_epochs, sim.base_epochs
-    i_rov = i_base = 0
-    lat = tuning.gnss_latency_s
     step = max(1, int(round(1.0 / (rate_hz * (truth.t_gps[1] - truth.t_gps[0])))))
     k_truth, P_fwd = [], []
     forward = []
-    for k, s in enumerate(sim.imu, start=1):
-        if use_gnss:
-            while i_base < len(base) and base[i_base].t_gps + lat <= s.t_gps:
-                eng.process(base[i_base])
-                i_base += 1
-            while i_rov < len(rover) and rover[i_rov].t_gps + lat <= s.t_gps:
-                eng.process(rover[i_rov])
-                i_rov += 1
-        eng.process_imu(s)
+    for k, s in feed_engine(eng, sim, tuning.gnss_latency_s, use_gnss=use_gnss):
         if k % step == 0:
             forward.append(eng.solution())
             k_truth.append(k)
