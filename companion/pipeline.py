@@ -778,7 +778,9 @@ class NavPipeline:
 
     def _gsf_restarted_and_less_certain(self, our_sigma_rad: float) -> bool:
         """The yaw from motion restarted after a GNSS gap less than GSF_RESTART_PROBATION_S ago
-        and is less certain than our heading: it neither overrules nor withholds ours."""
+        and is less certain than our heading: it does not reset ours.  While the two disagree
+        nothing is injected all the same (which one is wrong is not known: after the fault
+        matrix's 60-s outage, letting ours through put 46 estimates beyond their protection level)."""
         return (our_sigma_rad < self.gsf.yaw_sigma_rad
                 and self.engine.t_gps - self._gsf_restart_t < GSF_RESTART_PROBATION_S)
 
@@ -836,7 +838,7 @@ class NavPipeline:
         if not eng.initialized or eng.kf is None:
             return True           # no heading to judge (the status gate decides)
         heading, sigma = eng.heading_and_sigma()
-        if self.gsf.settled and self._gsf_disagrees(heading, sigma) and not self._gsf_restarted_and_less_certain(sigma):
+        if self.gsf.settled and self._gsf_disagrees(heading, sigma):
             self.counters["solutions withheld: heading contradicts the yaw from motion"] += 1
             return False
         if self.gsf.converged:

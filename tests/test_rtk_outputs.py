@@ -279,7 +279,8 @@ def test_statustext_once_per_fix_state_change_that_holds():
 def test_a_restarted_yaw_from_motion_does_not_overrule_a_more_certain_heading():
     """After a GNSS gap the yaw-from-motion bank starts over; converged again within seconds it
     may sit on a wrong mode (the rtk flight's 30-s outage: 164 deg off at 9.5 deg sigma) -- it
-    neither resets nor withholds a heading more certain than its own for GSF_RESTART_PROBATION_S."""
+    does not reset a heading more certain than its own for GSF_RESTART_PROBATION_S; while they
+    disagree nothing is injected (which of the two is wrong is not known)."""
     from companion.pipeline import GSF_RESTART_PROBATION_S
     pipe = NavPipeline(config_from_dict(RTK_ON))
     gsf = SimpleNamespace(gap_restarts=0, converged=True, settled=True, yaw_rad=math.radians(164.0),
@@ -303,7 +304,7 @@ def test_a_restarted_yaw_from_motion_does_not_overrule_a_more_certain_heading():
     pipe._gsf_disagreements = 0
     pipe._gsf_check_heading(np.array([10.0, 0.0, 0.0]), 0.1, Cne)
     assert pipe.counters["heading reset refused: yaw from motion restarted recently, less certain"] == 1
-    assert pipe.gsf_heading_resets == 0 and pipe._heading_known()
+    assert pipe.gsf_heading_resets == 0 and not pipe._heading_known()
     assert not pipe._gsf_restarted_and_less_certain(math.radians(12.0))     # ours less certain: it may
     eng.t_gps += GSF_RESTART_PROBATION_S + 0.1
     assert not pipe._gsf_restarted_and_less_certain(math.radians(1.0))       # watched long enough
