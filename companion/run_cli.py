@@ -59,7 +59,8 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_run)
     r = subparsers.add_parser("replay", help="replay a field log, a MAVLink .tlog or an ArduPilot DataFlash .BIN "
                                              "through the navigation pipeline")
-    r.add_argument("log", help="field log file, rotated-log directory or stem, a .tlog, or a DataFlash .BIN")
+    r.add_argument("log", help="field log file, rotated-log directory or stem, a .tlog, a DataFlash .BIN, a PX4 "
+                   ".ulg, or a u-blox .ubx with --imu-csv")
     r.add_argument("--config", help="TOML configuration (default: the one recorded in the field log)")
     r.add_argument("--json", help="write solutions and the comparison as JSON here")
     r.add_argument("--plot", help="write a PNG of the track and sigmas here")
@@ -76,6 +77,18 @@ def register(subparsers) -> None:
     r.add_argument("--smooth", action="store_true", help="field log, DataFlash, ULog: RTS-smooth the forward solutions "
                    "(post-flight: the best trajectory, through GNSS outages); with a truth the forward pass is "
                    "scored beside it")
+    r.add_argument("--imu-csv", help="LOG is a u-blox .ubx capture (RXM-RAWX + RXM-SFRBX) and this the IMU "
+                   "recorded beside it (companion.io.imu_csv)")
+    r.add_argument("--imu-columns", help="IMU CSV: t=COL,gx=COL,gy=COL,gz=COL,ax=COL,ay=COL,az=COL "
+                   "(default: those names)")
+    r.add_argument("--imu-time", choices=("gps", "unix"), default="gps",
+                   help="IMU CSV time: GPS seconds (week*604800+TOW) or UNIX seconds (UTC)")
+    r.add_argument("--gyro-unit", choices=("rad/s", "deg/s"), default="rad/s")
+    r.add_argument("--accel-unit", choices=("m/s2", "g"), default="m/s2")
+    r.add_argument("--imu-rotation", help="IMU CSV: the body FRD axis of each sensor axis, e.g. x,-y,-z for a "
+                   "sensor in FLU (default x,y,z)")
+    r.add_argument("--ubx-latency-ms", type=float, default=50.0,
+                   help=".ubx: receiver output latency after each epoch's time (default 50)")
     r.set_defaults(func=cmd_replay)
 
 

@@ -1,0 +1,120 @@
+"""Post-process a u-blox capture (``.ubx``: RXM-RAWX + RXM-SFRBX) with an IMU recorded beside it
+(CSV, :mod:`companion.io.imu_csv`) through the same pipeline as the live service: ``companion
+replay ROVER.ubx --imu-csv IMU.csv``.
+
+The IMU samples become the HIGHRES_IMU and SYSTEM_TIME messages an autopilot would have sent (the
+DataFlash adapter, :mod:`companion.io.dataflash`, with the boot clock starting at the first IMU
+sample's whole GPS second), and the UBX bytes are fed as the receiver's stream: each RXM-RAWX frame
+and the frames after it (SFRBX, NAV) arrive ``ubx_latency_s`` after that epoch's receiver time, as
+from a receiver on the companion's own port.  No ATTITUDE: the heading comes from motion (the yaw
+estimator), as for a receiver and IMU that no autopilot ties together.  Without a base station the
+solution is standalone (tightly coupled pseudoranges and TDCP).
+"""
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import math
+import struct
+import time
+
+import numpy as np
+
+from .io.ubx import ubx_checksum
+
+RAWX_HEADER = b"\xb5\x62\x02\x15"
+SECONDS_PER_WEEK = 604800.0
+
+
+def ubx_segments(data: bytes) -> list[tuple[float, bytes]]:
+    """The capture cut at each valid RXM-RAWX frame: (receiver GPS time of that epoch, the bytes
+    from it to the next one).  Bytes before the first epoch go with the first; a capture without
+    RXM-RAWX gives none."""
+    starts = []
+    i = data.find(RAWX_HEADER)
+    while i >= 0 and i + 8 <= len(data):
+        n = struct.unpack_from("<H", data, i + 4)[0]
+        end = i + 8 + n
+        if n >= 16 and end <= len(data) and bytes(ubx_checksum(data[i + 2:i + 6 + n])) == data[end - 2:end]:
+            tow, week = struct.unpack_from("<dH", data, i + 6)
+            starts.append((i, week * SECONDS_PER_WEEK + tow))
+            i = data.find(RAWX_HEADER, end)
+        else:
+            i = data.find(RAWX_HEADER, i + 2)
+    out = []
+    for k, (pos, t) in enumerate(starts):
+        lo = 0 if k == 0 else pos
+        hi = starts[k + 1][0] if k + 1 < len(starts) else len(data)
+        out.append((t, data[lo:hi]))
+    return out
+
+
+def replay_ubx(ubx_path, imu_csv, config=None, *, csv_options: dict | None = None, ubx_latency_s: float = 0.05,
+               progress: bool = False, needed_imu_hz: float | None = None, smooth: bool = False):
+    """:class:`~companion.replay.ReplayResult` of the capture and the IMU CSV (see the module doc)."""
+    from .config import Config
+    from .io.dataflash import AdapterOptions, DataFlashLog, TimeBase, iter_mavlink_messages
+    from .io.imu_csv import read_imu_csv
+    from .nav.earth import ecef_to_geodetic
+    from .nav.smoother import SmootherRecorder
+    from .pipeline import NavPipeline, encode_solution
+    from .replay import IMU_RATE_NEEDED_HZ, ReplayResult, _Progress, imu_rate_check
+    t_start = time.perf_counter()
+    res = ReplayResult(kind="ubx+imu")
+    cfg = config or Config()
+    imu, counters = read_imu_csv(imu_csv, leap_seconds=cfg.gnss.leap_seconds, **(csv_options or {}))
+    segments = ubx_segments(open(ubx_path, "rb").read())
+    res.log_stats = {"imu_csv": counters, "imu_samples": int(len(imu)), "rawx_epochs": len(segments)}
+    t0 = math.floor(imu[0, 0]) if len(imu) else 0.0
+    boot_us = (imu[:, 0] - t0) * 1e6
+    res.imu_check = imu_rate_check("IMU CSV" if len(imu) else "", boot_us, needed_imu_hz or IMU_RATE_NEEDED_HZ)
+    if res.imu_check["reason"]:
+        res.refusal = res.imu_check["reason"]
+    elif not segments:
+        res.refusal = f"{ubx_path}: no RXM-RAWX in the capture ('companion gnss configure' switches it on)"
+    elif segments[-1][0] < imu[0, 0] or segments[0][0] > imu[-1, 0]:
+        res.refusal = (f"the receiver's epochs (GPS {segments[0][0]:.1f}-{segments[-1][0]:.1f} s) and the IMU "
+                       f"({imu[0, 0]:.1f}-{imu[-1, 0]:.1f} s) do not overlap: check --imu-time")
+    if res.refusal:
+        res.elapsed_s = time.perf_counter() - t_start
+        return res
+    if config is None:
+        cfg = dataclasses.replace(cfg, gnss=dataclasses.replace(cfg.gnss, source="serial"),
+                                  mavlink=dataclasses.replace(cfg.mavlink, imu_message="HIGHRES_IMU", imu_cluster=(),
+                                                              imu_rate_hz=float(min(max(res.imu_check["rate_hz"], 1.0), 2000.0))))
+        res.notes.append("receiver on the companion's port (gnss.source 'serial'), IMU from the CSV as HIGHRES_IMU, "
+                         "no ATTITUDE (heading from motion), no base station: standalone")
+    res.config_from = "--config" if config is not None else "defaults adapted to a .ubx capture + IMU CSV"
+    dlog = DataFlashLog(str(ubx_path))
+    dlog.imu[0] = np.column_stack([boot_us, imu[:, 1:7]])
+    tb = TimeBase(offset_s=t0, latency_s=0.0, gms_is_delivery=False, jitter_s=0.0, n_fixes=0)
+    opts = AdapterOptions(earth_rate=False, leap_seconds=cfg.gnss.leap_seconds,
+                          target_system=cfg.mavlink.target_system, target_component=cfg.mavlink.target_component)
+    mav_stream = ((t_us, 0, msg) for t_us, msg in iter_mavlink_messages(dlog, opts, tb))
+    ubx_stream = (((t - t0 + ubx_latency_s) * 1e6, 1, data) for t, data in segments)
+    pipe = NavPipeline(cfg)
+    recorder = SmootherRecorder.attached_to(pipe.engine) if smooth else None
+    prog = _Progress(len(imu), progress)
+    for t_us, kind, item in heapq.merge(mav_stream, ubx_stream, key=lambda x: (x[0], x[1])):
+        res.records += 1
+        if not res.records & 1023:
+            prog.update(res.records)
+        t_ns = int(t_us * 1000)
+        sols = pipe.feed_mavlink_record(t_ns, item) if kind == 0 else pipe.feed("ubx", t_ns, item)
+        for sol in sols:
+            res.solutions.append(sol)
+            res.produced.append(encode_solution(sol))
+    prog.update(len(imu), final=True)
+    res.pipeline_health = pipe.health()
+    if recorder is not None:
+        res.solutions = recorder.smoothed(res.solutions)
+        res.notes.append(f"solutions RTS-smoothed over {recorder.n_checkpoints} checkpoints (companion.nav.smoother)")
+    good = [s for s in res.solutions if np.all(np.isfinite(s.r_e))]
+    if good:
+        llh = np.array([ecef_to_geodetic(s.r_e) for s in good])
+        res.tracks["ours"] = np.c_[np.degrees(llh[:, 0]), np.degrees(llh[:, 1]), llh[:, 2]]
+    res.elapsed_s = time.perf_counter() - t_start
+    return res
+
+
+__all__ = ["replay_ubx", "ubx_segments"]
