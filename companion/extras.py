@@ -6,6 +6,7 @@ the simulator are extras (``pyproject.toml``)::
     plot = matplotlib (every --plot)      mqtt = aiomqtt (telemetry, corrections.source = 'mqtt')
     sitl = the simulator (pyubx2, plots)  rinex = hatanaka (compressed RINEX)
     ulog = pyulog (PX4 .ulg replay)      receiver = pyubx2 (companion gnss configure)
+    kernels = numba (compiled IMU-rate and LAMBDA kernels)
     test = everything the test suite needs
 
 ``require("aiomqtt", "mqtt", "MQTT telemetry")`` returns the module, or raises :class:`MissingExtra`
@@ -19,7 +20,7 @@ import importlib.util
 from types import ModuleType
 
 # module -> extra that installs it (pyproject.toml [project.optional-dependencies])
-EXTRA_OF = {"matplotlib": "plot", "aiomqtt": "mqtt", "pyubx2": "sitl", "georinex": "test", "hatanaka": "rinex", "pyulog": "ulog"}
+EXTRA_OF = {"matplotlib": "plot", "aiomqtt": "mqtt", "pyubx2": "sitl", "georinex": "test", "hatanaka": "rinex", "pyulog": "ulog", "numba": "kernels"}
 
 
 class MissingExtra(ImportError):

@@ -48,6 +48,7 @@ companion_venv() {
 companion_install() {
   echo "installing companion and its Python packages ($1) into .venv/ (first time 1-3 min, then seconds)"
   python -m pip install -q --disable-pip-version-check -e ".[$1]"
-  # compile the IMU-rate and LAMBDA kernels once now (numba's disk cache), not at the first flight
+  # compile the IMU-rate and LAMBDA kernels once now (numba's disk cache; [kernels], in [test]), not
+  # at the first flight; without numba it says so and the pure-Python path runs
   python -m companion.nav.imu_kernel || true
 }

@@ -61,11 +61,27 @@ def _udp_free(port: int) -> bool:
             return False
 
 
+def _lock_held(path: Path) -> bool:
+    """A running PX4 holds an flock on its /tmp/px4_lock-N; one that died leaves the file behind
+    (a PX4 that exits at start-up does), which must not take the instance away for good."""
+    import fcntl
+    try:
+        with open(path, "rb") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                return True
+            fcntl.flock(fh, fcntl.LOCK_UN)
+            return False
+    except FileNotFoundError:
+        return False
+
+
 def free_instance(max_instance: int = 10) -> int:
-    """The first PX4 instance whose lock file is absent and whose UDP ports are free."""
+    """The first PX4 instance whose lock file is not held and whose UDP ports are free."""
     for i in range(max_instance):
         ports = (ONBOARD_REMOTE_PORT + i, ONBOARD_LOCAL_PORT + i, GCS_LOCAL_PORT + i, DISPLAY_REMOTE_PORT + i)
-        if not Path(f"/tmp/px4_lock-{i}").exists() and all(_udp_free(p) for p in ports):
+        if not _lock_held(Path(f"/tmp/px4_lock-{i}")) and all(_udp_free(p) for p in ports):
             return i
     raise RuntimeError(f"no free PX4 instance among 0..{max_instance - 1} (/tmp/px4_lock-N or ports in use)")
 
