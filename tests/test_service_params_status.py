@@ -31,12 +31,12 @@ def _fetch(url: str) -> bytes:
     return urllib.request.urlopen(url, timeout=5).read()
 
 
-def test_parameters_and_status_page_through_the_running_service(tmp_path):
+def test_parameters_and_status_page_through_the_running_service(tmp_path, monkeypatch):
     port, http_port = _free_port(), _free_port(socket.SOCK_STREAM)
     path = tmp_path / "companion.toml"
     path.write_text(f'[mavlink]\nconnection = "udpin:127.0.0.1:{port}"\ntimesync_interval_s = 0\n'
                     f'[gnss]\nsource = "none"\nlever_arm_b_m = [0.1, 0.0, -0.2]\n'
-                    f'[log]\nenabled = false\n[status_page]\nport = {http_port}\n')
+                    f'[log]\ndir = "{tmp_path / "log"}"\n[status_page]\nport = {http_port}\n')
     path.chmod(0o600)
     cfg = load_config(path)
 
@@ -100,6 +100,15 @@ def test_parameters_and_status_page_through_the_running_service(tmp_path):
         assert svc.status_server is None                            # closed at shutdown
 
     asyncio.run(asyncio.wait_for(main(), 60))
+    # the field log holds the change: a replay applies it at the same record
+    from companion.pipeline import NavPipeline
+    from companion.replay import replay_field_log
+    applied = []
+    original = NavPipeline.apply_settings
+    monkeypatch.setattr(NavPipeline, "apply_settings",
+                        lambda self, c: (applied.append(c.gnss.lever_arm_b_m), original(self, c)))
+    res = replay_field_log(tmp_path / "log")
+    assert res.config_from == "field log" and applied == [(0.25, 0.0, -0.2)]
 
 
 def test_a_port_in_use_does_not_stop_the_service(tmp_path):
