@@ -513,14 +513,15 @@ def _euler(Cbn: np.ndarray) -> tuple[float, float, float]:
             math.atan2(Cbn[1, 0], Cbn[0, 0]))
 
 
-def feed_engine(eng, sim: SimData, latency_s: float, *, use_gnss: bool = True, rover=None):
+def feed_engine(eng, sim: SimData, latency_s: float, *, use_gnss: bool = True, rover=None, base=None, imu=None):
     """Drive a NavEngine offline through a simulated flight as the service would: every GNSS epoch
-    (base first, then rover; ``rover`` replaces the rover epochs) once ``latency_s`` has passed
-    since its time, then each IMU sample.  Yields ``(k, sample)`` after the k-th sample (from 1)."""
+    (base first, then rover) once ``latency_s`` has passed since its time, then each IMU sample.
+    ``rover``, ``base``, ``imu`` replace the flight's own (a part of it, altered epochs).  Yields
+    ``(k, sample)`` after the k-th sample (from 1)."""
     rover = sim.rover_epochs if rover is None else rover
-    base = sim.base_epochs
+    base = sim.base_epochs if base is None else base
     i_rov = i_base = 0
-    for k, s in enumerate(sim.imu, start=1):
+    for k, s in enumerate(sim.imu if imu is None else imu, start=1):
         if use_gnss:
             while i_base < len(base) and base[i_base].t_gps + latency_s <= s.t_gps:
                 eng.process(base[i_base])

@@ -13,7 +13,7 @@ from companion.nav.earth import C_n_e, ecef_to_geodetic, rotation_from_rotvec
 from companion.nav.engine import NavEngine
 from sitl.paper import mode_config
 from sitl.scenario import build_scenario
-from sitl.simulate import simulate
+from sitl.simulate import feed_engine, simulate
 from sitl.tuning import tuning_for
 
 
@@ -44,17 +44,9 @@ def test_tdcp_dgps_initialised_in_flight_converges_without_rejections(heading_er
     t_init = tr.t_gps[k0]
     rover = [e for e in sim.rover_epochs if e.t_gps > t_init]
     base = [e for e in sim.base_epochs if e.t_gps > t_init - 2.0]
-    i_r = i_b = 0
     lag = tun.gnss_latency_s
     worst_after_20s = worst_ratio = 0.0
-    for s in sim.imu[k0:k0 + int(40.0 * sc.imu.rate_hz)]:
-        while i_b < len(base) and base[i_b].t_gps + lag <= s.t_gps:
-            eng.process(base[i_b])
-            i_b += 1
-        while i_r < len(rover) and rover[i_r].t_gps + lag <= s.t_gps:
-            eng.process(rover[i_r])
-            i_r += 1
-        eng.process_imu(s)
+    for _, s in feed_engine(eng, sim, lag, rover=rover, base=base, imu=sim.imu[k0:k0 + int(40.0 * sc.imu.rate_hz)]):
         if eng.t_gps - t_init >= 20.0:
             k = int(np.searchsorted(tr.t_gps, eng.t_gps))
             dh = (_heading_deg(eng.C_b_e, eng.r_e) - _heading_deg(tr.C_b_e[k], tr.r_e[k]) + 180.0) % 360.0 - 180.0

@@ -64,6 +64,7 @@ def test_in_flight_start_with_the_service_noise_keeps_its_heading_honest():
     ATTITUDE then wandered by 60 deg)."""
     from sitl.fly import load_sim
     from sitl.tuning import tuning_for
+    from sitl.simulate import feed_engine
     from test_integrity_pipeline import pipeline_config
     from companion.nav.engine import NavEngine
 
@@ -89,16 +90,8 @@ def test_in_flight_start_with_the_service_noise_keeps_its_heading_honest():
     base = [e for e in sim.base_epochs if e.t_gps > t_init - 2.0]
     lag = tuning_for(sc).gnss_latency_s
     assert lag >= 0.05
-    i_r = i_b = 0
     worst_ratio = 0.0
-    for s in sim.imu[k0:k0 + int(run_s * sc.imu.rate_hz)]:
-        while i_b < len(base) and base[i_b].t_gps + lag <= s.t_gps:
-            eng.process(base[i_b])
-            i_b += 1
-        while i_r < len(rover) and rover[i_r].t_gps + lag <= s.t_gps:
-            eng.process(rover[i_r])
-            i_r += 1
-        eng.process_imu(s)
+    for _, s in feed_engine(eng, sim, lag, rover=rover, base=base, imu=sim.imu[k0:k0 + int(run_s * sc.imu.rate_hz)]):
         if eng.t_gps - t_init >= 5.0:
             k = int(np.searchsorted(tr.t_gps, eng.t_gps))
             dh = (_heading_deg(eng.C_b_e, eng.r_e) - _heading_deg(tr.C_b_e[k], tr.r_e[k]) + 180.0) % 360.0 - 180.0
