@@ -347,6 +347,11 @@ class NavPipeline:
         self.lever_b = np.asarray(cfg.gnss.lever_arm_b_m, float)
         self.engine.set_installation(cfg.gnss.lever_arm_b_m, cfg.gnss.moving_baseline_b_m)
 
+    def feed_decoded(self, t_rx_ns: int, msgs) -> list[NavSolution]:
+        """Already decoded GNSS messages (GnssEpoch, GpsEphemeris, BaseStationPosition), as the UBX
+        and RTCM decoders give them: post-processing of RINEX observations (companion.replay_receiver)."""
+        return self._poll_rtcm(t_rx_ns) + self._feed_messages(list(msgs))
+
     def feed(self, kind: str, t_rx_ns: int, data: bytes) -> list[NavSolution]:
         self.counters[f"records {kind}"] += 1
         try:

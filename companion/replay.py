@@ -720,12 +720,14 @@ def run_replay_cli(args) -> int:
         print(f"error: {args.log}: no such field log, directory, .tlog, DataFlash .BIN or PX4 .ulg", file=sys.stderr)
         return 2
     if getattr(args, "imu_csv", None):
-        from .replay_ubx import replay_ubx
-        res = replay_ubx(args.log, args.imu_csv, cfg, progress=not getattr(args, "no_progress", False),
-                         csv_options={"columns": args.imu_columns, "time": args.imu_time, "gyro_unit": args.gyro_unit,
-                                      "accel_unit": args.accel_unit, "rotation": args.imu_rotation},
-                         ubx_latency_s=args.ubx_latency_ms * 1e-3, smooth=bool(getattr(args, "smooth", False)),
-                         needed_imu_hz=getattr(args, "min_imu_rate_hz", None))
+        from .replay_receiver import replay_receiver
+        res = replay_receiver(args.log, args.imu_csv, cfg, nav_path=getattr(args, "nav", None),
+                              base_path=getattr(args, "base", None), progress=not getattr(args, "no_progress", False),
+                              csv_options={"columns": args.imu_columns, "time": args.imu_time,
+                                           "gyro_unit": args.gyro_unit, "accel_unit": args.accel_unit,
+                                           "rotation": args.imu_rotation},
+                              ubx_latency_s=args.ubx_latency_ms * 1e-3, smooth=bool(getattr(args, "smooth", False)),
+                              needed_imu_hz=getattr(args, "min_imu_rate_hz", None))
     else:
         res = replay(args.log, cfg, progress=not getattr(args, "no_progress", False), **_cli_options(args))
     c = res.comparison()

@@ -77,8 +77,8 @@ def register(subparsers) -> None:
     r.add_argument("--smooth", action="store_true", help="field log, DataFlash, ULog: RTS-smooth the forward solutions "
                    "(post-flight: the best trajectory, through GNSS outages); with a truth the forward pass is "
                    "scored beside it")
-    r.add_argument("--imu-csv", help="LOG is a u-blox .ubx capture (RXM-RAWX + RXM-SFRBX) and this the IMU "
-                   "recorded beside it (companion.io.imu_csv)")
+    r.add_argument("--imu-csv", help="LOG is a u-blox .ubx capture (RXM-RAWX + RXM-SFRBX) or RINEX observations "
+                   "(with --nav), and this the IMU recorded beside it (companion.io.imu_csv)")
     r.add_argument("--imu-columns", help="IMU CSV: t=COL,gx=COL,gy=COL,gz=COL,ax=COL,ay=COL,az=COL "
                    "(default: those names)")
     r.add_argument("--imu-time", choices=("gps", "unix"), default="gps",
@@ -87,6 +87,8 @@ def register(subparsers) -> None:
     r.add_argument("--accel-unit", choices=("m/s2", "g"), default="m/s2")
     r.add_argument("--imu-rotation", help="IMU CSV: the body FRD axis of each sensor axis, e.g. x,-y,-z for a "
                    "sensor in FLU (default x,y,z)")
+    r.add_argument("--nav", help="with --imu-csv and RINEX observations: the RINEX navigation file")
+    r.add_argument("--base", help="with --imu-csv and RINEX observations: a base station's RINEX observations (DGPS)")
     r.add_argument("--ubx-latency-ms", type=float, default=50.0,
                    help=".ubx: receiver output latency after each epoch's time (default 50)")
     r.set_defaults(func=cmd_replay)

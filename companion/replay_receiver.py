@@ -1,6 +1,7 @@
-"""Post-process a u-blox capture (``.ubx``: RXM-RAWX + RXM-SFRBX) with an IMU recorded beside it
-(CSV, :mod:`companion.io.imu_csv`) through the same pipeline as the live service: ``companion
-replay ROVER.ubx --imu-csv IMU.csv``.
+"""Post-process a receiver's recording with an IMU recorded beside it (CSV,
+:mod:`companion.io.imu_csv`) through the same pipeline as the live service: ``companion replay
+ROVER.ubx --imu-csv IMU.csv``, or RINEX: ``companion replay ROVER.obs --nav NAV --imu-csv IMU.csv
+[--base BASE.obs]``.
 
 The IMU samples become the HIGHRES_IMU and SYSTEM_TIME messages an autopilot would have sent (the
 DataFlash adapter, :mod:`companion.io.dataflash`, with the boot clock starting at the first IMU
@@ -9,6 +10,11 @@ and the frames after it (SFRBX, NAV) arrive ``ubx_latency_s`` after that epoch's
 from a receiver on the companion's own port.  No ATTITUDE: the heading comes from motion (the yaw
 estimator), as for a receiver and IMU that no autopilot ties together.  Without a base station the
 solution is standalone (tightly coupled pseudoranges and TDCP).
+
+RINEX observations (GPS, the engine's system) go in as the epochs the decoders would produce
+(:meth:`~companion.pipeline.NavPipeline.feed_decoded`), each ``ubx_latency_s`` after its time; the
+navigation file's ephemerides at the start; a base observation file's epochs the same way, with
+the station at its header position plus ``ANTENNA: DELTA H/E/N``, which makes the solution DGPS.
 """
 from __future__ import annotations
 
@@ -49,9 +55,52 @@ def ubx_segments(data: bytes) -> list[tuple[float, bytes]]:
     return out
 
 
-def replay_ubx(ubx_path, imu_csv, config=None, *, csv_options: dict | None = None, ubx_latency_s: float = 0.05,
-               progress: bool = False, needed_imu_hz: float | None = None, smooth: bool = False):
-    """:class:`~companion.replay.ReplayResult` of the capture and the IMU CSV (see the module doc)."""
+def is_ubx(path) -> bool:
+    with open(path, "rb") as fh:
+        return fh.read(2) == b"\xb5\x62"
+
+
+GPS_WEEK_ROLLOVER = 1024
+
+
+def _week_of(eph, t_gps_obs: float):
+    """The ephemeris in the 1024-week era of the observations: LNAV broadcasts its week in 10 bits
+    and a converter that resolves them against its own clock writes old data 1024 weeks late
+    (RTKLIB 2.4.3's convbin on a 2005 capture: week 2340 for 1316)."""
+    obs_week = int(t_gps_obs // SECONDS_PER_WEEK)
+    k = round((eph.week - obs_week) / GPS_WEEK_ROLLOVER)
+    return dataclasses.replace(eph, week=eph.week - k * GPS_WEEK_ROLLOVER) if k else eph
+
+
+def _rinex_stream(obs_path, nav_path, base_path):
+    """(receiver GPS time, [decoded messages]) of RINEX rover (and base) observations; the
+    ephemerides and the base position go with the first epoch."""
+    from .gnss.rinex import read_rinex_nav, read_rinex_obs
+    from .gnss.rtk_post import antenna_delta_e
+    from .messages import BaseStationPosition
+    if nav_path is None:
+        raise ValueError("RINEX observations need --nav (a RINEX navigation file)")
+    _, rover = read_rinex_obs(obs_path, "G")
+    first = [_week_of(e, rover[0].t_gps) for e in read_rinex_nav(nav_path, "G")] if rover else []
+    items = [(e.t_gps, [e]) for e in rover]
+    if base_path is not None:
+        hdr, base = read_rinex_obs(base_path, "G")
+        r_b = hdr["approx_position_e"]
+        if r_b is None:
+            raise ValueError(f"{base_path}: no APPROX POSITION XYZ in the header: the base position is unknown")
+        r_b = np.asarray(r_b, float)
+        first.append(BaseStationPosition(station_id=0, r_e=r_b + antenna_delta_e(r_b, hdr.get("antenna_delta_hen_m"))))
+        items += [(e.t_gps - 1e-6, [dataclasses.replace(e, source="base")]) for e in base]   # base before rover
+    items.sort(key=lambda x: x[0])
+    if items:
+        items[0] = (items[0][0], first + items[0][1])
+    return items, len(rover)
+
+
+def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=None,
+                    csv_options: dict | None = None, ubx_latency_s: float = 0.05, progress: bool = False,
+                    needed_imu_hz: float | None = None, smooth: bool = False):
+    """:class:`~companion.replay.ReplayResult` of the recording and the IMU CSV (see the module doc)."""
     from .config import Config
     from .io.dataflash import AdapterOptions, DataFlashLog, TimeBase, iter_mavlink_messages
     from .io.imu_csv import read_imu_csv
@@ -63,15 +112,26 @@ def replay_ubx(ubx_path, imu_csv, config=None, *, csv_options: dict | None = Non
     res = ReplayResult(kind="ubx+imu")
     cfg = config or Config()
     imu, counters = read_imu_csv(imu_csv, leap_seconds=cfg.gnss.leap_seconds, **(csv_options or {}))
-    segments = ubx_segments(open(ubx_path, "rb").read())
-    res.log_stats = {"imu_csv": counters, "imu_samples": int(len(imu)), "rawx_epochs": len(segments)}
+    ubx = is_ubx(obs_path)
+    if ubx:
+        segments = ubx_segments(open(obs_path, "rb").read())
+        n_epochs = len(segments)
+    else:
+        try:
+            segments, n_epochs = _rinex_stream(obs_path, nav_path, base_path)
+        except (ValueError, IndexError, OSError) as exc:
+            res.refusal = f"cannot read the RINEX input: {exc}"
+            res.elapsed_s = time.perf_counter() - t_start
+            return res
+    res.log_stats = {"imu_csv": counters, "imu_samples": int(len(imu)), "receiver_epochs": n_epochs}
     t0 = math.floor(imu[0, 0]) if len(imu) else 0.0
     boot_us = (imu[:, 0] - t0) * 1e6
     res.imu_check = imu_rate_check("IMU CSV" if len(imu) else "", boot_us, needed_imu_hz or IMU_RATE_NEEDED_HZ)
     if res.imu_check["reason"]:
         res.refusal = res.imu_check["reason"]
     elif not segments:
-        res.refusal = f"{ubx_path}: no RXM-RAWX in the capture ('companion gnss configure' switches it on)"
+        res.refusal = (f"{obs_path}: no RXM-RAWX in the capture ('companion gnss configure' switches it on)" if ubx
+                       else f"{obs_path}: no GPS observation epochs")
     elif segments[-1][0] < imu[0, 0] or segments[0][0] > imu[-1, 0]:
         res.refusal = (f"the receiver's epochs (GPS {segments[0][0]:.1f}-{segments[-1][0]:.1f} s) and the IMU "
                        f"({imu[0, 0]:.1f}-{imu[-1, 0]:.1f} s) do not overlap: check --imu-time")
@@ -83,9 +143,10 @@ def replay_ubx(ubx_path, imu_csv, config=None, *, csv_options: dict | None = Non
                                   mavlink=dataclasses.replace(cfg.mavlink, imu_message="HIGHRES_IMU", imu_cluster=(),
                                                               imu_rate_hz=float(min(max(res.imu_check["rate_hz"], 1.0), 2000.0))))
         res.notes.append("receiver on the companion's port (gnss.source 'serial'), IMU from the CSV as HIGHRES_IMU, "
-                         "no ATTITUDE (heading from motion), no base station: standalone")
-    res.config_from = "--config" if config is not None else "defaults adapted to a .ubx capture + IMU CSV"
-    dlog = DataFlashLog(str(ubx_path))
+                         "no ATTITUDE (heading from motion)" + (", base station from " + str(base_path) if base_path
+                                                                 else ", no base station: standalone"))
+    res.config_from = "--config" if config is not None else "defaults adapted to a receiver recording + IMU CSV"
+    dlog = DataFlashLog(str(obs_path))
     dlog.imu[0] = np.column_stack([boot_us, imu[:, 1:7]])
     tb = TimeBase(offset_s=t0, latency_s=0.0, gms_is_delivery=False, jitter_s=0.0, n_fixes=0)
     opts = AdapterOptions(earth_rate=False, leap_seconds=cfg.gnss.leap_seconds,
@@ -100,7 +161,12 @@ def replay_ubx(ubx_path, imu_csv, config=None, *, csv_options: dict | None = Non
         if not res.records & 1023:
             prog.update(res.records)
         t_ns = int(t_us * 1000)
-        sols = pipe.feed_mavlink_record(t_ns, item) if kind == 0 else pipe.feed("ubx", t_ns, item)
+        if kind == 0:
+            sols = pipe.feed_mavlink_record(t_ns, item)
+        elif ubx:
+            sols = pipe.feed("ubx", t_ns, item)
+        else:
+            sols = pipe.feed_decoded(t_ns, item)
         for sol in sols:
             res.solutions.append(sol)
             res.produced.append(encode_solution(sol))
@@ -117,4 +183,4 @@ def replay_ubx(ubx_path, imu_csv, config=None, *, csv_options: dict | None = Non
     return res
 
 
-__all__ = ["replay_ubx", "ubx_segments"]
+__all__ = ["replay_receiver", "ubx_segments", "is_ubx"]

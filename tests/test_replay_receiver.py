@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import math
+import shutil
 import subprocess
 import sys
 
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 from companion.io.imu_csv import parse_columns, parse_rotation, read_imu_csv
-from companion.replay_ubx import replay_ubx, ubx_segments
+from companion.replay_receiver import replay_receiver, ubx_segments
 
 DURATION_S = 90.0
 LEAP_S = 18
@@ -46,6 +47,10 @@ def flight(tmp_path_factory):
                              else ephemeris_subframe(ephs[o.sat], due[0], due[1]))
                     ubx += sfrbx_frame(int(o.sat[1:]), words, channel=ch)
     (d / "rover.ubx").write_bytes(bytes(ubx))
+    # the base station's epochs as a second capture, for a RINEX base file (convbin -hp)
+    (d / "base.ubx").write_bytes(b"".join(rawx_frame(ep, LEAP_S) for ep in sim.base_epochs
+                                          if ep.t_gps <= t0 + DURATION_S))
+    (d / "base_xyz").write_text("/".join(f"{x:.4f}" for x in sim.base.r_e))
     with open(d / "imu.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["unix_s", "wx_dps", "wy_dps", "wz_dps", "fx_g", "fy_g", "fz_g"])
@@ -91,7 +96,7 @@ def test_capture_and_imu_give_a_tightly_coupled_solution_on_truth(flight):
     sim, d = flight
     seg = ubx_segments((d / "rover.ubx").read_bytes())
     assert len(seg) == int((d / "epochs").read_text()) and all(b[:4] == b"\xb5\x62\x02\x15" for _, b in seg[1:])
-    res = replay_ubx(d / "rover.ubx", d / "imu.csv", csv_options=CSV_OPTIONS)
+    res = replay_receiver(d / "rover.ubx", d / "imu.csv", csv_options=CSV_OPTIONS)
     assert not res.refusal, res.refusal
     # standalone: sigma_h of metres and an HPL above output.max_hpl_m, so nothing would be injected
     # live; post-processing keeps every solution in navigation
@@ -113,9 +118,44 @@ def test_capture_and_imu_give_a_tightly_coupled_solution_on_truth(flight):
     assert rms < 5.0                       # standalone GPS L1 with broadcast orbits: metres, not tens
 
 
+def _horizontal_rms(sim, sols) -> float:
+    from companion.nav.earth import C_n_e, ecef_to_geodetic
+    tr, err = sim.truth, []
+    for s in sols:
+        k = int(np.argmin(np.abs(tr.t_gps - s.t_gps)))
+        lat, lon, _ = ecef_to_geodetic(tr.r_e[k])
+        dn = C_n_e(lat, lon).T @ (s.r_e - tr.r_e[k])
+        err.append(math.hypot(dn[0], dn[1]))
+    return float(np.sqrt(np.mean(np.square(err))))
+
+
+@pytest.mark.skipif(shutil.which("convbin") is None, reason="RTKLIB's convbin (Debian rtklib) is not installed")
+def test_rinex_observations_with_a_base_give_dgps(flight):
+    """The same capture converted to RINEX by RTKLIB's convbin (rover obs + nav; the base capture
+    with its position in the header): standalone as from the .ubx, and with the base DGPS-grade."""
+    sim, d = flight
+    for name, extra in (("rover", []), ("base", ["-hp", (d / "base_xyz").read_text()])):
+        subprocess.run(["convbin", "-r", "ubx", "-od", "-os", "-o", str(d / f"{name}.obs"), "-n", str(d / f"{name}.nav"), *extra,
+                        str(d / f"{name}.ubx")], check=True, capture_output=True)
+    alone = replay_receiver(d / "rover.obs", d / "imu.csv", nav_path=d / "rover.nav", csv_options=CSV_OPTIONS)
+    dgps = replay_receiver(d / "rover.obs", d / "imu.csv", nav_path=d / "rover.nav", base_path=d / "base.obs",
+                           csv_options=CSV_OPTIONS)
+    assert not alone.refusal and not dgps.refusal, (alone.refusal, dgps.refusal)
+    nav_a = [s for s in alone.solutions if s.status == "nav"]
+    nav_d = [s for s in dgps.solutions if s.status == "nav"]
+    rms_a, rms_d = _horizontal_rms(sim, nav_a), _horizontal_rms(sim, nav_d)
+    sig_d = float(np.median([math.hypot(*s.sigma_r_n_m[:2]) for s in nav_d]))
+    print(f"\nRINEX + IMU CSV: standalone RMS_h {rms_a:.2f} m ({len(nav_a)}), with the base {rms_d:.2f} m "
+          f"({len(nav_d)}, median sigma_h {sig_d:.2f} m)")
+    assert len(nav_a) > 400 and len(nav_d) > 400 and rms_a < 5.0
+    assert dgps.pipeline_health["engine"].get("base epochs", 0) > 60
+    assert rms_d < rms_a and sig_d < 1.0                   # the base's corrections reached the filter
+    assert any(s.extras.get("inject") for s in nav_d)      # DGPS-grade: injectable live
+
+
 def test_epochs_and_imu_that_do_not_overlap_are_refused(flight, tmp_path):
     _, d = flight
-    res = replay_ubx(d / "rover.ubx", d / "imu.csv", csv_options={**CSV_OPTIONS, "time": "gps"})
+    res = replay_receiver(d / "rover.ubx", d / "imu.csv", csv_options={**CSV_OPTIONS, "time": "gps"})
     assert "do not overlap" in res.refusal and "--imu-time" in res.refusal
     out = subprocess.run([sys.executable, "-m", "companion", "replay", str(d / "rover.ubx"), "--imu-csv",
                           str(d / "imu.csv"), "--imu-columns", CSV_OPTIONS["columns"], "--no-progress"],
