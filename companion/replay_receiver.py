@@ -81,7 +81,9 @@ def _rinex_stream(obs_path, nav_path, base_path):
     if nav_path is None:
         raise ValueError("RINEX observations need --nav (a RINEX navigation file)")
     _, rover = read_rinex_obs(obs_path, "G")
-    first = [_week_of(e, rover[0].t_gps) for e in read_rinex_nav(nav_path, "G")] if rover else []
+    ephs = read_rinex_nav(nav_path, "G")
+    first = [_week_of(e, rover[0].t_gps) for e in ephs] if rover else []
+    shifted = sum(1 for a, b in zip(ephs, first) if a is not b)
     items = [(e.t_gps, [e]) for e in rover]
     if base_path is not None:
         hdr, base = read_rinex_obs(base_path, "G")
@@ -94,7 +96,7 @@ def _rinex_stream(obs_path, nav_path, base_path):
     items.sort(key=lambda x: x[0])
     if items:
         items[0] = (items[0][0], first + items[0][1])
-    return items, len(rover)
+    return items, len(rover), shifted
 
 
 def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=None,
@@ -109,20 +111,27 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
     from .pipeline import NavPipeline, encode_solution
     from .replay import IMU_RATE_NEEDED_HZ, ReplayResult, _Progress, imu_rate_check
     t_start = time.perf_counter()
-    res = ReplayResult(kind="ubx+imu")
-    cfg = config or Config()
-    imu, counters = read_imu_csv(imu_csv, leap_seconds=cfg.gnss.leap_seconds, **(csv_options or {}))
     ubx = is_ubx(obs_path)
+    res = ReplayResult(kind="ubx+imu" if ubx else "rinex+imu")
+    cfg = config or Config()
+    try:
+        imu, counters = read_imu_csv(imu_csv, leap_seconds=cfg.gnss.leap_seconds, **(csv_options or {}))
+    except (ValueError, OSError) as exc:
+        res.refusal = f"cannot read the IMU CSV: {exc}"
+        return res
     if ubx:
         segments = ubx_segments(open(obs_path, "rb").read())
         n_epochs = len(segments)
     else:
         try:
-            segments, n_epochs = _rinex_stream(obs_path, nav_path, base_path)
+            segments, n_epochs, shifted = _rinex_stream(obs_path, nav_path, base_path)
         except (ValueError, IndexError, OSError) as exc:
             res.refusal = f"cannot read the RINEX input: {exc}"
             res.elapsed_s = time.perf_counter() - t_start
             return res
+        if shifted:
+            res.notes.append(f"{shifted} ephemerides of {nav_path} were 1024 weeks off the observations "
+                             f"(a converter's week roll-over): moved back")
     res.log_stats = {"imu_csv": counters, "imu_samples": int(len(imu)), "receiver_epochs": n_epochs}
     t0 = math.floor(imu[0, 0]) if len(imu) else 0.0
     boot_us = (imu[:, 0] - t0) * 1e6
