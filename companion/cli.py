@@ -17,9 +17,11 @@ def _add_gnss(sub) -> None:
     p = sub.add_parser("gnss", help="post-process RINEX observations (SPP, DGPS or RTK), RTKLIB-style; "
                                     "'gnss configure': set a u-blox receiver up")
     # --rover/--nav are checked in _run_gnss, not by argparse: 'companion gnss configure' has neither
-    p.add_argument("--rover", help="rover RINEX observation file (2.x or 3.x); required")
+    p.add_argument("--rover", help="rover RINEX observation file (2.x or 3.x), or a u-blox capture (.ubx with "
+                                   "RXM-RAWX and RXM-SFRBX); required")
     p.add_argument("--nav", action="append",
-                   help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides); may be repeated")
+                   help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides); may be repeated; "
+                        "required with a RINEX rover, optional with a .ubx one")
     p.add_argument("--base", help="base station RINEX observation file (for --mode dgps and rtk)")
     p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header)")
     p.add_argument("--mode", choices=["spp", "dgps", "rtk"], default="spp",
@@ -42,7 +44,7 @@ def _add_gnss(sub) -> None:
 
 
 def _run_gnss(parser, args) -> int:
-    missing = [o for o, v in (("--rover", args.rover), ("--nav", args.nav)) if not v]
+    missing = [o for o, v in (("--rover", args.rover),) if not v]
     if missing:
         parser.error("the following arguments are required: " + ", ".join(missing))
     return __import__("companion.gnss.postprocess", fromlist=["run"]).run(args)

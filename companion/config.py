@@ -291,6 +291,14 @@ class FilterConfig:
     use_doppler: bool = _f(False)
     use_loose: bool = _f(False)
     elevation_mask_deg: float = _f(10.0, min=0.0, max=90.0)
+    systems: tuple[str, ...] = _f(("G", "E", "C", "J"), choices=("G", "E", "C", "J"),
+                                  doc="constellations fused: G GPS, E Galileo, C BeiDou, J QZSS (one receiver "
+                                  "clock plus a bias state per other system; GLONASS is not supported yet). "
+                                  "RTK double differences use GPS only")
+    pseudorange_signal: str = _f("L1C", choices=("L1C", "IF"),
+                                 doc="'L1C': each system's single-frequency code (GPS/QZSS L1 C/A, Galileo E1, "
+                                 "BeiDou B1I; Klobuchar when standalone); 'IF': the dual-frequency iono-free pair "
+                                 "(standalone with a dual-frequency receiver: no ionosphere error, 3x the noise)")
     gate_probability: float = _f(0.999, min=0.5, max=1.0,
                                  doc="chi-square gate of every update (1 = never reject)")
     sigma_doppler_mps: float = _f(0.1, min=0.0, max=100.0, min_exclusive=True)
@@ -408,7 +416,9 @@ class FilterConfig:
         for f in dataclasses.fields(self):
             if f.name in _NOISE_FIELDS or f.name in FILTER_SERVICE_FIELDS:
                 continue
-            if f.name in known:
+            if f.name == "systems":
+                kw["systems"] = "".join(self.systems)       # the engine takes RINEX letters as one string
+            elif f.name in known:
                 kw[f.name] = getattr(self, f.name)
             else:
                 logging.getLogger(__name__).warning("filter.%s is not an EngineConfig field; ignored", f.name)
@@ -617,6 +627,8 @@ def _cross_checks(cfg: Config, where: str) -> None:
         if cfg.filter.use_loose:
             raise ConfigError(f"{where}: filter.rtk_enabled: cannot be combined with filter.use_loose = true "
                               f"(loose coupling fuses receiver fixes, not carrier phase)")
+    if not cfg.filter.systems:
+        raise ConfigError(f"{where}: filter.systems: at least one constellation (e.g. [\"G\"])")
     if c.source == "serial" and cfg.gnss.source == "serial" and c.serial.port == cfg.gnss.serial.port:
         raise ConfigError(f"{where}: corrections.serial.port: {c.serial.port!r} is also gnss.serial.port; "
                           f"one serial port cannot carry both")

@@ -127,11 +127,6 @@ GSF_RESTART_PROBATION_S = 30.0    # a yaw-from-motion bank restarted after a GNS
                                   # a heading more certain than its own for this long (GPS time)
 
 
-#: constellations the navigation engine fuses (its prepare_epoch default: GPS only); ephemerides of
-#: other systems are held in its store but not counted towards a usable epoch
-ENGINE_SYSTEMS = "G"
-
-
 @dataclass(frozen=True)
 class InitSigmas:
     """Initial 1-sigma uncertainties (the [filter] section has no keys for them yet)."""
@@ -688,7 +683,8 @@ class NavPipeline:
         """The SPP Doppler velocity of a rover epoch for the yaw estimator (no base needed)."""
         eng = self.engine
         sol = spp_epoch(epoch, eng.ephemerides, klobuchar=eng.cfg.klobuchar, r_init_e=self._gsf_r_e,
-                        elevation_mask_rad=math.radians(self.cfg.filter.elevation_mask_deg))
+                        elevation_mask_rad=math.radians(self.cfg.filter.elevation_mask_deg),
+                        systems=eng.cfg.systems, signal=eng.cfg.pseudorange_signal)
         if sol is None or sol.v_e is None or not (np.all(np.isfinite(sol.v_e)) and math.isfinite(sol.hdop)):
             self.counters["yaw from motion: epoch without SPP velocity"] += 1
             return
@@ -1018,7 +1014,8 @@ class NavPipeline:
         and only the systems the engine uses: Galileo/BeiDou/QZSS ephemerides from SFRBX or RTCM
         must not make an epoch with three GPS satellites look usable."""
         have = set(self.engine.ephemerides.sats)
-        return len({o.sat for o in epoch.observations if o.sat in have and o.sat[0] in ENGINE_SYSTEMS}) >= 4
+        systems = self.engine.cfg.systems
+        return len({o.sat for o in epoch.observations if o.sat in have and o.sat[0] in systems}) >= 4
 
     def _use_rover_epoch(self, epoch: GnssEpoch) -> None:
         if self.engine.initialized:
@@ -1087,7 +1084,8 @@ class NavPipeline:
         use_dgps = self.cfg.filter.use_dgps and eng.dgps is not None
         sol = spp_epoch(epoch, eng.ephemerides, dgps=eng.dgps if use_dgps else None,
                         klobuchar=eng.cfg.klobuchar,
-                        elevation_mask_rad=math.radians(self.cfg.filter.elevation_mask_deg))
+                        elevation_mask_rad=math.radians(self.cfg.filter.elevation_mask_deg),
+                        systems=eng.cfg.systems, signal=eng.cfg.pseudorange_signal)
         if sol is None or not np.all(np.isfinite(sol.r_e)):
             self.counters["init: no SPP solution"] += 1
             return

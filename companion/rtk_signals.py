@@ -19,7 +19,7 @@ tracking one code), so the pipeline renames each family to one **canonical code*
 (:data:`RTK_FAMILIES`) before the engine sees the epochs; a rover L2L then pairs with a base 2X,
 and a base sending only 2W has no L2 partner for an L2C rover (L1 carries the fix alone).
 
-Only GPS is renamed and RTK-paired (the engine positions with GPS: ``pipeline.ENGINE_SYSTEMS``);
+Only GPS is renamed and RTK-paired (the other systems' pseudoranges are fused, not RTK-paired);
 Galileo E1 is also called ``L1C`` and differencing it against GPS would need the inter-system
 phase bias, which differs between receiver makes.
 """

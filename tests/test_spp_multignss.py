@@ -269,3 +269,31 @@ def test_multignss_dgps_zero_baseline(files):
     assert len(solved) == 60 and st["max_3d_m"] < 1e-3
     assert all(set(s.n_sats_by_system) == set("GECJ") for s in solved[1:])
     assert max(float(np.max(np.abs(s.residuals_m))) for s in solved) < 1e-3
+
+
+def test_f9p_capture_read_directly_matches_its_rinex(files, tmp_path):
+    """`companion gnss --rover CAPTURE.ubx` (no --nav: RXM-SFRBX brings the ephemerides) solves
+    every epoch with GPS, Galileo, BeiDou and QZSS and reports them per epoch.  Its observations
+    are convbin's: with the same navigation file and the systems convbin's RINEX holds (G, C, J:
+    convbin 2.4.3 reads no F9P Galileo SFRBX), iono-free, the positions of the two paths agree to
+    a few millimetres (RINEX rounds to 1 mm and has no lock times for the carrier smoothing)."""
+    from companion.gnss.postprocess import _load_ubx_rover
+
+    out = tmp_path / "ubx.json"
+    r = subprocess.run([sys.executable, "-m", "companion", "gnss", "--rover", str(DATA / "20230919-114418.ubx"),
+                        "--json", str(out)], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    direct = json.loads(out.read_text())
+    print("\n" + r.stdout.strip())
+    assert direct["solved"] == direct["epochs"] == 36
+    assert direct["constellations_used"] == 4 and direct["satellites_by_system"]["E"]["min"] >= 4
+    store = EphemerisStore(read_rinex_nav(files / "f9p.nav", "GCJ"))
+    _, ubx_epochs, _ = _load_ubx_rover(DATA / "20230919-114418.ubx", "GCJ", EphemerisStore())
+    _, rinex_epochs = read_rinex_obs(files / "f9p.obs", "GCJ")
+    opts = ProcessOptions(signal="IF", systems="GCJ")
+    a, b = process(ubx_epochs, store, opts), process(rinex_epochs, store, opts)
+    d = [np.linalg.norm(x.r_e - y.r_e) for x, y in zip(a, b)]
+    assert len(d) == 36 and max(d) < 0.005, max(d)
+    r = subprocess.run([sys.executable, "-m", "companion", "gnss", "--rover", str(files / "f9p.obs")],
+                       capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 2 and "--nav is required" in r.stderr

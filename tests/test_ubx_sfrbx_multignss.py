@@ -11,7 +11,8 @@ log (Hiroshima, 2023-09-19, 35 s), against RTKLIB's ``convbin`` RINEX 3 output o
   QZSS give, up to one Galileo clock offset.
 * BeiDou D2 (GEO): no GEO in this log; decoded from pages built from a real RTCM 1042 GEO
   ephemeris (a layout round trip, see ``test_beidou_d2_pages_round_trip``).
-* The navigation engine (GPS only) holds the other systems' ephemerides and ignores them.
+* The navigation engine fuses the systems it is configured for (``filter.systems``) and holds the
+  other systems' ephemerides without using them.
 
 Run:  python -m pytest -q -s tests/test_ubx_sfrbx_multignss.py   (prints the figures)
 """
@@ -37,7 +38,7 @@ from companion.gnss.rinex import read_rinex_nav
 from companion.gnss.spp import spp_epoch
 from companion.io.ubx import decode_ubx_file, ubx_sat_id
 from companion.messages import SECONDS_PER_WEEK, GnssEpoch, GpsEphemeris
-from companion.pipeline import ENGINE_SYSTEMS, NavPipeline
+from companion.pipeline import NavPipeline
 from tests._data import data_path
 
 pytestmark = [pytest.mark.real_data,
@@ -285,15 +286,16 @@ def test_all_systems_give_a_position_earlier_than_gps_alone(decoded):
     assert t[("spp", "GECJ")] <= t[("spp", "G")]
 
 
-def test_the_gps_only_engine_holds_and_ignores_the_other_systems(decoded):
-    """UBX -> engine: every ephemeris lands in the engine's store under its own satellite id; the
-    engine's epoch preparation (GPS only) rejects the others as 'system not selected', exactly as
-    without their ephemerides; the pipeline's usable-epoch test counts GPS satellites only."""
+def test_an_engine_fuses_the_systems_it_is_configured_for(decoded):
+    """UBX -> engine: every ephemeris lands in the engine's store under its own satellite id; a
+    GPS-only engine's epoch preparation rejects the others as 'system not selected', exactly as
+    without their ephemerides, and a GECJ engine prepares them all; the pipeline's usable-epoch
+    test counts the satellites of the configured systems only."""
     from companion.nav.engine import EngineConfig, NavEngine
     from companion.nav.filter import ProcessNoise
 
     msgs, _ = decoded
-    eng = NavEngine(EngineConfig(noise=ProcessNoise(5e-5, 1e-3, 1e-6, 1e-5)))
+    eng = NavEngine(EngineConfig(noise=ProcessNoise(5e-5, 1e-3, 1e-6, 1e-5), systems="G"))
     for e in _ephs(msgs):
         eng.process(e)
     assert set(s[0] for s in eng.ephemerides.sats) == set("GECJ") and len(eng.ephemerides) == 28
@@ -301,19 +303,26 @@ def test_the_gps_only_engine_holds_and_ignores_the_other_systems(decoded):
     epochs = _epochs(msgs)
     r_ref = _reference_position(epochs, eng.ephemerides)
     ep = epochs[-1]
-    a = prepare_epoch(ep, eng.ephemerides, r_ref)
+    a = prepare_epoch(ep, eng.ephemerides, r_ref, systems=eng.cfg.systems)
     b = prepare_epoch(ep, gps_only, r_ref)
     assert a.sats == b.sats and all(s[0] == "G" for s in a.sats) and len(a.sats) >= 4
     assert np.array_equal(a.pseudorange_m, b.pseudorange_m)
     assert {s for s, why in a.rejected.items() if why == "system not selected"} == \
         {o.sat for o in ep.observations if o.sat[0] in "ECJ"}
-    # pipeline: an epoch with three GPS satellites (two signals each) and many others is not usable
-    assert ENGINE_SYSTEMS == "G"
+    every = prepare_epoch(ep, eng.ephemerides, r_ref, systems="GECJ")
+    assert {s[0] for s in every.sats} == set("GECJ")
+    assert EngineConfig(noise=eng.cfg.noise, systems="GECJ").bias_systems() == ("E", "C")
+    # pipeline: an epoch with three GPS satellites (two signals each) and many others is usable
+    # only when the others are fused
     three = sorted({o.sat for o in ep.observations if o.sat[0] == "G"})[:3]
-    few = tuple(o for o in ep.observations if o.sat in three or o.sat[0] != "G")
-    pipe = NavPipeline(config_from_dict({}))
+    few = GnssEpoch(ep.t_gps, tuple(o for o in ep.observations if o.sat in three or o.sat[0] != "G"))
+    pipe = NavPipeline(config_from_dict({"filter": {"systems": ["G"]}}))
     pipe.engine = eng
-    assert not pipe._usable(GnssEpoch(ep.t_gps, few)) and pipe._usable(ep)
+    assert not pipe._usable(few) and pipe._usable(ep)
+    pipe_all = NavPipeline(config_from_dict({}))
+    for e in _ephs(msgs):
+        pipe_all.engine.process(e)
+    assert pipe_all.engine.cfg.systems == "GECJ" and pipe_all._usable(few)
 
 
 def _without_non_gps_sfrbx(data: bytes) -> bytes:
@@ -328,12 +337,14 @@ def _without_non_gps_sfrbx(data: bytes) -> bytes:
     return bytes(out + data[last:])
 
 
-def test_pipeline_fed_the_ubx_log_behaves_as_with_gps_ephemerides_only():
+def test_pipeline_fed_the_ubx_log_uses_every_system_from_its_ephemerides():
     """The service's path (``NavPipeline.feed('ubx', ...)``, as live and in replay), fed the log
     in 4-kB chunks, with and without the non-GPS SFRBX frames: no exception, the store holds every
-    system, and every GPS-only decision (usable epochs) is the same."""
-    def run(data: bytes):
-        pipe = NavPipeline(config_from_dict({}))
+    system; epochs are usable as soon as four satellites of any system have ephemerides (17 s
+    into the log), not when four GPS satellites have (26 s); a GPS-only configuration waits for
+    GPS on either stream."""
+    def run(data: bytes, systems=("G", "E", "C", "J")):
+        pipe = NavPipeline(config_from_dict({"filter": {"systems": list(systems)}}))
         for k in range(0, len(data), 4096):
             pipe.feed("ubx", k, data[k:k + 4096])
         return pipe
@@ -345,7 +356,10 @@ def test_pipeline_fed_the_ubx_log_behaves_as_with_gps_ephemerides_only():
     assert {s[0] for s in gps.engine.ephemerides.sats} == {"G"} and len(gps.engine.ephemerides) == 9
     assert full.counters["rover epochs"] == gps.counters["rover epochs"] == 36
     # the first 26 epochs have fewer than four GPS satellites with ephemerides (26 s, see above)
-    assert full.counters["rover epochs without ephemerides"] == gps.counters["rover epochs without ephemerides"] == 26
+    assert gps.counters["rover epochs without ephemerides"] == 26
+    assert full.counters["rover epochs without ephemerides"] == 17
+    gps_configured = run(UBX.read_bytes(), systems=("G",))
+    assert gps_configured.counters["rover epochs without ephemerides"] == 26
 
 
 # ------------------------------------------------------------------------------ BeiDou D2 (GEO)

@@ -1,4 +1,5 @@
-"""`companion gnss`: RTKLIB-style post-processing of RINEX files (SPP, code DGPS or carrier-phase RTK).
+"""`companion gnss`: RTKLIB-style post-processing of RINEX files (SPP, code DGPS or carrier-phase RTK),
+or of a u-blox capture (RXM-RAWX + RXM-SFRBX, decoded as the service decodes its receiver) for SPP/DGPS.
 
 Solutions are at the rover's marker and the base antenna is its marker plus the header's
 ``ANTENNA: DELTA H/E/N``, as RTKLIB applies them; ``--pos`` writes RTKLIB's solution format
@@ -28,6 +29,7 @@ import json
 import logging
 import math
 import sys
+from struct import error as struct_error
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -141,14 +143,54 @@ def parse_systems(text: str | None) -> str | None:
     return "".join(c for c in SUPPORTED_SYSTEMS if c in letters)
 
 
+def is_ubx_file(path) -> bool:
+    """A u-blox capture (UBX frames from the first byte), not a RINEX file."""
+    with open(path, "rb") as fh:
+        return fh.read(2) == b"\xb5\x62"
+
+
+def _load_ubx_rover(path: str, wanted: str | None, store: EphemerisStore):
+    """Observations (RXM-RAWX) and broadcast ephemerides (RXM-SFRBX: GPS/QZSS LNAV, Galileo I/NAV,
+    BeiDou D1/D2) of a u-blox capture, decoded as the service decodes its receiver's stream.
+    Returns (header-like dict without a marker position or antenna delta, epochs, Klobuchar)."""
+    from ..io.ubx import decode_ubx_file
+    from ..messages import GnssEpoch, GpsEphemeris
+    try:
+        msgs, dec = decode_ubx_file(str(path))
+    except (ValueError, IndexError, struct_error) as exc:
+        raise GnssProcessingError(f"cannot decode the u-blox capture {path}: {exc}") from exc
+    keep = wanted or SUPPORTED_SYSTEMS
+    n_eph = 0
+    for m in msgs:
+        if isinstance(m, GpsEphemeris) and m.sat[0] in keep:
+            store.add(m)
+            n_eph += 1
+    epochs = []
+    for m in msgs:
+        if isinstance(m, GnssEpoch):
+            obs = tuple(o for o in m.observations if o.sat[0] in keep)
+            if obs:
+                epochs.append(GnssEpoch(m.t_gps, obs, source="rover"))
+    log.info("%s: %d RXM-RAWX epochs, %d ephemerides from RXM-SFRBX", path, len(epochs), n_eph)
+    klob = getattr(getattr(dec, "ephemerides", None), "klobuchar", None)
+    return {"approx_position_e": None, "antenna_delta_hen_m": None}, epochs, klob
+
+
 def _load(args):
-    for p in [args.rover, *args.nav, *([args.base] if args.base else [])]:
+    for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
     wanted = parse_systems(getattr(args, "sys", None))
     store = EphemerisStore()
     klob = None
-    for p in args.nav:
+    ubx_rover = None
+    if is_ubx_file(args.rover):
+        ubx_rover = _load_ubx_rover(args.rover, wanted, store)
+        klob = ubx_rover[2]
+    elif not args.nav:
+        raise GnssProcessingError("--nav is required with a RINEX rover file (a u-blox .ubx capture brings "
+                                  "its own ephemerides in RXM-SFRBX)")
+    for p in args.nav or []:
         try:
             for e in read_rinex_nav(p, wanted or SUPPORTED_SYSTEMS):
                 store.add(e)
@@ -157,11 +199,15 @@ def _load(args):
             raise GnssProcessingError(f"cannot read navigation file {p}: {exc}") from exc
     if len(store) == 0:
         raise GnssProcessingError("no ephemeris of " + (f"the selected systems ({wanted})" if wanted else "GPS, Galileo, "
-                                  "BeiDou or QZSS") + " in the navigation file(s)")
-    try:
-        hdr, rover = read_rinex_obs(args.rover, wanted or SUPPORTED_SYSTEMS)
-    except (ValueError, IndexError) as exc:
-        raise GnssProcessingError(f"cannot read rover observation file {args.rover}: {exc}") from exc
+                                  "BeiDou or QZSS") + (" in the navigation file(s)" if args.nav else
+                                                       " in the capture's RXM-SFRBX (give --nav)"))
+    if ubx_rover is not None:
+        hdr, rover = ubx_rover[0], ubx_rover[1]
+    else:
+        try:
+            hdr, rover = read_rinex_obs(args.rover, wanted or SUPPORTED_SYSTEMS)
+        except (ValueError, IndexError) as exc:
+            raise GnssProcessingError(f"cannot read rover observation file {args.rover}: {exc}") from exc
     if not rover:
         raise GnssProcessingError(f"no observation epochs in {args.rover}")
     # default: every supported system that has both observations and ephemerides
@@ -274,7 +320,7 @@ def _run(args) -> int:
     if args.pos:
         write_pos(args.pos, records,
                   program=f"companion gnss {args.mode} ({opts.signal})",
-                  inputs=[args.rover, *args.nav, *([args.base] if args.base else [])],
+                  inputs=[args.rover, *(args.nav or []), *([args.base] if args.base else [])],
                   options={"pos mode": "single" if args.mode == "spp" else "dgps",
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg", "navi sys": ",".join(systems),
                            "ionos opt": iono})
@@ -298,9 +344,14 @@ def _run_rtk(args) -> int:
     """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
     from .rtk import RtkConfig
     from .rtk_post import pos_records, solve_rtk_rinex
-    for p in [args.rover, *args.nav, *([args.base] if args.base else [])]:
+    for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
+    if is_ubx_file(args.rover):
+        raise GnssProcessingError("--mode rtk reads RINEX observations; convert the u-blox capture first "
+                                  "(RTKLIB: convbin -r ubx -od -os CAPTURE.ubx)")
+    if not args.nav:
+        raise GnssProcessingError("--mode rtk needs --nav")
     if not args.base:
         raise GnssProcessingError("--mode rtk needs --base")
     base_xyz = _xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None

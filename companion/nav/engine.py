@@ -40,12 +40,13 @@ import numpy as np
 
 from ..gnss.ephemeris_store import EphemerisStore
 from ..gnss.prepare import prepare_epoch
+from ..gnss.signals import clock_group
 from ..messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
                         ImuSample, NavSolution)
 from .earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
 from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
-from .state_layout import DEFAULT_LAYOUT, StateLayout, isb_block_name
+from .state_layout import DEFAULT_LAYOUT, REFERENCE_SYSTEM, StateLayout, isb_block_name, system_of
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
 from .measurements import (InsPoint, LatencyTransition, PhaseRecord, antenna_state, attitude_batch, attitude_rate_e,
                            baseline_batch, doppler_batch,
@@ -139,9 +140,17 @@ class EngineConfig:
     # 1-sigma; sigma 0 = not estimated (held at the mean).  Its random walk is in ProcessNoise.
     imu_time_offset_s: float = 0.0
     imu_time_offset_sigma_s: float = 0.0
+    # constellations fused (RINEX letters among G, E, C, J: GPS, Galileo, BeiDou, QZSS); every
+    # one's pseudoranges, carrier and Doppler are used, satellites of others are left out
+    systems: str = "G"
+    # pseudorange of each system: its single-frequency code ('L1C': GPS/QZSS L1 C/A, Galileo E1,
+    # BeiDou B1I, with Klobuchar standalone) or the dual-frequency iono-free pair ('IF', per system
+    # as companion.gnss.signals; x3 the code noise, no ionosphere model error)
+    pseudorange_signal: str = "L1C"
     # inter-system bias blocks (companion.nav.state_layout): systems among E, C, J whose
     # pseudoranges carry their clock minus GPS's as a state, with this prior 1-sigma; its random
-    # walk is in ProcessNoise.  Empty: one receiver clock for everything (today's GPS-only runs).
+    # walk is in ProcessNoise.  Empty: one per clock group of ``systems`` after the first
+    # (QZSS shares GPS's clock, as RTKLIB): see :meth:`bias_systems`.
     inter_system_biases: tuple[str, ...] = ()
     inter_system_bias_sigma_m: float = 100.0
     # dual-antenna moving baseline (NAV-RELPOSNED): body FRD vector from the moving-base antenna to
@@ -183,6 +192,15 @@ class EngineConfig:
     rtk_min_fix_ambiguities: int = 4
     rtk_hold_sigma_cycles: float = 0.01
 
+    def bias_systems(self) -> tuple[str, ...]:
+        """Systems with an inter-system bias state: the configured ones, else every clock group
+        of :attr:`systems` but the reference (GPS's when GPS is fused, else the first)."""
+        if self.inter_system_biases:
+            return tuple(self.inter_system_biases)
+        groups = list(dict.fromkeys(clock_group(s) for s in self.systems))
+        ref = REFERENCE_SYSTEM if REFERENCE_SYSTEM in groups else groups[0] if groups else REFERENCE_SYSTEM
+        return tuple(g for g in groups if g != ref)
+
     def rtk_config(self) -> RtkUpdateConfig:
         return RtkUpdateConfig(signals=tuple(self.rtk_signals), elevation_mask_deg=self.elevation_mask_deg,
                                sigma_phase_a_m=self.rtk_sigma_phase_a_m, sigma_phase_b_m=self.rtk_sigma_phase_b_m,
@@ -204,6 +222,7 @@ class EpochReport:
     fix_state: str = FIX_NONE         # carrier-phase RTK: 'none', 'float' or 'fixed'
     fix_ratio: float = math.nan       # LAMBDA ratio of a fixed epoch
     n_fixed: int = 0                  # DD ambiguities fixed
+    sats_by_system: dict = field(default_factory=dict)   # satellites with a fused row, per system letter
 
 
 class NavEngine:
@@ -279,7 +298,7 @@ class NavEngine:
         covariance, floored at pos_m on every axis).  Without ``clock_bias_m`` the clock is
         taken from the first epoch's pseudoranges.  ``imu_time_offset_s``: the prior mean of the
         IMU time-tag offset (default: the configured one), with the configured sigma."""
-        L = StateLayout.standard(self.cfg.inter_system_biases)
+        L = StateLayout.standard(self.cfg.bias_systems())
         d = np.zeros(L.n)
         d[L.pos] = P0_sigmas["pos_m"] ** 2
         d[L.vel] = P0_sigmas["vel_mps"] ** 2
@@ -288,7 +307,7 @@ class NavEngine:
         d[L.clk] = P0_sigmas.get("clk_m", 1e3) ** 2
         d[L.drift] = P0_sigmas.get("drift_mps", 10.0) ** 2
         d[L.toff] = self.cfg.imu_time_offset_sigma_s ** 2
-        for system in self.cfg.inter_system_biases:
+        for system in self.cfg.bias_systems():
             d[L.index(isb_block_name(system))] = self.cfg.inter_system_bias_sigma_m ** 2
         P0 = np.diag(d)
         cov = P0_sigmas.get("pos_cov_e_m2")
@@ -385,7 +404,7 @@ class NavEngine:
             return None
         if self.dgps is None:
             from ..gnss.dgps import DgpsCorrector
-            self.dgps = DgpsCorrector()
+            self.dgps = DgpsCorrector(systems=self.cfg.systems, signal=self.cfg.pseudorange_signal)
         self.dgps.update_base(epoch, self.base, self.ephemerides)
         self.counters["base epochs"] += 1
         if self.rtk is not None:
@@ -670,12 +689,13 @@ class NavEngine:
         prep = prepare_epoch(epoch, self.ephemerides, r_ant,
                              dgps=self.dgps if cfg.use_dgps else None,
                              elevation_mask_rad=math.radians(cfg.elevation_mask_deg),
-                             klobuchar=cfg.klobuchar)
+                             klobuchar=cfg.klobuchar, systems=cfg.systems, signal=cfg.pseudorange_signal)
         if cfg.use_dgps and self.dgps is not None and prep.n < 4 and _stale_corrections(prep.rejected):
             # the corrections stopped (caster or radio outage): standalone models and their honest
             # variance keep the pseudoranges and the carrier (TDCP) instead of coasting on the INS
             prep = prepare_epoch(epoch, self.ephemerides, r_ant, dgps=None,
-                                 elevation_mask_rad=math.radians(cfg.elevation_mask_deg), klobuchar=cfg.klobuchar)
+                                 elevation_mask_rad=math.radians(cfg.elevation_mask_deg), klobuchar=cfg.klobuchar,
+                                 systems=cfg.systems, signal=cfg.pseudorange_signal)
             self.counters["epochs standalone: DGPS corrections too old"] += 1
         rep.rejected.update(prep.rejected)
         for reason in prep.rejected.values():
@@ -749,6 +769,7 @@ class NavEngine:
                 self.counters[f"{r.kind} rejected: {reason}"] += 1
         self._record(reports, epoch.t_gps)
         rep.reports = reports
+        rep.sats_by_system = sats_by_system(reports)
         fused = self._held_back(reports)
         self._separation(ins, batches, fused, epoch.t_gps)
         dx = self.kf.update(batches, fused)
@@ -844,12 +865,42 @@ class NavEngine:
                 return  # not common-mode: a position problem, leave it to the gate
             self.counters["receiver clock jump re-seeded"] += 1
             log.warning("pseudoranges jumped together by %.1f m: clock state re-seeded", common)
+        var0 = max(median(pr.r_var.tolist()), 1.0)
+        if not self.clock_initialized and L.isb_index:
+            common = self._seed_inter_system_biases(pr, z, var0)
         self.clock_bias_m += common
         pr.z = pr.z - common
         P[L.clk, :] = 0.0
         P[:, L.clk] = 0.0
-        P[L.clk, L.clk] = max(median(pr.r_var.tolist()), 1.0)
+        P[L.clk, L.clk] = var0
         self.clock_initialized = True
+
+    def _seed_inter_system_biases(self, pr: MeasurementBatch, z: list[float], var0: float) -> float:
+        """First epoch with several systems: the receiver clock from the reference system's
+        pseudoranges (all of them if it has none here), each other system's bias from its own
+        (median innovation minus the clock), so that no system's rows start tens of metres off.
+        Returns the clock's share; the rows of the biased systems are corrected here."""
+        L = self.layout
+        by_system: dict[str, list[int]] = {}
+        for k, sat in enumerate(pr.labels):
+            col = L.isb_index.get(system_of(sat))
+            by_system.setdefault(system_of(sat) if col is not None else "", []).append(k)
+        ref_rows = by_system.get("") or list(range(len(z)))
+        common = median([z[k] for k in ref_rows])
+        P = self.kf.P
+        for system, rows in by_system.items():
+            if not system:
+                continue
+            bias = median([z[k] for k in rows]) - common
+            name = isb_block_name(system)
+            self.block_states[name] = self.block_states[name] + bias
+            pr.z[rows] -= bias
+            col = L.isb_index[system]
+            P[col, :] = 0.0
+            P[:, col] = 0.0
+            P[col, col] = 2.0 * var0       # the difference of two medians
+            self.counters[f"inter-system bias {system} seeded from the pseudoranges"] += 1
+        return common
 
     def _spp(self, ins, prep):
         from ..gnss.spp import solve_spp
@@ -1249,6 +1300,17 @@ class NavEngine:
         if self.smoother is not None:
             self.smoother.note_solution(sol)
         return sol
+
+
+def sats_by_system(reports) -> dict[str, int]:
+    """Satellites with at least one accepted row in ``reports``, counted per system letter (a row
+    label starts with its satellite, 'G05', or with a double difference's pair, 'G05-G10 L1C phase')."""
+    sats = {sat for r in reports for lab, a in zip(r.labels, r.accepted) if a
+            for sat in lab.split(" ", 1)[0].split("-") if sat[:1].isalpha()}
+    out: dict[str, int] = {}
+    for sat in sorted(sats):
+        out[sat[0]] = out.get(sat[0], 0) + 1
+    return out
 
 
 def _stale_corrections(rejected: dict[str, str]) -> bool:
