@@ -97,6 +97,23 @@ its 0.3 m/s rate std also corrupts undifferenced TDCP range rates).
   0.4 m (tau 8 s), carrier 2 mm / 8 mm (tau 8 s), all x 1/sin(el); Doppler 0.05 m/s.  Base
   (geodetic choke ring): 0.1 m, 0.1 m, 1 mm, 2 mm, x 1/sin(el).  Clocks steered, tau 30 s.
 
+"uav-gec" (issue 11: 'uav' under GPS + Galileo + BeiDou)
+--------------------------------------------------------
+* Sky: 'uav''s GPS (GEONET 2005) plus the real Galileo I/NAV and BeiDou D1/D2 (MEO, IGSO, GEO)
+  ephemerides of a base station in Hiroshima, 2022-12-13 01:09 GPST, moved by one common time shift
+  onto 2005-04-02 00:20:00 GPST (sitl.sky_multignss: the ECEF orbits at the scenario start are those
+  over Japan at the recording).  Above the 10-deg mask: GPS 7, Galileo 9, BeiDou 19.
+* Signals (companion.gnss.signals names): Galileo E1 'L1C' (+ E5b 'L7Q' if dual_frequency), BeiDou
+  B1I 'L2I' (+ B3I 'L6I'), each with its own carrier wavelength; ionosphere (f_L1/f)^2 x the L1 delay
+  (same Klobuchar truth + fluctuation as GPS); the broadcast group delays applied as prepare removes
+  them (Galileo BGD(E1,E5b) of the I/NAV clock, BeiDou TGD1 on B1I against the B3I clock).
+* The same receiver error model for every system (Galileo E1 and BeiDou B1I code noise and multipath
+  as GPS L1 C/A: the rover's patch antenna and its multipath dominate, not the code chipping rate),
+  the same per-satellite orbit / satellite-clock / atmosphere processes, drawn from streams of their
+  own so the GPS observables are 'uav''s bit for bit.  Receiver inter-system bias per system (not
+  GPS; QZSS would share GPS's), rover and base independently: N(0, 30 m) + random walk
+  2 mm/sqrt(s), on code and carrier alike.
+
 "nhc" / "nhc-skid" (seed 002, car near GEONET 0759, real 2005-04-02 ephemeris, 00:20 GPST)
 ------------------------------------------------------------------------------------------
 * Motion: sitl.trajectory.road_drive, 596 s: rest 15 s, straights, three 90-deg turns, a
