@@ -1260,6 +1260,11 @@ class NavPipeline:
                          "inject": sol.extras.get("inject"),
                          "protection_level": {k: _round_or_none(sol.extras.get(k)) for k in
                                               ("hpl_m", "hpl_cov_m", "hpl_ss_m")}})
+            reports = self.engine.epoch_reports
+            if reports:          # the last rover epoch: satellites fused per system, the systems' clock offsets
+                filt["satellites_by_system"] = dict(reports[-1].sats_by_system)
+                filt["inter_system_bias_m"] = {name[4:]: round(float(v[0]), 2) for name, v in
+                                               self.engine.block_states.items() if name.startswith("isb_")}
             if self.rtk_enabled:
                 rtk = getattr(self.engine, "rtk", None)
                 st = rtk.status if rtk is not None else None

@@ -695,7 +695,9 @@ class Service:
         return (f"health: mavlink {r.get('mavlink', 0):.0f}/s rtcm {r.get('rtcm', 0):.1f}/s ubx {r.get('ubx', 0):.1f}/s; "
                 f"rover epochs {h['pipeline'].get('rover epochs', 0)} base {h['engine'].get('base epochs', 0)}; "
                 f"filter {f.get('status', 'init')} mode {f.get('mode')} init#{f.get('reset_counter')} "
-                f"sigma NED {sig} HPL {f.get('protection_level', {}).get('hpl_m')}; out {sum(v for k, v in h['outputs'].items() if k.startswith('sent ') and 'STATUS' not in k)} "
+                + ("" if not f.get("satellites_by_system") else "sats " + " ".join(
+                    f"{c}{n}" for c, n in f["satellites_by_system"].items()) + " ")
+                + f"sigma NED {sig} HPL {f.get('protection_level', {}).get('hpl_m')}; out {sum(v for k, v in h['outputs'].items() if k.startswith('sent ') and 'STATUS' not in k)} "
                 f"withheld {h['outputs'].get('estimates withheld', 0)}; rejected {rej}; "
                 f"link {'up' if link.get('connected') else 'down'} bad {link.get('bad_data', 0)} "
                 f"reboots {h['pipeline'].get('autopilot reboots', 0)} restarts {sum(h['task_restarts'].values())}"

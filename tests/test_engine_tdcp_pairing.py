@@ -42,7 +42,7 @@ def _base_clock_m(t):
 def _engine_with_base_history(base_times):
     eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-5, 1e-4)))
     for sat in SATS:
-        hist = eng._base_phase.setdefault(sat, deque(maxlen=8))
+        hist = eng.base_carrier.history.setdefault(sat, deque(maxlen=8))
         for t in base_times:
             carrier = (_rho(sat, t) + _base_clock_m(t) + _err(sat, t)) / LAM
             # the satellite clock change is "explained" (broadcast): it enters both sides alike
@@ -68,8 +68,8 @@ def test_tdcp_base_pairing_with_real_rover_tags():
         t_a = T0 + k - 1 - RNG.uniform(0.008, 0.013)
         t_b = T0 + k - RNG.uniform(0.008, 0.013)
         # the defect: the old 5-ms tolerance pairs nothing
-        assert eng._base_tdcp_corrections(t_a, t_b, tol_s=0.005) == {}
-        corr = eng._base_tdcp_corrections(t_a, t_b)
+        assert eng.base_carrier.tdcp_corrections(t_a, t_b, tol_s=0.005) == {}
+        corr = eng.base_carrier.tdcp_corrections(t_a, t_b)
         want = _truth(t_a, t_b)
         assert set(corr) == set(SATS)
         worst = max(worst, max(abs(corr[s] - want[s]) for s in SATS))
@@ -85,10 +85,10 @@ def test_tdcp_base_pairing_is_unambiguous_and_bounded():
     base_times = [T0 + 0.2 * k for k in range(8)]          # a 5-Hz base
     eng = _engine_with_base_history(base_times)
     # 100 ms from every base epoch (a 10-Hz rover between the base's): no pairing, never a wrong one
-    assert eng._base_tdcp_corrections(T0 + 0.1, T0 + 0.3) == {}
+    assert eng.base_carrier.tdcp_corrections(T0 + 0.1, T0 + 0.3) == {}
     # the same base epoch for both ends (an interval shorter than the base's): no correction
-    assert eng._base_tdcp_corrections(T0 + 0.19, T0 + 0.21) == {}
-    corr = eng._base_tdcp_corrections(T0 + 0.19, T0 + 0.39)
+    assert eng.base_carrier.tdcp_corrections(T0 + 0.19, T0 + 0.21) == {}
+    corr = eng.base_carrier.tdcp_corrections(T0 + 0.19, T0 + 0.39)
     want = _truth(T0 + 0.19, T0 + 0.39)
     assert max(abs(corr[s] - want[s]) for s in SATS) < 2e-4
 
@@ -101,6 +101,6 @@ def test_tdcp_base_phase_needs_no_shift_to_the_rover_instant():
     t_a, t_b = T0 - 0.013, T0 + 1.0 - 0.008
     range_change = max(abs(_rho(s, T0) - _rho(s, t_a)) for s in SATS)
     assert range_change > 10.0
-    corr = eng._base_tdcp_corrections(t_a, t_b)
+    corr = eng.base_carrier.tdcp_corrections(t_a, t_b)
     want = _truth(t_a, t_b)
     assert max(abs(corr[s] - want[s]) for s in SATS) < 2e-4

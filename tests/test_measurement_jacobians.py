@@ -88,9 +88,8 @@ def _position_sensitivity(batch_of):
     return out
 
 
-@pytest.mark.xfail(strict=True, reason="velocity-like rows (Doppler, velocity fixes) lack the lever-arm "
-                   "attitude term d(C (w x l))/d psi: issue 11 deliverable 1, the shared chain rule")
-def test_velocity_rows_miss_the_lever_arm_attitude_term():
+def test_velocity_rows_carry_the_lever_arm_attitude_term():
+    """d(C (w x l) - W_ie x C l)/d psi, from the one shared partial (antenna_velocity_attitude_partial)."""
     prep = _prep()
     cov = np.diag([0.05, 0.05, 0.1]) ** 2
     for batch_of in (lambda dx: doppler_batch(_ins(dx), prep, LEVER, 0.1, layout=L),

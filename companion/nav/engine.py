@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..gnss.ephemeris_store import EphemerisStore
+from ..gnss.phase import BaseCarrierBook, RoverCarrierBook
 from ..gnss.prepare import prepare_epoch
 from ..gnss.signals import clock_group
 from ..messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
@@ -48,13 +49,14 @@ from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .state_layout import DEFAULT_LAYOUT, REFERENCE_SYSTEM, StateLayout, isb_block_name, system_of
 from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
-from .measurements import (InsPoint, LatencyTransition, PhaseRecord, antenna_state, attitude_batch, attitude_rate_e,
+from .measurements import (InsPoint, LatencyTransition, antenna_state, attitude_batch, attitude_rate_e,
                            baseline_batch, doppler_batch,
-                           horizontal_velocity_fix_batch, line_of_sight, nhc_batch, position_fix_batch,
+                           horizontal_velocity_fix_batch, nhc_batch, position_fix_batch,
                            pseudorange_batch, single_difference, tdcp_batch, velocity_fix_batch, zero_rate_batch,
                            zero_velocity_batch)
 from .aid_status import AidSourceBook
 from .imu_screen import ImuScreen
+from .stillness import StillnessDetector
 from .integrity import POSITION_SOURCES, IntegrityLimits, IntegrityMonitor, IntegrityState
 from .chi2 import chi2_ppf
 from .protection import ProtectionLevel
@@ -253,10 +255,11 @@ class NavEngine:
         self._history: deque = deque()
         self._history_t: deque = deque()
         self._pending: list = []           # GNSS messages waiting for the IMU to pass their time
-        self._phase: dict[str, PhaseRecord] = {}
+        self.carrier = RoverCarrierBook(self.counters)   # the rover's carrier at its last epoch (TDCP)
         self._prev_epoch_v: tuple[float, np.ndarray] | None = None   # (t_gps, corrected v_e) of the last epoch
-        self._base_phase: dict[str, deque] = {}
-        self._still = _StillnessDetector(config) if config.zupt_enabled else None
+        self.base_carrier = BaseCarrierBook()            # the base's recent carrier (base-corrected TDCP)
+        self._still = StillnessDetector(config.zupt_window_s, config.zupt_gyro_std_radps,
+                                        config.zupt_accel_std_mps2) if config.zupt_enabled else None
         self.imu_screen = ImuScreen(clip_fraction=config.imu_clip_fraction, accel_jump_mps2=config.imu_accel_jump_mps2,
                                     gyro_jump_radps=config.imu_gyro_jump_radps, window=config.imu_median_window,
                                     counters=self.counters) if config.imu_screen_enabled else None
@@ -339,7 +342,7 @@ class NavEngine:
         self._history.clear()
         self._history_t.clear()
         self._push_history()
-        self._phase.clear()
+        self.carrier.clear()
         self._prev_epoch_v = None
         self._pending.clear()
         if self.rtk is not None:
@@ -410,51 +413,8 @@ class NavEngine:
         if self.rtk is not None:
             self.rtk.add_base(epoch)
         if self.cfg.use_tdcp and self.cfg.tdcp_base_correction != "off" and self.dgps.last_prepared is not None:
-            self._remember_base_phase(self.dgps.last_prepared)
+            self.base_carrier.remember(self.dgps.last_prepared, self.base.r_e)
         return None
-
-    def _remember_base_phase(self, prep) -> None:
-        """Keep a few seconds of the base's carrier with its geometric range and satellite clock,
-        so that a rover TDCP interval can be corrected by the base's TDCP over the same interval.
-        ``prep`` is the base epoch as the DGPS corrector prepared it (same satellites, same clocks)."""
-        finite = np.isfinite(prep.carrier_cycles)
-        if not np.any(finite):
-            return
-        rho, _ = line_of_sight(prep.r_sat_e[finite], self.base.r_e)
-        for j, i in enumerate(np.flatnonzero(finite)):
-            sat = prep.sats[i]
-            hist = self._base_phase.setdefault(sat, deque(maxlen=8))
-            if prep.loss_of_lock[i] or prep.half_cycle[i]:
-                hist.clear()
-                if prep.half_cycle[i]:
-                    continue
-            hist.append((prep.t_gps, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]),
-                         float(rho[j]), float(prep.sat_clock_bias_m[i])))
-
-    def _base_tdcp_corrections(self, t_a: float, t_b: float, tol_s: float = 0.05) -> dict[str, float]:
-        """Per-satellite correction (m) of a rover TDCP over (t_a, t_b) from the base's TDCP over the
-        same interval: minus the base's unexplained carrier change, with the base clock change (the
-        mean over satellites) removed, so only per-satellite common errors are taken out.
-
-        Each end takes the base epoch nearest to it within ``tol_s``: real rovers tag x.987-x.992 s
-        (u-blox M8P, clock bias -8 to -13 ms) while the base tags x.000; 50 ms is below half the
-        interval of a 10-Hz base, so the pairing stays unambiguous.  The base carrier needs no
-        shift to the rover's instants although the range changes by ~10 m in 13 ms: the residual is
-        formed against geometric ranges and clocks at the base's own epochs, so what remains is the
-        slow per-satellite error rate times the difference of the two ends' offsets (0.1 mm for
-        2 cm/s and 5 ms; tests/test_engine_tdcp_pairing.py)."""
-        resid = {}
-        for sat, hist in self._base_phase.items():
-            a = min(hist, key=lambda rec: abs(rec[0] - t_a), default=None)
-            b = min(hist, key=lambda rec: abs(rec[0] - t_b), default=None)
-            if (a is None or a is b or abs(a[0] - t_a) > tol_s or abs(b[0] - t_b) > tol_s
-                    or a[2] != b[2]):
-                continue
-            resid[sat] = b[2] * (b[1] - a[1]) + (b[4] - a[4]) - (b[3] - a[3])
-        if len(resid) < 2:
-            return {}
-        common = median(resid.values())
-        return {sat: -(e - common) for sat, e in resid.items()}
 
     # ------------------------------------------------------------------ IMU
     def process_imu(self, s: ImuSample):
@@ -730,15 +690,14 @@ class NavEngine:
             if cfg.use_doppler and len(prep.sats):
                 batches.append(doppler_batch(ins, prep, self.lever_arm_b, cfg.sigma_doppler_mps, layout=self.layout))
             if cfg.use_tdcp and rtk_batches:
-                self._drop_slipped_phase(prep)          # DD phase carries the carrier; keep the bookkeeping
+                self.carrier.drop_slipped(prep)          # DD phase carries the carrier; keep the bookkeeping
             elif cfg.use_tdcp:
-                self._drop_slipped_phase(prep)
+                self.carrier.drop_slipped(prep)
                 corr = None
-                if cfg.tdcp_base_correction != "off" and self._phase:
-                    t_prev = max(p.t_gps for p in self._phase.values())
-                    corr = self._base_tdcp_corrections(t_prev, epoch.t_gps) or None
+                if cfg.tdcp_base_correction != "off" and len(self.carrier):
+                    corr = self.base_carrier.tdcp_corrections(self.carrier.last_time(), epoch.t_gps) or None
                     self.counters["tdcp base-corrected epochs" if corr else "tdcp uncorrected epochs"] += 1
-                tdcp = tdcp_batch(ins, prep, self._phase, self.lever_arm_b, cfg.sigma_phase_m,
+                tdcp = tdcp_batch(ins, prep, self.carrier.records, self.lever_arm_b, cfg.sigma_phase_m,
                                   cfg.sigma_tdcp_floor_mps, cfg.tdcp_max_interval_s, layout=self.layout,
                                   phase_correction_m=corr,
                                   elevation_scaling=cfg.sigma_phase_elevation_scaling,
@@ -1096,7 +1055,7 @@ class NavEngine:
         self.C_b_e = R @ self.C_b_e
         self.v_e = self.v_e + dv
         self._history = deque((t, r, v + dv, R @ C) for t, r, v, C in self._history)
-        self._phase.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
+        self.carrier.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
         self._prev_epoch_v = None
         if self.smoother is not None:
             self.smoother.start(self)     # a jump of the nominal state: the smoothing restarts here
@@ -1181,19 +1140,6 @@ class NavEngine:
         # the newest history sample is "now": keep it consistent with the corrected state
         self._history[-1] = (self.t_gps, self.r_e, self.v_e, self.C_b_e)
 
-    def _drop_slipped_phase(self, prep) -> None:
-        """Before TDCP is formed: a receiver slip flag, a half-cycle flag or a lock time that went
-        down means the carrier of that satellite is not continuous with the stored one."""
-        for i, sat in enumerate(prep.sats):
-            prev = self._phase.get(sat)
-            if prev is None:
-                continue
-            lock = float(prep.lock_time_s[i])
-            if (bool(prep.loss_of_lock[i]) or bool(prep.half_cycle[i])
-                    or (math.isfinite(lock) and math.isfinite(prev.lock_time_s) and lock < prev.lock_time_s)):
-                del self._phase[sat]
-                self.counters["carrier bookkeeping restarted (slip flag / lock time)"] += 1
-
     LATENCY_MIN_S = 1e-3
 
     def _latency_transition(self, ins: InsPoint) -> LatencyTransition | None:
@@ -1221,11 +1167,10 @@ class NavEngine:
         return (ins.v_e - prev[1]) / T - gravity_ecef(ins.r_e) + 2.0 * np.cross(omega, ins.v_e)
 
     def _remember_phase(self, ins: InsPoint, dx: np.ndarray, prep) -> None:
-        """Store each satellite's carrier and its geometric range from the *corrected* INS state,
-        for the next epoch's TDCP.  Every epoch replaces the record, so a slip that the gate caught
-        spoils one interval only; a half-cycle-ambiguous carrier is not stored.  The record is
-        tagged with the epoch's (receiver) time; a corrected time-tag offset moves the antenna
-        along its path (the epoch is then predicted from dt_imu earlier on the IMU tags)."""
+        """The carrier records for the next epoch's TDCP, with ranges from the *corrected* INS
+        state (companion.gnss.phase).  The records are tagged with the epoch's (receiver) time; a
+        corrected time-tag offset moves the antenna along its path (the epoch is then predicted
+        from dt_imu earlier on the IMU tags)."""
         if not self.cfg.use_tdcp:
             return
         L = self.layout
@@ -1236,21 +1181,7 @@ class NavEngine:
         if dx[L.toff] != 0.0:
             r_ant = r_ant - v_ant * dx[L.toff]
         self._prev_epoch_v = (ins.t_gps, fixed.v_e.copy())
-        seen = set()
-        finite = np.isfinite(prep.carrier_cycles)
-        if np.any(finite):
-            rho, u = line_of_sight(prep.r_sat_e[finite], r_ant)
-            for j, i in enumerate(np.flatnonzero(finite)):
-                sat = prep.sats[i]
-                if bool(prep.half_cycle[i]):
-                    continue   # unresolved half-cycle: do not build on this carrier
-                self._phase[sat] = PhaseRecord(prep.t_gps, float(prep.carrier_cycles[i]),
-                                               float(prep.wavelength_m[i]), float(rho[j]),
-                                               float(prep.sat_clock_bias_m[i]), u[j], float(prep.lock_time_s[i]),
-                                               float(u[j] @ v_ant))
-                seen.add(sat)
-        for sat in [s for s in self._phase if s not in seen]:
-            del self._phase[sat]
+        self.carrier.remember(prep, r_ant, v_ant)
 
     # ------------------------------------------------------------------ output
     def solution(self) -> NavSolution:
@@ -1317,48 +1248,3 @@ def _stale_corrections(rejected: dict[str, str]) -> bool:
     """Most satellites of the epoch were refused for want of a recent DGPS correction."""
     stale = sum(1 for r in rejected.values() if r in ("DGPS correction too old", "no DGPS correction"))
     return stale >= 4
-
-
-class _StillnessDetector:
-    """Stillness test on the last ``zupt_window_s`` of raw IMU rates.
-
-    Samples are appended to a bounded deque (no numpy at IMU rate); the window statistics are
-    computed with numpy every half window only.
-    """
-
-    def __init__(self, cfg: EngineConfig):
-        self.cfg = cfg
-        self.window_s = cfg.zupt_window_s
-        self.buf: deque = deque(maxlen=2)   # resized to one window of samples at the IMU's rate
-        self._since_check_s = 0.0
-        self._since_update_s = 0.0
-        self._window: np.ndarray | None = None
-
-    def add(self, dtheta, dv, tau: float) -> bool:
-        """Add one sample (raw increments); True when the last window is still and an update is due."""
-        self.buf.append((dtheta[0], dtheta[1], dtheta[2], dv[0], dv[1], dv[2], tau))
-        self._since_check_s += tau
-        self._since_update_s += tau
-        if self._since_check_s < 0.5 * self.window_s:
-            return False
-        self._since_check_s = 0.0
-        m = max(2, int(round(self.window_s / tau)))   # one window at the current IMU rate
-        if self.buf.maxlen != m:
-            self.buf = deque(self.buf, maxlen=m)
-        if len(self.buf) < m:
-            return False
-        w = np.array(self.buf)
-        rates = w[:, 0:6] / w[:, 6:7]
-        std = rates.std(axis=0)
-        still = bool(std[0:3].max() < self.cfg.zupt_gyro_std_radps and std[3:6].max() < self.cfg.zupt_accel_std_mps2)
-        if still and self._since_update_s >= self.window_s:
-            self._since_update_s = 0.0
-            self._window = rates
-            return True
-        return False
-
-    def gyro_mean_and_sigma(self):
-        """Mean raw gyro rate over the still window and the standard error of that mean."""
-        w = self._window
-        mean = w[:, 0:3].mean(axis=0)
-        return mean, float(w[:, 0:3].std(axis=0).max() / math.sqrt(len(w)))

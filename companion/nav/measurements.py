@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..gnss.phase import PhaseRecord  # noqa: F401  (re-exported: TDCP's previous-epoch record)
 from .earth import OMEGA_IE_RADPS, skew
 from .filter import LAYOUT, MeasurementBatch
 from .state_layout import isb_block_name, system_of
@@ -45,20 +46,6 @@ class InsPoint:
     block_states: dict[str, np.ndarray] | None = None
 
 
-@dataclass
-class PhaseRecord:
-    """What a TDCP measurement needs from the previous epoch of one satellite's carrier."""
-
-    t_gps: float
-    carrier_cycles: float
-    wavelength_m: float
-    geometric_range_m: float     # |r_sat - r_ant| at that epoch, from the *updated* INS state
-    sat_clock_bias_m: float
-    los_e: np.ndarray
-    lock_time_s: float
-    los_rate_mps: float = 0.0   # u . v_ant at that epoch: what a time-tag error did to the range
-
-
 def antenna_state(ins: InsPoint, lever_arm_b: np.ndarray):
     """(r_ant_e, v_ant_e, lever_arm_e) from the IMU state (seed 004 lever-arm equations)."""
     l_e = ins.C_b_e @ lever_arm_b
@@ -68,6 +55,16 @@ def antenna_state(ins: InsPoint, lever_arm_b: np.ndarray):
                     w[0] * lever_arm_b[1] - w[1] * lever_arm_b[0]])
     earth_term = np.array([-OMEGA_IE_RADPS * l_e[1], OMEGA_IE_RADPS * l_e[0], 0.0])
     return ins.r_e + l_e, ins.v_e + ins.C_b_e @ wxl - earth_term, l_e
+
+
+def antenna_velocity_attitude_partial(ins: InsPoint, lever_arm_b: np.ndarray) -> np.ndarray:
+    """d v_ant / d psi (3x3): how an attitude error psi (C_true = (I + [psi x]) C) moves the
+    antenna velocity of :func:`antenna_state`, v_ant = v + C (w x l) - W_ie x (C l).  Every
+    velocity-like row (Doppler, TDCP, velocity fixes) takes its attitude column from here, as the
+    position-like rows take -[l_e x] from the lever arm itself."""
+    w_l_e = ins.C_b_e @ np.cross(np.asarray(ins.omega_ib_b, float), lever_arm_b)
+    l_e = ins.C_b_e @ lever_arm_b
+    return -skew(w_l_e) + skew(np.array([0.0, 0.0, OMEGA_IE_RADPS])) @ skew(l_e)
 
 
 def antenna_acceleration(ins: InsPoint, lever_arm_b: np.ndarray) -> np.ndarray:
@@ -126,19 +123,24 @@ def doppler_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, sigma_mps: float
                   layout=LAYOUT) -> MeasurementBatch:
     """Pseudorange rate from Doppler: -lambda*D + c*sat_clock_drift = u.(v_sat - v_ant) + drift."""
     ok = np.isfinite(prep.doppler_hz)
-    r_ant, v_ant, _ = antenna_state(ins, lever_arm_b)
+    r_ant, v_ant, l_e = antenna_state(ins, lever_arm_b)
     rho, u = line_of_sight(prep.r_sat_e[ok], r_ant)
     dv = prep.v_sat_e[ok] - v_ant
     rate_meas = -prep.wavelength_m[ok] * prep.doppler_hz[ok] + prep.sat_clock_drift_mps[ok]
-    rate_pred = np.einsum("ij,ij->i", u, dv) + ins.clock_drift_mps
+    u_dv = np.einsum("ij,ij->i", u, dv)
+    rate_pred = u_dv + ins.clock_drift_mps
     H = np.zeros((len(rate_meas), layout.n))
     H[:, layout.vel] = -u
+    # attitude: the lever arm's velocity, and the line of sight turning as the antenna moves with
+    # the lever arm (d u / d r_ant = -(I - u u^T) / rho, d r_ant / d psi = -[l_e x])
+    H[:, layout.att] = (-u @ antenna_velocity_attitude_partial(ins, lever_arm_b)
+                        + ((dv - u * u_dv[:, None]) / rho[:, None]) @ skew(l_e))
     H[:, layout.drift] = 1.0
     # dt_imu: the antenna acceleration along the line of sight, and the line of sight turning as
     # the antenna moves (d u / d r_ant = -(I - u u^T) / rho)
     uv = u @ v_ant
     H[:, layout.toff] = (u @ antenna_acceleration(ins, lever_arm_b)
-                         + (np.einsum("ij,j->i", dv, v_ant) - uv * np.einsum("ij,ij->i", u, dv)) / rho)
+                         + (np.einsum("ij,j->i", dv, v_ant) - uv * u_dv) / rho)
     labels = [s for s, k in zip(prep.sats, ok) if k]
     return MeasurementBatch("doppler", labels, rate_meas - rate_pred, H, np.full(len(labels), sigma_mps ** 2))
 
@@ -171,6 +173,7 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
     1/sin(elevation) (multipath), floored at 10 degrees.
     """
     r_ant, v_ant, _ = antenna_state(ins, lever_arm_b)
+    dv_ant_dpsi = antenna_velocity_attitude_partial(ins, lever_arm_b)
     rows, labels, zs, rvar = [], [], [], []
     f_cross = skew(specific_force_e) if specific_force_e is not None else None
     for i, sat in enumerate(prep.sats):
@@ -199,8 +202,10 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
         h[layout.vel] = -u_mid
         h[layout.pos] = (prev.los_e - u) / T
         h[layout.drift] = 1.0
+        # the lever arm's share of the displacement: its velocity over the interval
+        h[layout.att] = -u_mid @ dv_ant_dpsi
         if f_cross is not None:
-            h[layout.att] = -0.5 * T * (u_mid @ f_cross)
+            h[layout.att] -= 0.5 * T * (u_mid @ f_cross)
             h[layout.ba] = -0.5 * T * (u_mid @ ins.C_b_e)
         # dt_imu: the same tag error at both epochs moved both ranges by u . v_ant of their epoch
         h[layout.toff] = (float(u @ v_ant) - prev.los_rate_mps) / T
@@ -235,6 +240,7 @@ def velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, cov_e: np.ndarray, le
     _, v_ant, _ = antenna_state(ins, lever_arm_b)
     H = np.zeros((3, layout.n))
     H[:, layout.vel] = np.eye(3)
+    H[:, layout.att] = antenna_velocity_attitude_partial(ins, lever_arm_b)
     if not autopilot_clock:
         H[:, layout.toff] = -antenna_acceleration(ins, lever_arm_b)
     return _whitened("velocity", ["vx", "vy", "vz"], v_fix_e - v_ant, H, cov_e)
@@ -250,6 +256,7 @@ def horizontal_velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, sigma_mps:
     C_e_ne = C_n_e_.T[0:2]
     H = np.zeros((2, layout.n))
     H[:, layout.vel] = C_e_ne
+    H[:, layout.att] = C_e_ne @ antenna_velocity_attitude_partial(ins, lever_arm_b)
     if not autopilot_clock:
         H[:, layout.toff] = -C_e_ne @ antenna_acceleration(ins, lever_arm_b)
     return MeasurementBatch("velocity", ["vn", "ve"], C_e_ne @ (np.asarray(v_fix_e, float) - v_ant), H,
