@@ -83,6 +83,7 @@ def main(argv=None) -> int:
     pp = sub.add_parser("paper", help="seed 000's experiment: five navigation modes on the same simulated data")
     pp.add_argument("--scenario", default="paper",
                     help="paper (seed 000 sec 4.1), paper-nosa, uav (realistic survey flight), "
+                         "uav-gec (uav with GPS+Galileo+BeiDou), "
                          "nhc / nhc-skid (seed 002: with vs without NHC), attitude / attitude-mems "
                          "(seed 003: PV vs PVA)")
     pp.add_argument("--runs", type=int, default=None,

@@ -13,8 +13,10 @@ modes, the antenna for ``gps``) and the truth, sampled at 1 Hz and averaged over
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,13 +64,22 @@ class FilterTuning:
     sigma_phase_elevation_scaling: bool = False
 
 
-def mode_config(mode: str, tuning: FilterTuning, lever_arm_b) -> EngineConfig:
+def _engine_has_systems() -> bool:
+    """EngineConfig grows ``systems`` with multi-GNSS fusion; older engines fuse GPS only."""
+    return "systems" in {f.name for f in dataclasses.fields(EngineConfig)}
+
+
+def mode_config(mode: str, tuning: FilterTuning, lever_arm_b, systems: str = "G") -> EngineConfig:
+    """The engine configuration of ``mode``; ``systems`` (the scenario's, e.g. 'GEC') is passed on
+    only when it is not GPS alone and the engine knows the field (GPS-only runs stay as they were)."""
     common = dict(noise=tuning.noise, lever_arm_b_m=tuple(lever_arm_b), sigma_doppler_mps=tuning.sigma_doppler_mps,
                   sigma_phase_m=tuning.sigma_phase_m, sigma_tdcp_floor_mps=tuning.sigma_tdcp_floor_mps,
                   elevation_mask_deg=5.0, klobuchar=tuning.klobuchar,
                   pseudorange_correlation_time_s=tuning.pseudorange_correlation_time_s,
                   zupt_enabled=tuning.zupt_enabled,
                   sigma_phase_elevation_scaling=tuning.sigma_phase_elevation_scaling)
+    if systems != "G" and _engine_has_systems():
+        common["systems"] = systems
     standalone = dict(use_dgps=False, sigma_pseudorange_floor_m=tuning.sigma_pseudorange_standalone_floor_m)
     if mode == "loose":
         return EngineConfig(use_loose=True, use_tdcp=False, **standalone, **common)
@@ -97,7 +108,7 @@ def run_ins_mode(mode: str, sim, tuning: FilterTuning, seed: int, record_every_s
     """Run one INS mode over a simulated flight.  Returns dict with 't_s', 'err_3d_m' (1 Hz) and
     'nees' samples (error-state NEES of attitude/position/velocity at the same instants)."""
     truth = sim.truth
-    cfg = mode_config(mode, tuning, sim.lever_arm_b)
+    cfg = mode_config(mode, tuning, sim.lever_arm_b, getattr(sim.scenario, "systems", "G"))
     eng = NavEngine(cfg)
     eng.on_epoch = on_epoch
     for eph in sim.ephemerides:
@@ -143,8 +154,10 @@ def _nees(eng: NavEngine, truth, k: int) -> float:
 
 
 def run_gps_mode(sim, klobuchar=None):
-    """Standalone SPP at every rover epoch; error of the antenna position against truth."""
+    """Standalone SPP at every rover epoch (the scenario's systems); error of the antenna position
+    against truth."""
     store = EphemerisStore(sim.ephemerides)
+    systems = getattr(sim.scenario, "systems", "G")
     truth = sim.truth
     t0 = truth.t_gps[0]
     ts, errs, errs_h = [], [], []
@@ -152,7 +165,7 @@ def run_gps_mode(sim, klobuchar=None):
     lat0, lon0, _ = ecef_to_geodetic(truth.r_e[0])
     up_e = -C_n_e(lat0, lon0)[:, 2]
     for ep in sim.rover_epochs:
-        sol = spp_epoch(ep, store, klobuchar=klobuchar, r_init_e=r_prev)
+        sol = spp_epoch(ep, store, klobuchar=klobuchar, r_init_e=r_prev, systems=systems)
         if sol is None:
             continue
         r_prev = sol.r_e
@@ -208,7 +221,7 @@ def _one_run(scenario_name: str, seed: int, modes) -> dict:
     sim = simulate(scenario, seed)
     out = {"duration_s": float(sim.truth.t_gps[-1] - sim.truth.t_gps[0]),
            "outages_s": [(a - sim.truth.t_gps[0], b - sim.truth.t_gps[0]) for a, b in scenario.rover_outages],
-           "curves": {}, "counters": {}}
+           "curves": {}, "counters": {}, "sats_per_epoch": sats_per_epoch(sim.rover_epochs)}
     for m in modes:
         res = run_gps_mode(sim, tuning.klobuchar) if m == "gps" else run_ins_mode(m, sim, tuning, seed)
         out["counters"][m] = res.pop("counters", {})
@@ -216,10 +229,19 @@ def _one_run(scenario_name: str, seed: int, modes) -> dict:
     return out
 
 
+def sats_per_epoch(epochs) -> dict[str, float]:
+    """Mean number of satellites observed per epoch, by system (RINEX letter)."""
+    n = Counter()
+    for ep in epochs:
+        n.update(s[0] for s in {o.sat for o in ep.observations})
+    return {s: n[s] / max(len(epochs), 1) for s in sorted(n)}
+
+
 def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progress=None, jobs: int = 0) -> dict:
     """Monte Carlo over ``runs`` simulated flights (seeds seed..seed+runs-1), in parallel worker
     processes.  Each run is deterministic in its seed, so the result does not depend on ``jobs``."""
     from .montecarlo import run_all
+    from .scenario import build_scenario
 
     t_start = time.perf_counter()
     results = run_all(_one_run, [(scenario_name, seed + r, modes) for r in range(runs)], jobs, progress)
@@ -251,6 +273,9 @@ def run_experiment(scenario_name: str, runs: int, seed: int, modes=MODES, progre
                              "err_start_m": float(curve[ia]), "err_end_m": float(curve[ib]),
                              "err_max_m": float(np.max(curve[ia:ib + 1]))}
     out["counters"] = {m: results[0]["counters"][m] for m in modes}
+    out["systems"] = getattr(build_scenario(scenario_name), "systems", "G")
+    per = [r["sats_per_epoch"] for r in results]
+    out["sats_per_epoch"] = {s: float(np.mean([p.get(s, 0.0) for p in per])) for s in sorted({k for p in per for k in p})}
     out["elapsed_s"] = time.perf_counter() - t_start
     return out
 
@@ -282,6 +307,11 @@ def format_table(result: dict) -> str:
             txt += f" ({pm:6g})" if pm is not None else " (     -)"
         cells.append(f"{txt:>17}")
     lines.append(f"{'mean':>6} | " + " | ".join(cells))
+    rms = " | ".join(f"{m} {result['modes'][m]['rms_h_m']:.3f} / {result['modes'][m]['rms_3d_m']:.3f}" for m in modes)
+    lines.append(f"RMS horizontal / 3-D (m): {rms}")
+    if "sats_per_epoch" in result:
+        per = ", ".join(f"{s} {n:.1f}" for s, n in result["sats_per_epoch"].items())
+        lines.append(f"rover satellites per epoch (systems '{result.get('systems', 'G')}'): {per}")
     return "\n".join(lines)
 
 

@@ -97,6 +97,23 @@ its 0.3 m/s rate std also corrupts undifferenced TDCP range rates).
   0.4 m (tau 8 s), carrier 2 mm / 8 mm (tau 8 s), all x 1/sin(el); Doppler 0.05 m/s.  Base
   (geodetic choke ring): 0.1 m, 0.1 m, 1 mm, 2 mm, x 1/sin(el).  Clocks steered, tau 30 s.
 
+"uav-gec" (issue 11: 'uav' under GPS + Galileo + BeiDou)
+--------------------------------------------------------
+* Sky: 'uav''s GPS (GEONET 2005) plus the real Galileo I/NAV and BeiDou D1/D2 (MEO, IGSO, GEO)
+  ephemerides of a base station in Hiroshima, 2022-12-13 01:09 GPST, moved by one common time shift
+  onto 2005-04-02 00:20:00 GPST (sitl.sky_multignss: the ECEF orbits at the scenario start are those
+  over Japan at the recording).  Above the 10-deg mask: GPS 7, Galileo 9, BeiDou 19.
+* Signals (companion.gnss.signals names): Galileo E1 'L1C' (+ E5b 'L7Q' if dual_frequency), BeiDou
+  B1I 'L2I' (+ B3I 'L6I'), each with its own carrier wavelength; ionosphere (f_L1/f)^2 x the L1 delay
+  (same Klobuchar truth + fluctuation as GPS); the broadcast group delays applied as prepare removes
+  them (Galileo BGD(E1,E5b) of the I/NAV clock, BeiDou TGD1 on B1I against the B3I clock).
+* The same receiver error model for every system (Galileo E1 and BeiDou B1I code noise and multipath
+  as GPS L1 C/A: the rover's patch antenna and its multipath dominate, not the code chipping rate),
+  the same per-satellite orbit / satellite-clock / atmosphere processes, drawn from streams of their
+  own so the GPS observables are 'uav''s bit for bit.  Receiver inter-system bias per system (not
+  GPS; QZSS would share GPS's), rover and base independently: N(0, 30 m) + random walk
+  2 mm/sqrt(s), on code and carrier alike.
+
 "nhc" / "nhc-skid" (seed 002, car near GEONET 0759, real 2005-04-02 ephemeris, 00:20 GPST)
 ------------------------------------------------------------------------------------------
 * Motion: sitl.trajectory.road_drive, 596 s: rest 15 s, straights, three 90-deg turns, a
@@ -318,6 +335,10 @@ class Scenario:
     gnss_attitude: AttitudeAntennas | None = None   # also emit three-antenna GnssAttitude
     initial_attitude_sigma_rad: tuple[float, float] | None = None   # (tilt, heading) alignment
     dual_frequency: bool = False             # also GPS L2 P(Y) ('L2W') code and carrier (the rtk scenario)
+    # added for multi-GNSS (issue 11); the defaults keep every GPS-only scenario bit for bit
+    systems: str = "G"                       # RINEX letters of the simulated systems ('GEC')
+    isb_sigma_m: float = 30.0                # receiver inter-system bias, constant part, 1-sigma per system
+    isb_rw_m_per_sqrt_s: float = 0.002       # its random walk (system-time offset and hardware drift)
     notes: dict = field(default_factory=dict, compare=False)
 
     @property
@@ -373,7 +394,7 @@ def _paper() -> Scenario:
     )
 
 
-def _uav() -> Scenario:
+def _uav(systems: str = "G") -> Scenario:
     from companion.gnss.rinex import read_rinex_nav_header_iono
 
     week = 1316
@@ -385,6 +406,10 @@ def _uav() -> Scenario:
     traj = survey_flight((lat0, lon0, h0), heading0_rad=math.radians(20.0))
     duration = traj.duration_s
     ephs = sky.select_ephemerides(sky.geonet_ephemerides(), t0, t0 + duration)
+    if systems != "G":
+        from .sky_multignss import moved_ephemerides
+        others = "".join(s for s in systems if s != "G")
+        ephs.update(sky.select_ephemerides(moved_ephemerides(t_start_int, others), t0, t0 + duration))
     iono_ab = read_rinex_nav_header_iono(sky.GEONET_NAV)
     alpha, beta = (tuple(float(x) for x in iono_ab[0]), tuple(float(x) for x in iono_ab[1])) \
         if iono_ab is not None else ((0.0,) * 4, (0.0,) * 4)
@@ -417,8 +442,16 @@ def _uav() -> Scenario:
         rover_clock=ClockModel(steer_tau_s=30.0), base_clock=ClockModel(steer_tau_s=30.0),
         klobuchar_alpha=alpha, klobuchar_beta=beta,
         rover_outages=((t0 + 130.0, t0 + 160.0),),
-        default_seed=0,
+        default_seed=0, systems=systems,
     )
+
+
+def _uav_gec() -> Scenario:
+    """'uav' under GPS (GEONET 2005) + Galileo + BeiDou (Hiroshima 2022, moved onto the same epoch:
+    sitl.sky_multignss); the GPS observables are those of 'uav' bit for bit."""
+    import dataclasses
+    s = _uav("GEC")
+    return dataclasses.replace(s, name="uav-gec", description=s.description + ", GPS+Galileo+BeiDou")
 
 
 def _paper_nosa() -> Scenario:
@@ -553,14 +586,14 @@ def _rtk() -> Scenario:
         cycle_slips=tuple(slips))
 
 
-_BUILDERS = {"paper": _paper, "paper-nosa": _paper_nosa, "uav": _uav, "nhc": _nhc,
+_BUILDERS = {"paper": _paper, "paper-nosa": _paper_nosa, "uav": _uav, "uav-gec": _uav_gec, "nhc": _nhc,
              "nhc-skid": lambda: _nhc(skid=True), "attitude": _attitude,
              "attitude-mems": _attitude_mems, "rtk": _rtk}
 
 
 def build_scenario(name: str) -> Scenario:
-    """'paper', 'paper-nosa', 'uav', 'nhc', 'nhc-skid', 'attitude', 'attitude-mems' or 'rtk' (see the
-    module docstring)."""
+    """'paper', 'paper-nosa', 'uav', 'uav-gec', 'nhc', 'nhc-skid', 'attitude', 'attitude-mems' or
+    'rtk' (see the module docstring)."""
     try:
         return _BUILDERS[name]()
     except KeyError:

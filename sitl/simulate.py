@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.gnss.atmosphere import klobuchar_delay_m, saastamoinen_zenith_m
+from companion.gnss.signals import clock_group, frequency_hz, group_delay_m
 from companion.messages import (GPS_L1_HZ, GPS_L1_WAVELENGTH_M, GPS_L2_HZ, GPS_L2_WAVELENGTH_M,
                                 SPEED_OF_LIGHT_MPS, BaseStationPosition,
                                 GnssEpoch, GpsEphemeris, ImuSample, SatObservation)
@@ -36,6 +37,8 @@ _S_AMB_L2 = {"rover": 42, "base": 43}
 GAMMA_L2 = (GPS_L1_HZ / GPS_L2_HZ) ** 2      # L2 ionospheric delay / L1's
 _S_PPK, _S_ATT = 50, 51
 _S_IMU_UNIT = 60               # + k: redundant IMU unit k (SimData.extra_imu_units)
+_S_GROUP_OFFSET = 1000         # + stream: the same process for the non-GPS satellites (_system_groups)
+_S_ISB = {"rover": 2000, "base": 2001}   # [seed, _S_ISB, ord(system)]: inter-system bias
 
 
 @dataclass(eq=False)
@@ -144,10 +147,38 @@ def ideal_increments(scn: Scenario, tr: Truth):
     return dth, dv
 
 
+def _system_groups(sats: list[str]) -> list[list[str]]:
+    """GPS satellites first (in the given order), then every other system's: each group draws its
+    random processes from its own streams (group g: stream + g x _S_GROUP_OFFSET), so adding
+    Galileo/BeiDou leaves every GPS observable of a scenario as it was, bit for bit."""
+    gps = [s for s in sats if s[0] == "G"]
+    other = [s for s in sats if s[0] != "G"]
+    return [g for g in (gps, other) if g] if other else [gps]
+
+
 class _Atmosphere:
-    """Slow per-satellite processes (common and rover-only parts), times relative to t0."""
+    """Slow per-satellite processes (common and rover-only parts), times relative to t0; GPS and
+    the other systems in separate groups (:func:`_system_groups`)."""
 
     def __init__(self, scn: Scenario, seed: int, sats: list[str]):
+        groups = _system_groups(list(sats))
+        offsets = [0 if g[0][0] == "G" else _S_GROUP_OFFSET for g in groups] if sats else [0]
+        self.groups = [_AtmosphereGroup(scn, seed, g, off) for g, off in zip(groups, offsets)]
+        self.where = {s: k for k, g in enumerate(groups) for s in g}
+
+    def slow_at(self, t_rel) -> list[dict]:
+        """Every group's slow processes at the times ``t_rel`` (see :meth:`_AtmosphereGroup.slow_at`)."""
+        return [g.slow_at(t_rel) for g in self.groups]
+
+    def components(self, sat: str, slow: list[dict], i: int, *args) -> dict[str, float]:
+        k = self.where[sat]
+        return self.groups[k].components(sat, slow[k], i, *args)
+
+
+class _AtmosphereGroup:
+    """The slow processes of one group of satellites (streams offset by ``stream_offset``)."""
+
+    def __init__(self, scn: Scenario, seed: int, sats: list[str], stream_offset: int = 0):
         self.scn = scn
         self.idx = {s: i for i, s in enumerate(sats)}
         t0, t1 = -5.0, scn.duration_s + 5.0
@@ -156,7 +187,8 @@ class _Atmosphere:
         def proc(stream, sigma, tau, n=S):
             if sigma == 0.0:
                 return None
-            return sensors.smooth_processes(np.random.default_rng([seed, stream]), t0, t1, tau, n, sigma)
+            return sensors.smooth_processes(np.random.default_rng([seed, stream + stream_offset]), t0, t1,
+                                            tau, n, sigma)
 
         self.iono_c = proc(_S_IONO_C, scn.iono.sigma_common_m, scn.iono.tau_s)
         self.iono_d = proc(_S_IONO_D, scn.iono.sigma_diff_m, scn.iono.tau_diff_s or scn.iono.tau_s)
@@ -224,7 +256,64 @@ def _cross(a, b) -> np.ndarray:
 _COMPONENTS = ("geometric_m", "sat_clock_brdc_m", "iono_m", "tropo_m", "orbit_m", "sat_clock_err_m",
                "sa_m", "code_mp_m", "code_noise_m", "carrier_mp_m", "carrier_noise_m",
                "doppler_noise_hz", "range_rate_mps", "elevation_rad", "azimuth_rad",
-               "ambiguity_cycles")
+               "ambiguity_cycles", "isb_m")
+
+
+class _SiteNoise:
+    """Receiver site errors of one satellite group (code/carrier multipath and noise, Doppler
+    noise, ambiguity draws; the second frequency from its own streams), ``stream_offset`` added
+    to every stream id."""
+
+    def __init__(self, seed: int, who: str, rx, K: int, S: int, dt_ep: float, dual: bool,
+                 stream_offset: int = 0):
+        rs = np.random.default_rng([seed, _S_SITE[who] + stream_offset])
+        self.code_mp = sensors.gm1(rs, K, dt_ep, rx.code_mp_tau_s, rx.code_mp_m, S)
+        self.car_mp = sensors.gm1(rs, K, dt_ep, rx.carrier_mp_tau_s, rx.carrier_mp_m, S)
+        self.code_n = rs.standard_normal((K, S)) * rx.code_noise_m
+        self.car_n = rs.standard_normal((K, S)) * rx.carrier_noise_m
+        self.dop_n_mps = rs.standard_normal((K, S)) * rx.doppler_noise_mps    # / wavelength -> Hz
+        self.r_amb = np.random.default_rng([seed, _S_AMB[who] + stream_offset])
+        if dual:
+            # L2 (P(Y), 'L2W' for GPS): its own site errors and ambiguities from their own streams,
+            # so the L1 observables are those of the single-frequency scenario bit for bit
+            r2 = np.random.default_rng([seed, _S_SITE_L2[who] + stream_offset])
+            self.code_mp2 = sensors.gm1(r2, K, dt_ep, rx.code_mp_tau_s, rx.code_mp_m, S)
+            self.car_mp2 = sensors.gm1(r2, K, dt_ep, rx.carrier_mp_tau_s, rx.carrier_mp_m, S)
+            self.code_n2 = r2.standard_normal((K, S)) * rx.code_noise_m
+            self.car_n2 = r2.standard_normal((K, S)) * rx.carrier_noise_m
+            self.r_amb2 = np.random.default_rng([seed, _S_AMB_L2[who] + stream_offset])
+
+
+def _isb_process(seed: int, who: str, system: str, scn: Scenario, K: int, dt_ep: float) -> np.ndarray:
+    """Receiver inter-system bias of ``system`` against GPS (m, per epoch): a constant
+    N(0, isb_sigma_m) (hardware group delays, the system-time offset) plus a random walk; 0 for GPS
+    and for systems sharing GPS's clock (QZSS, companion.gnss.signals.CLOCK_GROUPS)."""
+    if clock_group(system) == "G":
+        return np.zeros(K)
+    r = np.random.default_rng([seed, _S_ISB[who], ord(system)])
+    const = r.standard_normal() * scn.isb_sigma_m
+    steps = r.standard_normal(K) * scn.isb_rw_m_per_sqrt_s * math.sqrt(dt_ep)
+    steps[0] = 0.0
+    return const + np.cumsum(steps)
+
+
+#: observed signals per system (companion.gnss.signals names): single-frequency code, then the
+#: second frequency of a dual-frequency scenario.  Galileo E5b with the I/NAV clock (its BGD),
+#: BeiDou B3I (the D1/D2 clock's own code)
+SIGNALS = {"G": ("L1C", "L2W"), "J": ("L1C", "L2L"), "E": ("L1C", "L7Q"), "C": ("L2I", "L6I")}
+
+
+class _SignalModel:
+    """Per satellite and signal: wavelength, ionospheric factor (f_L1/f)^2 and broadcast group
+    delay (m) the signal carries relative to the broadcast clock -- exactly what
+    companion.gnss.prepare subtracts (signals.group_delay_m with the same factor)."""
+
+    def __init__(self, eph: GpsEphemeris, signal: str):
+        self.signal = signal
+        f = frequency_hz(eph.sat, signal)
+        self.wavelength_m = C / f
+        self.iono_factor = (self.wavelength_m / (C / GPS_L1_HZ)) ** 2
+        self.group_delay_m = group_delay_m(eph, (signal,), self.iono_factor)
 
 
 class ReceiverModel:
@@ -237,7 +326,14 @@ class ReceiverModel:
     given.  Ask for epochs in increasing ``k``; a ``k`` not asked for is a gap in tracking (a
     satellite seen again after it gets a new ambiguity and loss of lock).  ``antenna(t)``: the
     antenna phase centre (ECEF, m) at true GPS time ``t``; a base receiver ignores it (its
-    position is ``scn.base_r_e``)."""
+    position is ``scn.base_r_e``).
+
+    Other systems than GPS (ephemerides of Galileo, BeiDou, QZSS among ``ephs``): their site
+    errors and ambiguities come from their own streams (:func:`_system_groups`); each system has
+    its signals (:data:`SIGNALS`), carrier wavelength, ionospheric delay (f_L1/f)^2 x the L1 one,
+    broadcast group delay, and a receiver inter-system bias on code and carrier
+    (:func:`_isb_process`).  GPS keeps its historical arithmetic (L1 C/A, L2 P(Y) sharing the L1
+    TGD term) so GPS-only scenarios are unchanged bit for bit."""
 
     def __init__(self, scn: Scenario, seed: int, who: str, atmo: _Atmosphere, ephs: list[GpsEphemeris]):
         self.scn, self.who, self.atmo, self.ephs = scn, who, atmo, ephs
@@ -255,24 +351,17 @@ class ReceiverModel:
             np.random.default_rng([seed, _S_CLK_ROVER if rover else _S_CLK_BASE]), clk_model, K, dt_ep)
         self.t_true = T_rx - self.b / C
 
-        rs = np.random.default_rng([seed, _S_SITE[who]])
-        self.code_mp = sensors.gm1(rs, K, dt_ep, rx.code_mp_tau_s, rx.code_mp_m, S)
-        self.car_mp = sensors.gm1(rs, K, dt_ep, rx.carrier_mp_tau_s, rx.carrier_mp_m, S)
-        self.code_n = rs.standard_normal((K, S)) * rx.code_noise_m
-        self.car_n = rs.standard_normal((K, S)) * rx.carrier_noise_m
-        self.dop_n = rs.standard_normal((K, S)) * rx.doppler_noise_mps / LAMBDA
-        self.r_amb = np.random.default_rng([seed, _S_AMB[who]])
         self.dual = scn.dual_frequency
-        if self.dual:
-            # L2 (P(Y), 'L2W'): its own site errors and ambiguities from their own streams, so the
-            # L1 observables are those of the single-frequency scenario bit for bit
-            r2 = np.random.default_rng([seed, _S_SITE_L2[who]])
-            self.code_mp2 = sensors.gm1(r2, K, dt_ep, rx.code_mp_tau_s, rx.code_mp_m, S)
-            self.car_mp2 = sensors.gm1(r2, K, dt_ep, rx.carrier_mp_tau_s, rx.carrier_mp_m, S)
-            self.code_n2 = r2.standard_normal((K, S)) * rx.code_noise_m
-            self.car_n2 = r2.standard_normal((K, S)) * rx.carrier_noise_m
-            self.r_amb2 = np.random.default_rng([seed, _S_AMB_L2[who]])
-            self.amb2: dict[str, int] = {}
+        groups = _system_groups([e.sat for e in ephs])
+        self.site = [_SiteNoise(seed, who, rx, K, len(g), dt_ep, self.dual,
+                                0 if g[0][0] == "G" else _S_GROUP_OFFSET) for g in groups] if S else []
+        # satellite -> (its site-noise group, its column there)
+        self.where = {s: (k, j) for k, g in enumerate(groups) for j, s in enumerate(g)}
+        systems = sorted({e.sat[0] for e in ephs})
+        self.isb = {s: _isb_process(seed, who, s, scn, K, dt_ep) for s in systems if s != "G"}
+        self.sig = {e.sat: tuple(_SignalModel(e, s) for s in SIGNALS[e.sat[0]][:2 if self.dual else 1])
+                    for e in ephs if e.sat[0] != "G"}
+        self.amb2: dict[str, int] = {}
 
         self.errs = {c: np.full((K, S), np.nan) for c in _COMPONENTS}
         self.keep = np.ones(K, bool)
@@ -287,12 +376,19 @@ class ReceiverModel:
         self.first_epoch = True
 
     def _phase_range(self, eph, t, r_ant, tau_guess, iters, slow, i):
-        """Noise-free carrier-phase range terms except the receiver clock (m) and its parts."""
+        """Noise-free carrier-phase range terms except the receiver clock (m) and its parts
+        (L1 ionosphere; GPS's broadcast clock term includes its TGD as always)."""
         rho, tau, r_s, v_s, clk, _ = light_time_range(eph, t, r_ant, tau_guess, iters)
         el, az = elevation_azimuth(r_ant, r_s)
         comp = self.atmo.components(eph.sat, slow, i, t, self.rover, r_ant, el, az, r_s, v_s)
-        brdc = C * (clk - eph.tgd_s)
-        phi = (rho - brdc + comp["sat_clock_err_m"] + comp["sa_m"] - comp["iono_m"]
+        if eph.sat[0] == "G":
+            brdc = C * (clk - eph.tgd_s)
+            iono = comp["iono_m"]
+        else:
+            sm = self.sig[eph.sat][0]
+            brdc = C * clk - sm.group_delay_m
+            iono = sm.iono_factor * comp["iono_m"]
+        phi = (rho - brdc + comp["sat_clock_err_m"] + comp["sa_m"] - iono
                + comp["tropo_m"] + comp["orbit_m"])
         return phi, rho, tau, el, az, brdc, comp
 
@@ -311,22 +407,25 @@ class ReceiverModel:
         slow = self.atmo.slow_at(np.array([t - h, t, t + h]) - scn.t0_gps)
         amb, lock_start, last_seen, slips, e = self.amb, self.lock_start, self.last_seen, self.slips, self.errs
         obs = []
-        for j, eph in enumerate(self.ephs):
+        for jj, eph in enumerate(self.ephs):
             phi, rho, tau, el, az, brdc, comp = self._phase_range(eph, t, r_c, 0.075, 3, slow, 1)
             if el < math.radians(scn.mask_deg):
                 continue
             phi_m = self._phase_range(eph, t - h, r_m, tau, 2, slow, 0)[0]
             phi_p = self._phase_range(eph, t + h, r_p, tau, 2, slow, 2)[0]
-            rate = (phi_p - phi_m) / (2.0 * h) + d[k]
             sat = eph.sat
+            g, j = self.where[sat]
+            site = self.site[g]
+            isb = self.isb[sat[0]][k] if sat[0] in self.isb else 0.0
+            rate = (phi_p - phi_m) / (2.0 * h) + d[k]
             lol = False
             prev = last_seen.get(sat)
             if prev is None or prev != k - 1:     # not tracked at the previous epoch
                 if sat in amb:
                     lol = True                 # re-acquisition after a gap: new ambiguity
-                amb[sat] = int(self.r_amb.integers(-2 ** 20, 2 ** 20 + 1))
+                amb[sat] = int(site.r_amb.integers(-2 ** 20, 2 ** 20 + 1))
                 if self.dual:
-                    self.amb2[sat] = int(self.r_amb2.integers(-2 ** 20, 2 ** 20 + 1))
+                    self.amb2[sat] = int(site.r_amb2.integers(-2 ** 20, 2 ** 20 + 1))
                 lock_start[sat] = T_rx[k]
             for i, (ts, ss, cyc) in enumerate(slips):
                 if not self.slip_used[i] and ss == sat and ts <= T_rx[k]:
@@ -338,41 +437,65 @@ class ReceiverModel:
                     lol = True
             last_seen[sat] = k
             f_el = float(sensors.elevation_factor(el, rx.el_scaling))
-            mp_c, n_c = self.code_mp[k, j] * f_el, self.code_n[k, j] * f_el
-            mp_p, n_p = self.car_mp[k, j] * f_el, self.car_n[k, j] * f_el
+            mp_c, n_c = site.code_mp[k, j] * f_el, site.code_n[k, j] * f_el
+            mp_p, n_p = site.car_mp[k, j] * f_el, site.car_n[k, j] * f_el
             common = rho + b[k] - brdc + comp["sat_clock_err_m"] + comp["sa_m"] + comp["tropo_m"] \
                 + comp["orbit_m"]
-            pr = common + comp["iono_m"] + mp_c + n_c
-            cp = (common - comp["iono_m"] + mp_p + n_p) / LAMBDA + amb[sat]
-            dop = -rate / LAMBDA + self.dop_n[k, j]
-            obs.append(SatObservation(sat=sat, pseudorange_m=float(pr), carrier_cycles=float(cp),
-                                      doppler_hz=float(dop),
-                                      cn0_dbhz=float(sensors.cn0_dbhz(el)),
-                                      lock_time_s=float(T_rx[k] - lock_start[sat]),
-                                      loss_of_lock=lol and not self.first_epoch))
-            if self.dual:
-                iono2 = GAMMA_L2 * comp["iono_m"]
-                pr2 = common + iono2 + (self.code_mp2[k, j] + self.code_n2[k, j]) * f_el
-                cp2 = (common - iono2 + (self.car_mp2[k, j] + self.car_n2[k, j]) * f_el) / GPS_L2_WAVELENGTH_M \
-                    + self.amb2[sat]
-                obs.append(SatObservation(sat=sat, pseudorange_m=float(pr2), carrier_cycles=float(cp2),
-                                          cn0_dbhz=float(sensors.cn0_dbhz(el)) - 3.0,
-                                          lock_time_s=float(T_rx[k] - lock_start[sat]),
-                                          loss_of_lock=lol and not self.first_epoch, signal="L2W",
-                                          wavelength_m=GPS_L2_WAVELENGTH_M))
-            e["geometric_m"][k, j] = rho
-            e["sat_clock_brdc_m"][k, j] = brdc
+            lock_s = float(T_rx[k] - lock_start[sat])
+            lol_out = lol and not self.first_epoch
+            cn0 = float(sensors.cn0_dbhz(el))
+            if sat[0] == "G":
+                pr = common + comp["iono_m"] + mp_c + n_c
+                cp = (common - comp["iono_m"] + mp_p + n_p) / LAMBDA + amb[sat]
+                dop = -rate / LAMBDA + site.dop_n_mps[k, j] / LAMBDA
+                obs.append(SatObservation(sat=sat, pseudorange_m=float(pr), carrier_cycles=float(cp),
+                                          doppler_hz=float(dop), cn0_dbhz=cn0, lock_time_s=lock_s,
+                                          loss_of_lock=lol_out))
+                if self.dual:
+                    iono2 = GAMMA_L2 * comp["iono_m"]
+                    pr2 = common + iono2 + (site.code_mp2[k, j] + site.code_n2[k, j]) * f_el
+                    cp2 = (common - iono2 + (site.car_mp2[k, j] + site.car_n2[k, j]) * f_el) \
+                        / GPS_L2_WAVELENGTH_M + self.amb2[sat]
+                    obs.append(SatObservation(sat=sat, pseudorange_m=float(pr2), carrier_cycles=float(cp2),
+                                              cn0_dbhz=cn0 - 3.0, lock_time_s=lock_s, loss_of_lock=lol_out,
+                                              signal="L2W", wavelength_m=GPS_L2_WAVELENGTH_M))
+            else:
+                # every signal: common (first signal's group delay in brdc) + its own group delay
+                # and ionosphere; the inter-system bias on code and carrier alike (a clock offset)
+                sigs = self.sig[sat]
+                s1 = sigs[0]
+                base = common + isb
+                lam = s1.wavelength_m
+                iono1 = s1.iono_factor * comp["iono_m"]
+                pr = base + iono1 + mp_c + n_c
+                cp = (base - iono1 + mp_p + n_p) / lam + amb[sat]
+                dop = -rate / lam + site.dop_n_mps[k, j] / lam
+                obs.append(SatObservation(sat=sat, pseudorange_m=float(pr), carrier_cycles=float(cp),
+                                          doppler_hz=float(dop), cn0_dbhz=cn0, lock_time_s=lock_s,
+                                          loss_of_lock=lol_out, signal=s1.signal, wavelength_m=lam))
+                if self.dual:
+                    s2 = sigs[1]
+                    base2 = base - s1.group_delay_m + s2.group_delay_m
+                    iono2 = s2.iono_factor * comp["iono_m"]
+                    pr2 = base2 + iono2 + (site.code_mp2[k, j] + site.code_n2[k, j]) * f_el
+                    cp2 = (base2 - iono2 + (site.car_mp2[k, j] + site.car_n2[k, j]) * f_el) / s2.wavelength_m \
+                        + self.amb2[sat]
+                    obs.append(SatObservation(sat=sat, pseudorange_m=float(pr2), carrier_cycles=float(cp2),
+                                              cn0_dbhz=cn0 - 3.0, lock_time_s=lock_s, loss_of_lock=lol_out,
+                                              signal=s2.signal, wavelength_m=s2.wavelength_m))
+            e["geometric_m"][k, jj] = rho
+            e["sat_clock_brdc_m"][k, jj] = brdc
             for c in ("iono_m", "tropo_m", "orbit_m", "sat_clock_err_m", "sa_m"):
-                e[c][k, j] = comp[c]
-            e["code_mp_m"][k, j], e["code_noise_m"][k, j] = mp_c, n_c
-            e["carrier_mp_m"][k, j], e["carrier_noise_m"][k, j] = mp_p, n_p
-            e["doppler_noise_hz"][k, j] = self.dop_n[k, j]
-            e["range_rate_mps"][k, j] = rate
-            e["elevation_rad"][k, j], e["azimuth_rad"][k, j] = el, az
-            e["ambiguity_cycles"][k, j] = amb[sat]
+                e[c][k, jj] = comp[c]
+            e["code_mp_m"][k, jj], e["code_noise_m"][k, jj] = mp_c, n_c
+            e["carrier_mp_m"][k, jj], e["carrier_noise_m"][k, jj] = mp_p, n_p
+            e["doppler_noise_hz"][k, jj] = site.dop_n_mps[k, j] / (LAMBDA if sat[0] == "G" else self.sig[sat][0].wavelength_m)
+            e["range_rate_mps"][k, jj] = rate
+            e["elevation_rad"][k, jj], e["azimuth_rad"][k, jj] = el, az
+            e["ambiguity_cycles"][k, jj] = amb[sat]
+            e["isb_m"][k, jj] = isb
         self.first_epoch = False
         return GnssEpoch(t_gps=float(T_rx[k]), observations=tuple(obs), source=self.who)
-
     def errors(self) -> dict:
         """Every error component per epoch and satellite (NaN where not observed), and the clock."""
         return {**self.errs, "sats": [e.sat for e in self.ephs], "t_rx_gps": self.T_rx, "t_gps": self.t_true,
