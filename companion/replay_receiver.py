@@ -11,7 +11,7 @@ from a receiver on the companion's own port.  No ATTITUDE: the heading comes fro
 estimator), as for a receiver and IMU that no autopilot ties together.  Without a base station the
 solution is standalone (tightly coupled pseudoranges and TDCP).
 
-RINEX observations (GPS, the engine's system) go in as the epochs the decoders would produce
+RINEX observations (GPS, Galileo, BeiDou, QZSS: the filter uses its ``filter.systems``) go in as the epochs the decoders would produce
 (:meth:`~companion.pipeline.NavPipeline.feed_decoded`), each ``ubx_latency_s`` after its time; the
 navigation file's ephemerides at the start; a base observation file's epochs the same way, with
 the station at its header position plus ``ANTENNA: DELTA H/E/N``, which makes the solution DGPS.
@@ -76,17 +76,18 @@ def _rinex_stream(obs_path, nav_path, base_path):
     """(receiver GPS time, [decoded messages]) of RINEX rover (and base) observations; the
     ephemerides and the base position go with the first epoch."""
     from .gnss.rinex import read_rinex_nav, read_rinex_obs
+    from .gnss.signals import SUPPORTED_SYSTEMS
     from .gnss.rtk_post import antenna_delta_e
     from .messages import BaseStationPosition
     if nav_path is None:
         raise ValueError("RINEX observations need --nav (a RINEX navigation file)")
-    _, rover = read_rinex_obs(obs_path, "G")
-    ephs = read_rinex_nav(nav_path, "G")
+    _, rover = read_rinex_obs(obs_path, SUPPORTED_SYSTEMS)       # the filter keeps its filter.systems
+    ephs = read_rinex_nav(nav_path, SUPPORTED_SYSTEMS)
     first = [_week_of(e, rover[0].t_gps) for e in ephs] if rover else []
     shifted = sum(1 for a, b in zip(ephs, first) if a is not b)
     items = [(e.t_gps, [e]) for e in rover]
     if base_path is not None:
-        hdr, base = read_rinex_obs(base_path, "G")
+        hdr, base = read_rinex_obs(base_path, SUPPORTED_SYSTEMS)
         r_b = hdr["approx_position_e"]
         if r_b is None:
             raise ValueError(f"{base_path}: no APPROX POSITION XYZ in the header: the base position is unknown")
@@ -140,7 +141,7 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
         res.refusal = res.imu_check["reason"]
     elif not segments:
         res.refusal = (f"{obs_path}: no RXM-RAWX in the capture ('companion gnss configure' switches it on)" if ubx
-                       else f"{obs_path}: no GPS observation epochs")
+                       else f"{obs_path}: no GPS, Galileo, BeiDou or QZSS observation epochs")
     elif segments[-1][0] < imu[0, 0] or segments[0][0] > imu[-1, 0]:
         res.refusal = (f"the receiver's epochs (GPS {segments[0][0]:.1f}-{segments[-1][0]:.1f} s) and the IMU "
                        f"({imu[0, 0]:.1f}-{imu[-1, 0]:.1f} s) do not overlap: check --imu-time")
