@@ -105,12 +105,8 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
                     needed_imu_hz: float | None = None, smooth: bool = False):
     """:class:`~companion.replay.ReplayResult` of the recording and the IMU CSV (see the module doc)."""
     from .config import Config
-    from .io.dataflash import AdapterOptions, DataFlashLog, TimeBase, iter_mavlink_messages
     from .io.imu_csv import read_imu_csv
-    from .nav.earth import ecef_to_geodetic
-    from .nav.smoother import SmootherRecorder
-    from .pipeline import NavPipeline, encode_solution
-    from .replay import IMU_RATE_NEEDED_HZ, ReplayResult, _Progress, imu_rate_check
+    from .replay import IMU_RATE_NEEDED_HZ, ReplayResult, imu_rate_check
     t_start = time.perf_counter()
     ubx = is_ubx(obs_path)
     res = ReplayResult(kind="ubx+imu" if ubx else "rinex+imu")
@@ -156,8 +152,29 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
                          "no ATTITUDE (heading from motion)" + (", base station from " + str(base_path) if base_path
                                                                  else ", no base station: standalone"))
     res.config_from = "--config" if config is not None else "defaults adapted to a receiver recording + IMU CSV"
-    dlog = DataFlashLog(str(obs_path))
+    return replay_segments(segments, imu, cfg, res, name=str(obs_path), ubx=ubx, smooth=smooth, progress=progress,
+                           t_start=t_start, ubx_latency_s=ubx_latency_s)
+
+
+def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", ubx: bool = False, smooth: bool = False,
+                    progress: bool = False, t_start: float | None = None, attitude_deg: np.ndarray | None = None,
+                    ubx_latency_s: float = 0.05):
+    """The pipeline over receiver ``segments`` ((receiver GPS time, UBX bytes) with ``ubx``, else
+    (receiver GPS time, [decoded messages])) and an IMU ((N, 7): GPS time s, rate rad/s FRD, specific
+    force m/s^2 FRD) as HIGHRES_IMU + SYSTEM_TIME, optionally ATTITUDE from ``attitude_deg`` ((M, 4):
+    GPS time s, roll, pitch, yaw deg) as an autopilot would send it.  Fills and returns ``res``."""
+    from .io.dataflash import AdapterOptions, DataFlashLog, TimeBase, iter_mavlink_messages
+    from .nav.earth import ecef_to_geodetic
+    from .nav.smoother import SmootherRecorder
+    from .pipeline import NavPipeline, encode_solution
+    from .replay import _Progress
+    t_start = time.perf_counter() if t_start is None else t_start
+    t0 = math.floor(imu[0, 0])
+    boot_us = (imu[:, 0] - t0) * 1e6
+    dlog = DataFlashLog(name)
     dlog.imu[0] = np.column_stack([boot_us, imu[:, 1:7]])
+    if attitude_deg is not None:
+        dlog.att = np.column_stack([(attitude_deg[:, 0] - t0) * 1e6, attitude_deg[:, 1:4]])
     tb = TimeBase(offset_s=t0, latency_s=0.0, gms_is_delivery=False, jitter_s=0.0, n_fixes=0)
     opts = AdapterOptions(earth_rate=False, leap_seconds=cfg.gnss.leap_seconds,
                           target_system=cfg.mavlink.target_system, target_component=cfg.mavlink.target_component)
@@ -193,4 +210,4 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
     return res
 
 
-__all__ = ["replay_receiver", "ubx_segments", "is_ubx"]
+__all__ = ["replay_receiver", "replay_segments", "ubx_segments", "is_ubx"]
