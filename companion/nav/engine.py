@@ -33,7 +33,6 @@ import dataclasses
 import logging
 import math
 from collections import Counter, deque
-from statistics import median
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,13 +46,9 @@ from ..messages import (SPEED_OF_LIGHT_MPS, BaseStationPosition, GnssAttitude, G
 from .earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
 from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
-from .state_layout import DEFAULT_LAYOUT, REFERENCE_SYSTEM, StateLayout, isb_block_name, system_of
-from .course_alignment import course_from_velocity, down_axis_e, heading_of, heading_reset, heading_variance
-from .measurements import (InsPoint, LatencyTransition, antenna_state, attitude_batch, attitude_rate_e,
-                           baseline_batch, doppler_batch,
-                           horizontal_velocity_fix_batch, nhc_batch, position_fix_batch,
-                           pseudorange_batch, single_difference, tdcp_batch, velocity_fix_batch, zero_rate_batch,
-                           zero_velocity_batch)
+from .state_layout import DEFAULT_LAYOUT, REFERENCE_SYSTEM, StateLayout, isb_block_name
+from .measurements import (InsPoint, LatencyTransition, antenna_state, doppler_batch, pseudorange_batch,
+                           single_difference, tdcp_batch)
 from .aid_status import AidSourceBook
 from .imu_screen import ImuScreen
 from .stillness import StillnessDetector
@@ -62,6 +57,9 @@ from .chi2 import chi2_ppf
 from .protection import ProtectionLevel
 from .rtk_update import FIX_NONE, RtkUpdate, RtkUpdateConfig
 from .strapdown import strapdown_step_with_force
+from .engine_aiding import ReceiverAiding
+from .engine_clock import ClockSeeding
+from .engine_heading import HeadingAlignment
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +225,7 @@ class EpochReport:
     sats_by_system: dict = field(default_factory=dict)   # satellites with a fused row, per system letter
 
 
-class NavEngine:
+class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
     """Tightly coupled INS/GNSS fusion.  Feed it with :meth:`process` (any message) in arrival order."""
 
     def __init__(self, config: EngineConfig):
@@ -518,52 +516,6 @@ class NavEngine:
             self.counters["ground mode on" if on_ground else "ground mode off (flight)"] += 1
         self.ground_mode = on_ground
 
-    def _nhc_update(self) -> None:
-        """Non-holonomic constraint while moving on the ground.  Repeated gate rejections mean the
-        assumption is broken (skid, lift, a vehicle that is not a car): suspend it for a while."""
-        if not self.ground_mode or self.t_gps < self._nhc_suspended_until:
-            return
-        if float(self.v_e @ self.v_e) < self.cfg.nhc_min_speed_mps ** 2:
-            return
-        b = nhc_batch(self.v_e, self.C_b_e, self.cfg.nhc_sigma_lateral_mps, self.cfg.nhc_sigma_vertical_mps,
-                      layout=self.layout)
-        rep = self.kf.gate(b)
-        self._record((rep,), self.t_gps)
-        if rep.n_accepted < len(b):
-            self._nhc_rejections += 1
-            self.counters["nhc rejected: innovation gate"] += len(b) - rep.n_accepted
-            if self._nhc_rejections >= self.cfg.nhc_suspend_after_rejections:
-                self._nhc_suspended_until = self.t_gps + self.cfg.nhc_suspend_s
-                self._nhc_rejections = 0
-                self.counters["nhc suspended"] += 1
-                log.info("non-holonomic constraint violated repeatedly: suspended for %.0f s", self.cfg.nhc_suspend_s)
-                return
-        else:
-            self._nhc_rejections = 0
-        self.counters["nhc used"] += rep.n_accepted
-        dx = self.kf.update([b], [rep])
-        if rep.n_accepted:
-            self._feedback(dx)
-
-    def _zero_motion_update(self) -> None:
-        """ZUPT + ZARU from the still window (only if the INS agrees it is nearly at rest)."""
-        speed = float(np.linalg.norm(self.v_e))
-        if speed > self.cfg.zupt_max_speed_mps:
-            self.counters["zupt skipped: INS speed"] += 1
-            return
-        w_mean, w_std_mean = self._still.gyro_mean_and_sigma()
-        batches = [zero_velocity_batch(self.v_e, self.cfg.zupt_sigma_mps, layout=self.layout),
-                   zero_rate_batch(w_mean, self.C_b_e, self.b_g, max(w_std_mean, self.cfg.zaru_sigma_floor_radps),
-                                   layout=self.layout)]
-        reports = [self.kf.gate(b) for b in batches]
-        for r in reports:
-            self.counters[f"{r.kind} used"] += r.n_accepted
-            self.counters[f"{r.kind} rejected"] += len(r.labels) - r.n_accepted
-        self._record(reports, self.t_gps)
-        dx = self.kf.update(batches, reports)
-        if any(r.n_accepted for r in reports):
-            self._feedback(dx)
-
     def _push_history(self):
         self._history.append((self.t_gps, self.r_e, self.v_e, self.C_b_e))
         self._history_t.append(self.t_gps)
@@ -823,267 +775,6 @@ class NavEngine:
         floor = slow_error_position_floor(r_ant, prep.r_sat_e[ok], slow)
         if floor is not None and raise_to_floor(self.kf.P, self.layout.pos, floor):
             self.counters["position covariance raised to the slow-error floor"] += 1
-
-    def _check_clock(self, ins: InsPoint, pr: MeasurementBatch) -> None:
-        """First epoch: take the clock from the data.  Later: a jump common to all pseudorange
-        innovations (receiver clock reset or steering step, a base-clock step in the corrections)
-        re-seeds the clock state.  Common-mode means: the median innovation is far outside what the
-        clock's own uncertainty allows, while the innovations agree with each other."""
-        z = pr.z.tolist()
-        common = median(z)           # statistics.median: much cheaper than numpy's for ~10 values
-        L = self.layout
-        P = self.kf.P
-        if self.clock_initialized:
-            r_med = median(pr.r_var.tolist())
-            spread = median([abs(x - common) for x in z])
-            if len(pr) < 3 or abs(common) < max(self.cfg.clock_jump_sigmas * math.sqrt(P[L.clk, L.clk] + r_med),
-                                                 self.cfg.clock_jump_min_m):
-                return
-            if spread > 3.0 * math.sqrt(r_med):
-                return  # not common-mode: a position problem, leave it to the gate
-            self.counters["receiver clock jump re-seeded"] += 1
-            log.warning("pseudoranges jumped together by %.1f m: clock state re-seeded", common)
-        var0 = max(median(pr.r_var.tolist()), 1.0)
-        if not self.clock_initialized and L.isb_index:
-            common = self._seed_inter_system_biases(pr, z, var0)
-        self.clock_bias_m += common
-        pr.z = pr.z - common
-        P[L.clk, :] = 0.0
-        P[:, L.clk] = 0.0
-        P[L.clk, L.clk] = var0
-        self.clock_initialized = True
-
-    def _seed_inter_system_biases(self, pr: MeasurementBatch, z: list[float], var0: float) -> float:
-        """First epoch with several systems: the receiver clock from the reference system's
-        pseudoranges (all of them if it has none here), each other system's bias from its own
-        (median innovation minus the clock), so that no system's rows start tens of metres off.
-        Returns the clock's share; the rows of the biased systems are corrected here."""
-        L = self.layout
-        by_system: dict[str, list[int]] = {}
-        for k, sat in enumerate(pr.labels):
-            col = L.isb_index.get(system_of(sat))
-            by_system.setdefault(system_of(sat) if col is not None else "", []).append(k)
-        ref_rows = by_system.get("") or list(range(len(z)))
-        common = median([z[k] for k in ref_rows])
-        P = self.kf.P
-        for system, rows in by_system.items():
-            if not system:
-                continue
-            bias = median([z[k] for k in rows]) - common
-            name = isb_block_name(system)
-            self.block_states[name] = self.block_states[name] + bias
-            pr.z[rows] -= bias
-            col = L.isb_index[system]
-            P[col, :] = 0.0
-            P[:, col] = 0.0
-            P[col, col] = 2.0 * var0       # the difference of two medians
-            self.counters[f"inter-system bias {system} seeded from the pseudoranges"] += 1
-        return common
-
-    def _spp(self, ins, prep):
-        from ..gnss.spp import solve_spp
-        return solve_spp(prep, r_init_e=antenna_state(ins, self.lever_arm_b)[0])
-
-    def _spp_velocity_cov_e(self, sol) -> np.ndarray:
-        """ECEF covariance of an SPP Doppler velocity: Doppler sigma x DOP, local NED axes."""
-        lat, lon, _ = ecef_to_geodetic(sol.r_e)
-        Cne = C_n_e(lat, lon)
-        sv = self.cfg.sigma_doppler_mps
-        cov_v = np.diag([(sv * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sv * sol.vdop) ** 2])
-        return Cne @ cov_v @ Cne.T
-
-    def _loose_batches(self, ins, prep, sol):
-        if sol is None:
-            self.counters["loose: no SPP solution"] += 1
-            return []
-        lat, lon, _ = ecef_to_geodetic(sol.r_e)
-        Cne = C_n_e(lat, lon)
-        sig = max(float(np.median(prep.sigma_pseudorange_m)), self.cfg.sigma_pseudorange_floor_m)
-        sig *= math.sqrt(self._correlation_inflation(prep.t_gps))  # same weighting as tight coupling
-        cov_n = np.diag([(sig * sol.hdop / math.sqrt(2)) ** 2] * 2 + [(sig * sol.vdop) ** 2])
-        out = [position_fix_batch(ins, sol.r_e, Cne @ cov_n @ Cne.T, self.lever_arm_b, layout=self.layout)]
-        if sol.v_e is not None:
-            out.append(velocity_fix_batch(ins, sol.v_e, self._spp_velocity_cov_e(sol), self.lever_arm_b,
-                                          layout=self.layout))
-        return out
-
-    def process_fix(self, fix: GnssFix):
-        """Loose coupling of a receiver's own fix (GPS_RAW_INT / NAV-PVT), at the fix's GPS time."""
-        if not self.initialized:
-            self.counters["fix before init"] += 1
-            return None
-        if self.imu_time_of(fix) > self.t_gps:
-            self._wait_for_imu(fix)
-            return None
-        return self._process_fix(fix)
-
-    def _process_fix(self, fix: GnssFix):
-        ins = self.ins_at(self.imu_time_of(fix))
-        if ins is None or fix.fix_type < 3 or not np.all(np.isfinite(fix.r_e)):
-            self.counters["fix unusable"] += 1
-            return None
-        lat, lon, _ = ecef_to_geodetic(fix.r_e)
-        Cne = C_n_e(lat, lon)
-        cov = Cne @ np.diag([fix.sigma_h_m ** 2 / 2, fix.sigma_h_m ** 2 / 2, fix.sigma_v_m ** 2]) @ Cne.T
-        if fix.v_e is not None:
-            ins = self._course_alignment(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2)
-        ap = fix.autopilot_clock
-        batches = [position_fix_batch(ins, fix.r_e, cov, self.lever_arm_b, layout=self.layout, autopilot_clock=ap)]
-        if fix.v_e is not None and fix.vertical_velocity_valid:
-            batches.append(velocity_fix_batch(ins, fix.v_e, np.eye(3) * fix.sigma_vel_mps ** 2, self.lever_arm_b,
-                                              layout=self.layout, autopilot_clock=ap))
-        elif fix.v_e is not None:       # no vertical velocity in the message: do not assert zero
-            batches.append(horizontal_velocity_fix_batch(ins, fix.v_e, fix.sigma_vel_mps, Cne, self.lever_arm_b,
-                                                         layout=self.layout, autopilot_clock=ap))
-        reports = [self.kf.gate(b) for b in batches]
-        for r in reports:
-            self.counters[f"fix {r.kind} used"] += r.n_accepted
-            for reason in r.rejected_reason.values():
-                self.counters[f"fix {r.kind} rejected: {reason}"] += 1
-        self._record(reports, fix.t_gps)
-        dx = self.kf.update(batches, self._held_back(reports))
-        if any(r.n_accepted for r in reports):
-            self._feedback(dx)
-            self.last_gnss_update_t = fix.t_gps
-        self._check_integrity(fix.t_gps)
-        return reports
-
-    def process_attitude(self, att: GnssAttitude):
-        """Multi-antenna GNSS attitude at its GPS time (seed 003)."""
-        if not self.initialized:
-            self.counters["attitude before init"] += 1
-            return None
-        if self.imu_time_of(att) > self.t_gps:
-            self._wait_for_imu(att)
-            return None
-        return self._process_attitude(att)
-
-    def _process_attitude(self, att: GnssAttitude):
-        ins = self.ins_at(self.imu_time_of(att))
-        if ins is None:
-            self.counters["attitude older than INS history"] += 1
-            return None
-        lat, lon, _ = ecef_to_geodetic(ins.r_e)
-        b = attitude_batch(ins.C_b_e, C_n_e(lat, lon), att, layout=self.layout,
-                           rate_e=None if att.autopilot_clock else attitude_rate_e(ins))
-        if not len(b):
-            self.counters["attitude without angles"] += 1
-            return None
-        return self._update_with(b, "attitude", "attitude used")
-
-    def process_baseline(self, bl: GnssBaseline):
-        """Dual-antenna moving-baseline vector at its GPS time (heading aiding)."""
-        if not self.initialized:
-            self.counters["baseline before init"] += 1
-            return None
-        if self.cfg.moving_baseline_b_m is None:
-            self.counters["baseline ignored: no moving_baseline_b_m configured"] += 1
-            return None
-        if not bl.carrier_fixed:
-            self.counters["baseline ignored: carrier not fixed"] += 1
-            return None
-        if not (np.all(np.isfinite(bl.rel_pos_ned_m)) and np.all(np.isfinite(bl.sigma_ned_m))):
-            self.counters["baseline rejected: not finite"] += 1
-            return None
-        b = np.asarray(self.cfg.moving_baseline_b_m, float)
-        length, nominal = float(np.linalg.norm(bl.rel_pos_ned_m)), float(np.linalg.norm(b))
-        sig_len = bl.length_sigma_m if math.isfinite(bl.length_sigma_m) else float(np.max(bl.sigma_ned_m))
-        if abs(length - nominal) > self.cfg.baseline_length_tol_m + 3.0 * sig_len:
-            self.counters["baseline rejected: length (wrong carrier fix?)"] += 1
-            return None
-        if self.imu_time_of(bl) > self.t_gps:
-            self._wait_for_imu(bl)
-            return None
-        return self._process_baseline(bl)
-
-    def _process_baseline(self, bl: GnssBaseline):
-        ins = self.ins_at(self.imu_time_of(bl))
-        if ins is None:
-            self.counters["baseline older than INS history"] += 1
-            return None
-        lat, lon, _ = ecef_to_geodetic(ins.r_e)
-        b = baseline_batch(ins.C_b_e, C_n_e(lat, lon), bl, np.asarray(self.cfg.moving_baseline_b_m, float),
-                           layout=self.layout, rate_e=attitude_rate_e(ins))
-        return self._update_with(b, "baseline", "baseline rows used")
-
-    def _course_alignment_pending(self) -> bool:
-        return (self.cfg.course_alignment_enabled and self.ground_mode
-                and self.course_epochs_fused < self.cfg.course_alignment_epochs)
-
-    def _course_alignment(self, ins: InsPoint, v_ant_e, cov_v_e) -> InsPoint:
-        """In-motion heading alignment (companion.nav.course_alignment) from one GNSS antenna
-        velocity (ECEF, m/s) and its covariance, at the epoch's INS point.  Returns the INS point
-        to build this epoch's other measurements on (re-interpolated after a heading reset)."""
-        cfg = self.cfg
-        if not self._course_alignment_pending() or v_ant_e is None or not np.all(np.isfinite(v_ant_e)):
-            return ins
-        u = down_axis_e(ins.r_e)
-        yaw_rate = float(u @ (ins.C_b_e @ ins.omega_ib_b))
-        if abs(yaw_rate) > cfg.course_alignment_max_yaw_rate_radps:
-            self.counters["course alignment waiting: turning"] += 1
-            return ins
-        _, v_ant_pred, _ = antenna_state(ins, self.lever_arm_b)
-        v_imu = np.asarray(v_ant_e, float) - (v_ant_pred - ins.v_e)      # lever-arm velocity removed
-        m = course_from_velocity(ins.t_gps, v_imu, cov_v_e, ins.r_e, cfg.course_alignment_slip_sigma_rad,
-                                 self.course_epochs_fused)
-        if m.speed_h_mps < cfg.course_alignment_min_speed_mps:
-            return ins
-        L = self.layout
-        delta = (m.heading_rad - heading_of(ins.C_b_e, ins.r_e) + math.pi) % (2.0 * math.pi) - math.pi
-        sigma_filter = math.sqrt(max(heading_variance(self.kf.P[L.att, L.att], u), 0.0))
-        if sigma_filter < math.pi / 4.0 and float(ins.C_b_e[:, 0] @ v_imu) < 0.0:
-            # the heading is known well enough to see that the vehicle is reversing: the course
-            # points backwards (with no idea of the heading, forward motion is assumed)
-            self.counters["course alignment waiting: reversing"] += 1
-            return ins
-        if max(sigma_filter, abs(delta)) > cfg.course_alignment_reset_above_rad:
-            # too far for a linear update: turn the attitude (now and its short history) onto the course
-            self.reset_heading(delta, m.sigma_rad, v_imu_e=v_imu, cov_v_e=cov_v_e, v_ref_e=ins.v_e)
-            self.counters["course alignment: heading reset"] += 1
-            log.info("heading reset to the course over ground %.1f deg (%+.1f deg, filter sigma was %.1f deg) "
-                     "at %.1f m/s", math.degrees(m.heading_rad), math.degrees(delta), math.degrees(sigma_filter),
-                     m.speed_h_mps)
-        else:
-            b = attitude_batch(ins.C_b_e, C_n_e(*ecef_to_geodetic(ins.r_e)[:2]),
-                               GnssAttitude(ins.t_gps, heading_rad=m.heading_rad, sigma_heading_rad=m.sigma_rad),
-                               layout=self.layout)
-            if not self._update_with(b, "course alignment", "course alignment: heading fused").n_accepted:
-                return ins
-        self.course_epochs_fused += 1
-        if math.isnan(self.course_alignment_t_gps):
-            self.course_alignment_t_gps = ins.t_gps
-        return self.ins_at(ins.t_gps) or ins
-
-    def reset_heading(self, delta_heading_rad: float, sigma_heading_rad: float, *, v_imu_e=None, cov_v_e=None,
-                      v_ref_e=None) -> None:
-        """Heading reset (companion.nav.course_alignment.heading_reset): turn the attitude, now and
-        its short history, by ``delta_heading_rad`` about local down and replace the heading
-        variance by ``sigma_heading_rad**2``.  With a GNSS velocity of the IMU ``v_imu_e`` (ECEF, m/s)
-        and its covariance, the velocity is taken from it as well (it was integrated along the wrong
-        heading; its error is then uncorrelated with everything else): the state moves by
-        ``v_imu_e - v_ref_e``, ``v_ref_e`` being the INS velocity at the GNSS time (default: now)."""
-        L = self.layout
-        R, P = heading_reset(self.kf.P, L.att, down_axis_e(self.r_e), delta_heading_rad, sigma_heading_rad)
-        dv = np.zeros(3)
-        if v_imu_e is not None:
-            dv = np.asarray(v_imu_e, float) - (self.v_e if v_ref_e is None else np.asarray(v_ref_e, float))
-            P[L.vel, :] = 0.0
-            P[:, L.vel] = 0.0
-            P[L.vel, L.vel] = cov_v_e
-        self.kf.P = P
-        self.C_b_e = R @ self.C_b_e
-        self.v_e = self.v_e + dv
-        self._history = deque((t, r, v + dv, R @ C) for t, r, v, C in self._history)
-        self.carrier.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
-        self._prev_epoch_v = None
-        if self.smoother is not None:
-            self.smoother.start(self)     # a jump of the nominal state: the smoothing restarts here
-
-    def heading_and_sigma(self) -> tuple[float, float]:
-        """The filter's heading (rad, clockwise from true north) and its 1-sigma (rad)."""
-        u = down_axis_e(self.r_e)
-        var = heading_variance(self.kf.P[self.layout.att, self.layout.att], u)
-        return heading_of(self.C_b_e, self.r_e), math.sqrt(max(var, 0.0))
 
     def _update_with(self, batch: MeasurementBatch, what: str, used_counter: str) -> UpdateReport:
         """Gate one measurement batch, update, count accepted rows and rejections by reason."""
