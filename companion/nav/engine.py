@@ -622,6 +622,11 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
             r_ant, v_ant, l_e = antenna_state(ins_tag, self.lever_arm_b)
             rtk_rows = self.rtk.rows(self, ins_tag, epoch, r_ant, l_e, v_ant, self._correlation_inflation(epoch.t_gps))
             if rtk_rows is not None:
+                rtk_latency = self._latency_transition(ins)
+                if rtk_latency is not None:
+                    # in the errors of now, as every other row: an epoch applied 0.2 s late (1.2 s
+                    # after a data gap) measured the position of then, not pos now (velocity x latency)
+                    rtk_rows.H = rtk_latency.rows_of_now(rtk_rows.H, self.layout)
                 rtk_rows.P_prior_pos = self.kf.P[self.layout.pos, self.layout.pos].copy()
                 rtk_batches, rtk_reports = self.rtk.gate(self, rtk_rows)
                 if not rtk_batches:
@@ -663,7 +668,7 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
                     tdcp.H[:, self.layout.toff] = 0.0
                 batches.append(tdcp)
         batches = [b for b in batches if len(b)]
-        latency = self._latency_transition(ins)      # rows in the errors of now (RTK rows: as built)
+        latency = self._latency_transition(ins)      # rows in the errors of now (RTK rows: above)
         if latency is not None:
             for b in batches:
                 b.H = latency.rows_of_now(b.H, self.layout)
@@ -701,7 +706,7 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
                 if self.counters["rtk fixed epochs"] != hold_before:
                     dx_total = dx + self.rtk.last_hold_dx
                 rep.fix_state, rep.fix_ratio, rep.n_fixed = st.fix_state, st.ratio, st.n_fixed
-            self.rtk.finish(self, rtk_rows, dx_total)
+            self.rtk.finish(self, rtk_rows, dx_total if latency is None else latency.correction_then(dx_total, self.layout))
         self._remember_phase(ins, dx if latency is None else latency.correction_then(dx, self.layout), prep)
         self._last_epoch_t = epoch.t_gps
         self._check_integrity(epoch.t_gps)
@@ -847,7 +852,11 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.imu_time_offset_s += dx[L.toff]
         for name in self.block_states:
             self.block_states[name] = self.block_states[name] + dx[L.slice(name)]
-        # the newest history sample is "now": keep it consistent with the corrected state
+        # the newest history sample is "now": keep it consistent with the corrected state; the
+        # older ones get the same correction, for an epoch that arrives right behind this one (a
+        # burst after a data gap: 1.2 s late, the next 0.2 s) is predicted from them
+        R = rotation_from_rotvec(dx[L.att])
+        self._history = deque((t, r + dx[L.pos], v + dx[L.vel], R @ C) for t, r, v, C in self._history)
         self._history[-1] = (self.t_gps, self.r_e, self.v_e, self.C_b_e)
 
     LATENCY_MIN_S = 1e-3

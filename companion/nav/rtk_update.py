@@ -9,7 +9,9 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   per (satellite, signal), an identity block ``"amb G05 L1C"`` of the engine's error state
   (:meth:`NavEngine.add_state_block`), added on acquisition with the code-minus-phase value
   (receiver clocks cancel in it), reset on a slip or a loss of lock, dropped when the satellite has
-  not been seen for ``max_gap_s``.  Their common part is unobservable and never matters: only
+  not been seen for ``max_gap_s`` -- unless the rover's lock time then covers the whole gap (a
+  data-link outage while the receiver kept tracking: the ambiguity is unchanged and a held fix
+  resumes at the first epoch after it).  Their common part is unobservable and never matters: only
   between-satellite differences enter the rows.
 * **Rows** per signal against the highest satellite ``j`` (``d`` = rover - base):
   ``lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j)`` and ``dP_i - dP_j = DD rho``,
@@ -262,7 +264,12 @@ class RtkUpdate:
                     slipped = r.slip.get(s, False) or (prev_lock is not None and math.isfinite(lock)
                                                        and math.isfinite(prev_lock) and lock < prev_lock)
                     base_slipped = self._base_slips.get(key, 0) != a.base_slips
-                    if slipped or base_slipped or not ok or t - a.last_seen > cfg.max_gap_s:
+                    gap = t - a.last_seen
+                    # a gap in the rover's data (a link outage: nothing arrived) is bridged only when
+                    # the receiver's lock time says it tracked the carrier all through it (its lock
+                    # began before the last epoch we saw): the ambiguity has not changed
+                    lost = gap > cfg.max_gap_s and not (math.isfinite(lock) and lock >= gap)
+                    if slipped or base_slipped or not ok or lost:
                         self._drop_amb(eng, key)
                         self.counters["rtk ambiguities reset: slip flag / lock time / gap"] += 1
                         a = None
@@ -271,6 +278,8 @@ class RtkUpdate:
                     n0 = (r.phase_cyc[s] - q.phase_cyc[s]) - (r.code_m[s] - q.code_m[s]) / lam
                     self._add_amb(eng, key, n0, lam, t)
                 if ok:
+                    if t - self.amb[key].last_seen > cfg.max_gap_s:
+                        self.counters["rtk ambiguities kept through a data gap (lock time)"] += 1
                     self.amb[key].last_seen = t
         for key in [k for k, a in self.amb.items() if t - a.last_seen > cfg.max_gap_s]:
             self._drop_amb(eng, key)
