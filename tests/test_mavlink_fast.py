@@ -181,3 +181,80 @@ def test_whole_frames_one_per_datagram_all_take_the_fast_path():
     got = [m for f in frames for m in parser.feed(f)]
     assert parser.fast.counters == {"frames": 200, "handed_over": 0}
     assert [snapshot(m) for m in got] == [snapshot(reference_parser().parse_buffer(f)[0]) for f in frames]
+
+
+# ------------------------------------------------------------------ the link's receive path
+def _free_port() -> int:
+    import socket
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_link_delivers_the_datagrams_messages_to_its_sink_and_raises_what_the_sink_raises():
+    """Over a real udpin socket on 127.0.0.1: every frame the 'autopilot' sends reaches the sink as
+    the message pymavlink makes of it, raw bytes = the frame (what the field log records); a sink
+    that raises ends deliver_to with that exception."""
+    import asyncio
+    import socket
+
+    rng = random.Random(3)
+    frames = [bytes(random_message(rng.choice(FAST_MESSAGES), rng).pack(encoder(seq=k))) for k in range(50)]
+    frames.insert(10, bytes(mav.MAVLink_heartbeat_message(2, 3, 81, 0, 4, 3).pack(encoder(seq=99))))
+    frames.insert(20, frames[19][:15])                       # a cut frame: pymavlink holds it
+
+    async def main():
+        port = _free_port()
+        link = M.MavlinkLink(f"udpin:127.0.0.1:{port}")
+        await link.start()
+        assert link._fast is not None
+        got = []
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+        def sink(lm):
+            got.append(lm)
+            if lm.msg.get_type() == "HEARTBEAT" and len(got) > 40:
+                raise RuntimeError("sink failed")
+
+        task = asyncio.create_task(link.deliver_to(sink))
+        for f in frames:
+            tx.sendto(f, ("127.0.0.1", port))
+            await asyncio.sleep(0.002)
+        await asyncio.sleep(0.2)
+        assert not task.done()
+        tx.sendto(frames[10], ("127.0.0.1", port))           # a heartbeat: the sink raises
+        with pytest.raises(RuntimeError, match="sink failed"):
+            await asyncio.wait_for(task, 2.0)
+        tx.close()
+        await link.close()
+        return got
+
+    got = asyncio.run(main())
+    ref = reference_parser()
+    want = [m for f in frames + [frames[10]] for m in (ref.parse_buffer(f) or [])]
+    want = [m for m in want if m.get_type() not in ("BAD_DATA",) and not m.get_type().startswith("UNKNOWN")]
+    assert [snapshot(lm.msg) for lm in got] == [snapshot(m) for m in want]
+    assert all(lm.raw == bytes(lm.msg.get_msgbuf()) for lm in got)
+
+
+def test_link_without_a_sink_still_queues_and_ends_deliver_to_on_close():
+    import asyncio
+    import socket
+
+    frame = bytes(random_message("HIGHRES_IMU", random.Random(1)).pack(encoder()))
+
+    async def main():
+        port = _free_port()
+        link = M.MavlinkLink(f"udpin:127.0.0.1:{port}")
+        await link.start()
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        tx.sendto(frame, ("127.0.0.1", port))
+        lm = await link.recv(2.0)
+        assert lm is not None and lm.raw == frame
+        task = asyncio.create_task(link.deliver_to(lambda lm: None))
+        await asyncio.sleep(0.05)
+        await link.close()
+        await asyncio.wait_for(task, 2.0)                    # returns (no exception) on close
+        tx.close()
+
+    asyncio.run(main())
