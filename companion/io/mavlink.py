@@ -31,7 +31,10 @@ non-blocking (UDP/TCP sockets ``setblocking(False)``, serial ``timeout=0``), so 
 the connection's file descriptor with ``loop.add_reader`` and drains ``recv_msg()`` until it returns
 ``None`` whenever the fd is readable (plus a 10 ms poll as a safety net for transports without an
 fd).  All state lives on the event loop thread: no locks, sends are ordinary calls.  A reader
-thread would only add a queue hop and locking around pymavlink's shared parser state.
+thread would only add a queue hop and locking around pymavlink's shared parser state.  On UDP
+without signing the link reads datagrams itself and decodes their high-rate frames with
+:mod:`companion.io.mavlink_fast` (same messages as pymavlink's, which parses everything else);
+:meth:`MavlinkLink.deliver_to` hands messages to a synchronous consumer instead of the queue.
 
 Frames: positions sent to the autopilot are NED relative to the EKF origin **as ArduPilot computes
 them** (``Location::get_distance_NED``: spherical scaling ``LOCATION_SCALING_FACTOR`` =
