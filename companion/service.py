@@ -339,7 +339,8 @@ class Service:
                 children.append(asyncio.create_task(self._drain(self.tunnel), name="serial-control-drain"))
             pipe = self.pipeline
             pet = self.notifier.pet
-            async for lm in link:
+
+            def on_message(lm) -> None:
                 pet()                  # the IMU path is alive (the watchdog restarts a stuck one)
                 self._record("mavlink", lm.t_mono_ns, lm.raw)
                 sols = pipe.feed_mavlink_record(lm.t_mono_ns, lm.msg)
@@ -347,6 +348,9 @@ class Service:
                     self._outputs(sols)
                 if pipe.events:
                     self._announce()
+            # synchronously from the link's receive callback: record, feed and send in the same
+            # event-loop pass as the datagram, no queue hop (an exception ends this task as before)
+            await link.deliver_to(on_message)
         finally:
             for c in children:
                 c.cancel()

@@ -71,8 +71,11 @@ def _cmd_compare(args) -> int:
 
 def cmd_bench(args) -> int:
     from .bench import format_bench, run_bench
-    result = run_bench(args.duration)
+    result = run_bench(args.duration, kf_gins_dir=args.kf_gins_format)
     print(format_bench(result))
+    if args.kf_gins_format:
+        e = result["kf_gins_export"]
+        print(f"  KF-GINS input: {e['imu_records']} IMU and {e['gnss_records']} GNSS records in {e['dir']}")
     _write_json(args.json, result)
     return 0
 
@@ -97,6 +100,8 @@ def main(argv=None) -> int:
     pb = sub.add_parser("bench", help="engine throughput, latency and memory")
     pb.add_argument("--duration", type=float, default=None, help="seconds of the uav flight to use (default: all)")
     pb.add_argument("--json", help="write the figures as JSON here")
+    pb.add_argument("--kf-gins-format", metavar="DIR",
+                    help="also write the workload (IMU increments, DGPS fixes, kf-gins.yaml) in KF-GINS's formats here")
     pb.set_defaults(func=cmd_bench)
     from . import attack, faults, fly, ins_errors, rtk_score, slips, smooth
     smooth.register(sub)

@@ -160,13 +160,22 @@ def _startup_s() -> float:
     return time.perf_counter() - t0
 
 
-def run_bench(duration_s: float | None = None) -> dict:
+def bench_workload(duration_s: float | None = None):
+    """The benchmark's flight: the 'uav' scenario with the mask at 0 deg, seed 0, the IMU cut to
+    ``duration_s``: (scenario, sim, tuning)."""
     scenario = dataclasses.replace(build_scenario("uav"), mask_deg=0.0)
     sim = simulate(scenario, 0)
     if duration_s is not None:
         n = int(duration_s * scenario.imu.rate_hz)
         sim.imu = sim.imu[:n]
-    tuning = tuning_for(scenario)
+    return scenario, sim, tuning_for(scenario)
+
+
+def run_bench(duration_s: float | None = None, kf_gins_dir=None) -> dict:
+    """The figures; ``kf_gins_dir``: also write the workload there in KF-GINS's formats
+    (:func:`export_kf_gins`, its summary under ``kf_gins_export``)."""
+    scenario, sim, tuning = bench_workload(duration_s)
+    export = export_kf_gins(sim, tuning, kf_gins_dir) if kf_gins_dir is not None else None
     _run(sim, tuning, True)  # warm-up (imports, caches)
     (rate_imu, cpu_rate_imu), _, _ = _run(sim, tuning, False)
     (rate_gnss, cpu_rate_gnss), _, counters = _run(sim, tuning, True)
@@ -202,6 +211,7 @@ def run_bench(duration_s: float | None = None) -> dict:
         "compiled_kernels": _kernels_on(),
         "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS", "default"),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+        **({"kf_gins_export": export} if export is not None else {}),
     }
 
 
@@ -268,3 +278,113 @@ def format_bench(r: dict) -> str:
         f"  peak RSS {r['peak_rss_mb']} MB; compiled kernels {'on' if r['compiled_kernels'] else 'off (pure Python)'}, "
         f"OPENBLAS_NUM_THREADS {r['openblas_num_threads']}",
     ])
+
+
+# ------------------------------------------------------------------------------------------
+# the workload in KF-GINS's input formats (github.com/i2Nav-WHU/KF-GINS: dataset/ and
+# config/kf-gins.yaml): the same IMU increments and initial state as the engine gets, and the
+# DGPS position fixes of the same rover and base epochs, so its loosely coupled result can be
+# set beside ours
+KF_GINS_IMU_FILE = "imu.txt"
+KF_GINS_GNSS_FILE = "gnss.txt"
+KF_GINS_CONFIG_FILE = "kf-gins.yaml"
+KF_GINS_CORRTIME_H = 1.0        # one correlation time for every bias in KF-GINS (hours)
+_DEG_H = math.degrees(1.0) * 3600.0          # rad/s -> deg/h
+_SQRT_H = 60.0                               # 1/sqrt(s) -> 1/sqrt(h)
+_MGAL = 1e-5                                 # m/s^2 per mGal
+
+
+def kf_gins_fixes(sim, elevation_mask_deg: float = 10.0):
+    """(t_gps, lat rad, lon rad, h m, sigma N E D m) of every rover epoch's DGPS fix (antenna),
+    carrier-smoothed code with the base's corrections (:mod:`companion.gnss.postprocess`); sigmas
+    from the fix's own covariance."""
+    from companion.gnss.ephemeris_store import EphemerisStore
+    from companion.gnss.postprocess import ProcessOptions, process
+    from companion.nav.earth import C_n_e, ecef_to_geodetic
+    opts = ProcessOptions(mode="dgps", elevation_mask_rad=math.radians(elevation_mask_deg))
+    sols = process(sim.rover_epochs, EphemerisStore(sim.ephemerides), opts, base_epochs=sim.base_epochs,
+                   base=sim.base)
+    out = []
+    for s in sols:
+        if s is None or not np.all(np.isfinite(s.cov_r_e)):
+            continue
+        lat, lon, h = ecef_to_geodetic(s.r_e)
+        C = C_n_e(lat, lon)
+        sig = np.sqrt(np.clip(np.diag(C.T @ s.cov_r_e @ C), 0.0, None))
+        out.append((float(s.t_gps), lat, lon, h, sig))
+    return out
+
+
+def export_kf_gins(sim, tuning, out_dir, seed: int = 0) -> dict:
+    """Write ``imu.txt`` (time of week s, dtheta x y z rad, dv x y z m/s: FRD body increments, time
+    = end of the interval), ``gnss.txt`` (time of week s, lat deg, lon deg, h m, sigma N E D m) and
+    ``kf-gins.yaml`` (paths, rate, initial state = the engine's in :func:`_run` (truth + the
+    errors drawn from P0 with ``seed``), its sigmas, the filter's IMU noise, the lever arm).
+    The bias random walks of our filter become KF-GINS's first-order Gauss-Markov biases with
+    correlation time :data:`KF_GINS_CORRTIME_H` and the same driving noise (sigma = q sqrt(T/2));
+    the simulated IMU has no scale-factor error (1 ppm keeps those states all but fixed).
+    Returns counts, span and paths."""
+    from pathlib import Path
+    from companion.messages import gps_week_tow
+    from companion.nav.earth import C_n_e, dcm_to_euler, ecef_to_geodetic
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    week0, _ = gps_week_tow(float(sim.truth.t_gps[0]))
+
+    def tow(t_gps: float) -> float:     # seconds of the first sample's week (may run past 604800)
+        return float(t_gps) - week0 * 604800.0
+
+    with open(out / KF_GINS_IMU_FILE, "w") as fh:
+        for smp in sim.imu:
+            th, dv = smp.dtheta_b, smp.dv_b
+            fh.write(f"{tow(smp.t_gps):.6f} {th[0]:.12e} {th[1]:.12e} {th[2]:.12e} "
+                     f"{dv[0]:.12e} {dv[1]:.12e} {dv[2]:.12e}\n")
+    t_end = sim.imu[-1].t_gps if sim.imu else sim.truth.t_gps[0]
+    fixes = [f for f in kf_gins_fixes(sim) if sim.truth.t_gps[0] <= f[0] <= t_end]
+    with open(out / KF_GINS_GNSS_FILE, "w") as fh:
+        for t, lat, lon, h, sig in fixes:
+            fh.write(f"{tow(t):.6f} {math.degrees(lat):.11f} {math.degrees(lon):.11f} {h:.4f} "
+                     f"{sig[0]:.4f} {sig[1]:.4f} {sig[2]:.4f}\n")
+    # the engine's initial state (the same draw as _run)
+    truth, p0, n = sim.truth, tuning.p0, tuning.noise
+    d_att, d_pos, d_vel = initial_errors(np.random.default_rng(seed), p0, truth.r_e[0])
+    r0 = truth.r_e[0] + d_pos
+    lat, lon, h = ecef_to_geodetic(r0)
+    Cne = C_n_e(lat, lon)
+    v_n = Cne.T @ (truth.v_e[0] + d_vel)
+    roll, pitch, yaw = dcm_to_euler(Cne.T @ rotation_from_rotvec(d_att) @ truth.C_b_e[0])
+    T_s = KF_GINS_CORRTIME_H * 3600.0
+    gb = n.gyro_bias_rw_radps_per_sqrt_s * math.sqrt(T_s / 2.0) * _DEG_H
+    ab = n.accel_bias_rw_mps2_per_sqrt_s * math.sqrt(T_s / 2.0) / _MGAL
+
+    def v3(x) -> str:
+        return "[ " + ", ".join(f"{float(v)!r}" for v in x) + " ]"
+
+    rate = sim.scenario.imu.rate_hz
+    yaml = "\n".join([
+        "# KF-GINS configuration: the companion benchmark's workload (python -m sitl bench --kf-gins-format)",
+        f'imupath: "{KF_GINS_IMU_FILE}"', f'gnsspath: "{KF_GINS_GNSS_FILE}"', 'outputpath: "."',
+        "imudatalen: 7", f"imudatarate: {rate:g}",
+        f"starttime: {tow(truth.t_gps[0])!r}", "endtime: -1",
+        "# IMU position at the start [deg, deg, m], NED velocity [m/s], roll pitch yaw (ZYX) [deg]",
+        f"initpos: {v3([math.degrees(lat), math.degrees(lon), h])}", f"initvel: {v3(v_n)}",
+        f"initatt: {v3([math.degrees(roll), math.degrees(pitch), math.degrees(yaw) % 360.0])}",
+        "initgyrbias: [ 0, 0, 0 ]    # [deg/h]", "initaccbias: [ 0, 0, 0 ]    # [mGal]",
+        "initgyrscale: [ 0, 0, 0 ]   # [ppm]", "initaccscale: [ 0, 0, 0 ]   # [ppm]",
+        f"initposstd: {v3([p0['pos_m']] * 3)}", f"initvelstd: {v3([p0['vel_mps']] * 3)}",
+        f"initattstd: {v3(np.degrees([p0['tilt_rad'], p0['tilt_rad'], p0['heading_rad']]))}",
+        f"initbgstd: {v3([p0['bg_radps'] * _DEG_H] * 3)}    # [deg/h]",
+        f"initbastd: {v3([p0['ba_mps2'] / _MGAL] * 3)}    # [mGal]",
+        "initsgstd: [ 1.0, 1.0, 1.0 ]    # [ppm]", "initsastd: [ 1.0, 1.0, 1.0 ]    # [ppm]",
+        "imunoise:",
+        f"  arw: {v3([n.gyro_arw_rad_per_sqrt_s * math.degrees(1.0) * _SQRT_H] * 3)}    # [deg/sqrt(hr)]",
+        f"  vrw: {v3([n.accel_vrw_mps_per_sqrt_s * _SQRT_H] * 3)}    # [m/s/sqrt(hr)]",
+        f"  gbstd: {v3([gb] * 3)}    # [deg/hr]", f"  abstd: {v3([ab] * 3)}    # [mGal]",
+        "  gsstd: [ 1.0, 1.0, 1.0 ]    # [ppm]", "  asstd: [ 1.0, 1.0, 1.0 ]    # [ppm]",
+        f"  corrtime: {KF_GINS_CORRTIME_H!r}    # [hr]",
+        "# antenna lever arm, forward right down in the IMU frame [m]",
+        f"antlever: {v3(sim.lever_arm_b)}", ""])
+    (out / KF_GINS_CONFIG_FILE).write_text(yaml)
+    return {"dir": str(out), "imu_records": len(sim.imu), "gnss_records": len(fixes),
+            "start_tow_s": round(tow(truth.t_gps[0]), 6), "gps_week": week0,
+            "files": [KF_GINS_IMU_FILE, KF_GINS_GNSS_FILE, KF_GINS_CONFIG_FILE]}

@@ -31,7 +31,10 @@ non-blocking (UDP/TCP sockets ``setblocking(False)``, serial ``timeout=0``), so 
 the connection's file descriptor with ``loop.add_reader`` and drains ``recv_msg()`` until it returns
 ``None`` whenever the fd is readable (plus a 10 ms poll as a safety net for transports without an
 fd).  All state lives on the event loop thread: no locks, sends are ordinary calls.  A reader
-thread would only add a queue hop and locking around pymavlink's shared parser state.
+thread would only add a queue hop and locking around pymavlink's shared parser state.  On UDP
+without signing the link reads datagrams itself and decodes their high-rate frames with
+:mod:`companion.io.mavlink_fast` (same messages as pymavlink's, which parses everything else);
+:meth:`MavlinkLink.deliver_to` hands messages to a synchronous consumer instead of the queue.
 
 Frames: positions sent to the autopilot are NED relative to the EKF origin **as ArduPilot computes
 them** (``Location::get_distance_NED``: spherical scaling ``LOCATION_SCALING_FACTOR`` =
@@ -840,6 +843,9 @@ class MavlinkLink:
         self._fallback_after_s = fallback_after_s
         self._link_up_mono: float | None = None
         self.peer_lock = None              # UdpPeerLock on a udpin connection
+        self._fast = None                  # DatagramParser on a UDP link without signing
+        self._sink: Callable | None = None  # deliver_to's consumer, called instead of queueing
+        self._sink_done: asyncio.Future | None = None
 
     # -- lifecycle ---------------------------------------------------------------------------
     async def start(self) -> None:
@@ -854,6 +860,13 @@ class MavlinkLink:
         if isinstance(self.conn, mavutil.mavudp) and self.conn.udp_server:
             from .udp_peer import UdpPeerLock
             self.peer_lock = UdpPeerLock(self.conn, relock_after_s=max(5.0, 2 * self.link_timeout_s))
+        if self.signing is None and isinstance(self.conn, mavutil.mavudp) and os.environ.get(
+                "COMPANION_MAVLINK_FAST", "1") != "0":
+            # one datagram at a time: its leading high-rate frames without pymavlink's per-byte
+            # machinery (companion.io.mavlink_fast); signing needs every frame through pymavlink
+            from .mavlink_fast import DatagramParser
+            self._fast = DatagramParser(self.conn.mav, post=self.conn.post_message,
+                                        on_error=lambda exc: self._bad("exception: " + type(exc).__name__))
         fd = getattr(self.conn, "fd", None)
         if fd is None:
             port = getattr(self.conn, "port", None)
@@ -885,6 +898,8 @@ class MavlinkLink:
                 self.conn.close()
             except Exception:
                 pass
+        if self._sink_done is not None and not self._sink_done.done():
+            self._sink_done.set_result(None)
         if self._queue is not None:
             try:
                 self._queue.put_nowait(None)
@@ -907,6 +922,18 @@ class MavlinkLink:
             if item is None:
                 return
             yield item
+
+    async def deliver_to(self, sink: Callable[[LinkMessage], None]) -> None:
+        """Hand every received message to ``sink`` synchronously, from the receive callback, instead
+        of the queue (no task wake-up and no extra event-loop pass per message); returns when the link
+        closes, raises what ``sink`` raised (the sink is then detached: the caller restarts)."""
+        fut = self._loop.create_future()
+        self._sink, self._sink_done = sink, fut
+        try:
+            await fut
+        finally:
+            if self._sink_done is fut:
+                self._sink = self._sink_done = None
 
     async def recv(self, timeout: float | None = None) -> LinkMessage | None:
         """The next received message (None on timeout or close)."""
@@ -934,6 +961,9 @@ class MavlinkLink:
 
     # -- receiving ---------------------------------------------------------------------------
     def _drain(self) -> None:
+        if self._fast is not None:
+            self._drain_datagrams()
+            return
         conn = self.conn
         for _ in range(10000):
             try:
@@ -944,6 +974,26 @@ class MavlinkLink:
             if msg is None:
                 return
             self._handle(msg, time.monotonic_ns())
+
+    def _drain_datagrams(self) -> None:
+        """The UDP receive path: each datagram through :class:`~companion.io.mavlink_fast.DatagramParser`
+        (the lean decoder for its leading high-rate frames, pymavlink for the rest) -- the messages
+        ``recv_msg`` would have given, in the same order."""
+        conn = self.conn
+        feed = self._fast.feed
+        for _ in range(10000):
+            try:
+                data = conn.recv()
+            except Exception as exc:
+                self._bad("exception: " + type(exc).__name__)
+                return
+            if not data:
+                return
+            t_ns = time.monotonic_ns()
+            if conn.first_byte:                 # pymavlink's MAVLink 1/2 detection, as recv_msg does
+                conn.auto_mavlink_version(data)
+            for msg in feed(data):
+                self._handle(msg, t_ns)
 
     def _bad(self, reason: str) -> None:
         self.counters["bad_data"] += 1
@@ -992,6 +1042,15 @@ class MavlinkLink:
                 cb(msg, t_ns)
             except Exception:
                 log.exception("MAVLink subscriber for %s failed", mtype)
+        sink = self._sink
+        if sink is not None:
+            try:
+                sink(LinkMessage(t_ns, raw, msg))
+            except Exception as exc:
+                self._sink = None                # later messages queue until the caller is back
+                if not self._sink_done.done():
+                    self._sink_done.set_exception(exc)
+            return
         try:
             self._queue.put_nowait(LinkMessage(t_ns, raw, msg))
         except asyncio.QueueFull:
