@@ -622,7 +622,7 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
             r_ant, v_ant, l_e = antenna_state(ins_tag, self.lever_arm_b)
             rtk_rows = self.rtk.rows(self, ins_tag, epoch, r_ant, l_e, v_ant, self._correlation_inflation(epoch.t_gps))
             if rtk_rows is not None:
-                rtk_latency = self._latency_transition(ins)
+                rtk_latency = self._latency_transition(ins_tag)
                 if rtk_latency is not None:
                     # in the errors of now, as every other row: an epoch applied 0.2 s late (1.2 s
                     # after a data gap) measured the position of then, not pos now (velocity x latency)
