@@ -40,13 +40,19 @@ LOCATION_SCALING_FACTOR_M = 0.011131884502145034
 CACHE_DIR = Path(os.environ.get("COMPANION_SITL_CACHE", Path.home() / ".cache" / "companion-sitl"))
 
 
-def load_sim(scenario: str, seed: int, duration_s: float | None):
+def load_sim(scenario: str, seed: int, duration_s: float | None, imu_rate_hz: float | None = None):
+    """The simulated flight (cached); ``imu_rate_hz``: the scenario's IMU at another rate (same noise
+    densities), e.g. a 400-Hz autopilot."""
     from .scenario import build_scenario
     from .simulate import simulate
     scn = build_scenario(scenario)
     if duration_s is not None and duration_s < scn.duration_s:
         scn = dataclasses.replace(scn, duration_s=float(duration_s))
-    key = CACHE_DIR / f"{scenario}-s{seed}-d{scn.duration_s:g}.pkl"
+    rate_tag = ""
+    if imu_rate_hz is not None and float(imu_rate_hz) != scn.imu.rate_hz:
+        scn = dataclasses.replace(scn, imu=dataclasses.replace(scn.imu, rate_hz=float(imu_rate_hz)))
+        rate_tag = f"-imu{float(imu_rate_hz):g}"
+    key = CACHE_DIR / f"{scenario}-s{seed}-d{scn.duration_s:g}{rate_tag}.pkl"
     try:
         with key.open("rb") as fh:
             return pickle.load(fh)
@@ -453,7 +459,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
               extra_config: str = "", named_value_rate_hz: float | None = None,
               max_hpl_m: float | None = None, caster_factory=None, config_keys: dict | None = None,
               during=None, signing_key: bytes | None = None,
-              rover_outage_s: tuple[float, float] | None = None) -> dict:
+              rover_outage_s: tuple[float, float] | None = None, imu_rate_hz: float | None = None) -> dict:
     """Fly once; ``progress`` prints set-up steps and status lines to stderr, ``handle_signals`` makes
     the first SIGINT/SIGTERM a clean stop (the result then has ``interrupted`` True and the figures
     of the part that was flown).  ``base_outage_s`` (start, end from the start of the flight): the
@@ -484,7 +490,7 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
     out.mkdir(parents=True, exist_ok=True)
     t_setup = time.monotonic()
     prog.step(f"simulating scenario '{scenario}' ({duration_s + 3.0:g} s, seed {seed}; cached in {CACHE_DIR})")
-    sim = load_sim(scenario, seed, duration_s + 3.0)
+    sim = load_sim(scenario, seed, duration_s + 3.0, imu_rate_hz)
     duration_s = min(duration_s, sim.scenario.duration_s - 1.0)
     # from here on a signal is a clean stop (before, Ctrl-C interrupts the simulation at once)
     handlers = _stop_on_signals(loop, stop, prog) if handle_signals else []
@@ -685,7 +691,7 @@ def cmd_fly(args) -> int:
         res = asyncio.run(fly(args.scenario, args.duration, args.speedup, rate_hz=args.rate, seed=args.seed,
                               out_dir=args.out, output_mode=args.output, imu_units=args.imu_units, faults=faults,
                               system_time_late_s=args.system_time_late, progress=not args.quiet,
-                              handle_signals=True, rover_outage_s=_rover_outage(args)))
+                              handle_signals=True, rover_outage_s=_rover_outage(args), imu_rate_hz=args.imu_rate_hz))
     except KeyboardInterrupt:
         # interrupted before the flight started (during the simulation): nothing to score
         print("sitl fly: interrupted before the flight started", file=sys.stderr)
@@ -744,6 +750,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", help="write the figures as JSON here")
     p.add_argument("--series", action="store_true", help="include per-estimate error/latency series in the JSON")
     p.add_argument("--quiet", action="store_true", help="no set-up steps or status lines on stderr")
+    p.add_argument("--imu-rate-hz", type=float, default=None, metavar="HZ",
+                   help="the scenario's IMU at this rate (default: the scenario's, 200 Hz for uav), e.g. 400")
     p.add_argument("--imu-units", type=int, default=1, choices=(1, 2, 3),
                    help="IMUs the autopilot reports (2, 3: + SCALED_IMU2/3, fused by the companion's IMU cluster)")
     p.add_argument("--system-time-late", type=float, default=0.0, metavar="S",
