@@ -4,6 +4,12 @@ the INS to each GNSS epoch, measurement selection, gating, closed-loop feedback,
 Pure and synchronous: messages in, solutions out, no clocks, sockets or asyncio.  The same
 sequence of inputs gives the same outputs bit for bit.
 
+This module is the streaming loop (propagate, update, feedback, solution) and the raw-epoch
+measurement selection; the engine's other jobs are mixins beside it: receiver solutions, GNSS
+attitude/baselines and vehicle constraints (:mod:`.engine_aiding`), the course alignment and heading
+resets (:mod:`.engine_heading`), clock and inter-system-bias seeding (:mod:`.engine_clock`); the
+carrier bookkeeping of TDCP is :mod:`companion.gnss.phase`, the stillness test :mod:`.stillness`.
+
 Timing.  A GNSS epoch is tagged with its GPS time ``t_gps``, which falls between IMU samples.  The
 engine keeps a short history of the INS state at every IMU sample and evaluates the measurement
 model at the INS state *linearly interpolated to t_gps* (seed 000 eqs 31-32), never at the nearest
