@@ -6,9 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
-
 from statistics import median
-
 
 from .filter import MeasurementBatch
 from .state_layout import isb_block_name, system_of
