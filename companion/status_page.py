@@ -83,6 +83,8 @@ class StatusBoard:
         return {"v": 1, "uptime_s": round(time.time() - self.t_start, 1),
                 "last": self.solutions[-1] if self.solutions else None,
                 "satellites_used": len({str(lab).split("-")[0].split(":")[0] for lab in used}),
+                # per constellation, from the last rover epoch (the health report's)
+                "satellites_by_system": dict(f.get("satellites_by_system") or {}),
                 "history": list(self.solutions), "sources": sources, "events": list(self.events),
                 "filter": {k: f.get(k) for k in ("status", "mode", "reset_counter") if k in f}}
 

@@ -38,7 +38,8 @@ def _board() -> StatusBoard:
                                                   "rows_fused": 4, "rows_rejected": 1}}})
     b.add_event(6, "CC: RTK fixed (ratio 7.5)")
     b.add_event(4, "CC: <script>alert(1)</script> escaped")
-    b.set_health({"filter": {"status": "nav", "mode": "tight", "reset_counter": 0}, "uptime_s": 120})
+    b.set_health({"filter": {"status": "nav", "mode": "tight", "reset_counter": 0,
+                             "satellites_by_system": {"G": 4, "E": 6}}, "uptime_s": 120})
     return b
 
 
@@ -75,6 +76,7 @@ def test_status_json_and_routes(served):
     assert len(st["history"]) == 120                          # one point per second of GPS time
     assert st["last"]["fix_state"] == "fixed" and st["last"]["sigma_h_m"] == pytest.approx(0.0206, abs=1e-3)
     assert st["satellites_used"] == 4                         # G31 was rejected
+    assert st["satellites_by_system"] == {"G": 4, "E": 6}
     assert st["sources"]["pseudorange"]["test_ratio"][-1] == 3.2
     assert json.loads(_get(server, "/health.json").read())["filter"]["mode"] == "tight"
     assert b"<title>companion status</title>" in _get(server, "/").read()
@@ -109,7 +111,7 @@ def test_page_renders_in_headless_chromium(served, tmp_path):
         return m.group(1) if m else None
 
     assert text("status") == "nav" and text("fix") == "fixed" and text("inject") == "yes"
-    assert text("sigma_h") == "0.02 m" and text("hpl") == "0.10 m" and text("sats") == "4"
+    assert text("sigma_h") == "0.02 m" and text("hpl") == "0.10 m" and text("sats") == "4 (G 4, E 6)"
     assert text("mode") == "tight" and text("ratio") == "7.5"
     assert ">G31<" in dom and "rejected" in dom
     assert "RTK fixed (ratio 7.5)" in dom
