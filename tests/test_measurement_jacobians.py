@@ -88,8 +88,24 @@ def _position_sensitivity(batch_of):
     return out
 
 
-def test_velocity_rows_carry_the_lever_arm_attitude_term():
-    """d(C (w x l) - W_ie x C l)/d psi, from the one shared partial (antenna_velocity_attitude_partial)."""
+def test_the_lever_arm_velocity_partial_against_finite_differences():
+    """d(C (w x l) - W_ie x C l)/d psi (antenna_velocity_attitude_partial), the velocity-like rows'
+    missing attitude column, against the antenna velocity of perturbed attitudes."""
+    from companion.nav.measurements import antenna_velocity_attitude_partial
+    ins = _ins(np.zeros(L.n))
+    J = antenna_velocity_attitude_partial(ins, LEVER)
+    h = 1e-6
+    for j in range(3):
+        dx = np.zeros(L.n)
+        dx[L.att.start + j] = h
+        dp, dm = antenna_state(_ins(dx), LEVER)[1], antenna_state(_ins(-dx), LEVER)[1]
+        assert np.allclose(J[:, j], (dp - dm) / (2 * h), rtol=1e-5, atol=1e-10)
+
+
+@pytest.mark.xfail(strict=True, reason="velocity-like rows (Doppler, velocity fixes) lack the lever-arm "
+                   "attitude term: with it a car started 120 deg off lost its course alignment "
+                   "(see measurements.antenna_velocity_attitude_partial)")
+def test_velocity_rows_miss_the_lever_arm_attitude_term():
     prep = _prep()
     cov = np.diag([0.05, 0.05, 0.1]) ** 2
     for batch_of in (lambda dx: doppler_batch(_ins(dx), prep, LEVER, 0.1, layout=L),

@@ -59,9 +59,15 @@ def antenna_state(ins: InsPoint, lever_arm_b: np.ndarray):
 
 def antenna_velocity_attitude_partial(ins: InsPoint, lever_arm_b: np.ndarray) -> np.ndarray:
     """d v_ant / d psi (3x3): how an attitude error psi (C_true = (I + [psi x]) C) moves the
-    antenna velocity of :func:`antenna_state`, v_ant = v + C (w x l) - W_ie x (C l).  Every
-    velocity-like row (Doppler, velocity fixes) takes its attitude column from here, as the
-    position-like rows take -[l_e x] from the lever arm itself (TDCP rows do not yet: see tdcp_batch)."""
+    antenna velocity of :func:`antenna_state`, v_ant = v + C (w x l) - W_ie x (C l).
+
+    Not used by the rows yet (tests/test_measurement_jacobians.py checks it against finite
+    differences).  Put into the Doppler and velocity-fix rows it broke the course alignment of a
+    car started 120 deg off with no compass (tests/test_course_alignment.py): at rest, with the
+    IMU's per-sample rate (gyro noise) in w, the column made the filter confident of a heading
+    103 deg wrong within 15 s; in TDCP rows it cost an in-flight start's consistency
+    (tests/test_inflight_init.py).  A rate averaged over the interval and a column only once the
+    heading is known are the candidates."""
     w_l_e = ins.C_b_e @ np.cross(np.asarray(ins.omega_ib_b, float), lever_arm_b)
     l_e = ins.C_b_e @ lever_arm_b
     return -skew(w_l_e) + skew(np.array([0.0, 0.0, OMEGA_IE_RADPS])) @ skew(l_e)
@@ -123,7 +129,7 @@ def doppler_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, sigma_mps: float
                   layout=LAYOUT) -> MeasurementBatch:
     """Pseudorange rate from Doppler: -lambda*D + c*sat_clock_drift = u.(v_sat - v_ant) + drift."""
     ok = np.isfinite(prep.doppler_hz)
-    r_ant, v_ant, l_e = antenna_state(ins, lever_arm_b)
+    r_ant, v_ant, _ = antenna_state(ins, lever_arm_b)
     rho, u = line_of_sight(prep.r_sat_e[ok], r_ant)
     dv = prep.v_sat_e[ok] - v_ant
     rate_meas = -prep.wavelength_m[ok] * prep.doppler_hz[ok] + prep.sat_clock_drift_mps[ok]
@@ -131,10 +137,7 @@ def doppler_batch(ins: InsPoint, prep, lever_arm_b: np.ndarray, sigma_mps: float
     rate_pred = u_dv + ins.clock_drift_mps
     H = np.zeros((len(rate_meas), layout.n))
     H[:, layout.vel] = -u
-    # attitude: the lever arm's velocity, and the line of sight turning as the antenna moves with
-    # the lever arm (d u / d r_ant = -(I - u u^T) / rho, d r_ant / d psi = -[l_e x])
-    H[:, layout.att] = (-u @ antenna_velocity_attitude_partial(ins, lever_arm_b)
-                        + ((dv - u * u_dv[:, None]) / rho[:, None]) @ skew(l_e))
+    # no attitude column: see antenna_velocity_attitude_partial
     H[:, layout.drift] = 1.0
     # dt_imu: the antenna acceleration along the line of sight, and the line of sight turning as
     # the antenna moves (d u / d r_ant = -(I - u u^T) / rho)
@@ -201,9 +204,7 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
         h[layout.vel] = -u_mid
         h[layout.pos] = (prev.los_e - u) / T
         h[layout.drift] = 1.0
-        # no lever-arm attitude column here: with it (the instantaneous lever-arm velocity, or the
-        # lever arm's change over the interval) an in-flight start 5 deg off ended 3.0-3.2 sigma
-        # from the truth against 2.5 without (tests/test_inflight_init.py); not understood yet
+        # no lever-arm attitude column: see antenna_velocity_attitude_partial
         if f_cross is not None:
             h[layout.att] = -0.5 * T * (u_mid @ f_cross)
             h[layout.ba] = -0.5 * T * (u_mid @ ins.C_b_e)
@@ -240,7 +241,6 @@ def velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, cov_e: np.ndarray, le
     _, v_ant, _ = antenna_state(ins, lever_arm_b)
     H = np.zeros((3, layout.n))
     H[:, layout.vel] = np.eye(3)
-    H[:, layout.att] = antenna_velocity_attitude_partial(ins, lever_arm_b)
     if not autopilot_clock:
         H[:, layout.toff] = -antenna_acceleration(ins, lever_arm_b)
     return _whitened("velocity", ["vx", "vy", "vz"], v_fix_e - v_ant, H, cov_e)
@@ -256,7 +256,6 @@ def horizontal_velocity_fix_batch(ins: InsPoint, v_fix_e: np.ndarray, sigma_mps:
     C_e_ne = C_n_e_.T[0:2]
     H = np.zeros((2, layout.n))
     H[:, layout.vel] = C_e_ne
-    H[:, layout.att] = C_e_ne @ antenna_velocity_attitude_partial(ins, lever_arm_b)
     if not autopilot_clock:
         H[:, layout.toff] = -C_e_ne @ antenna_acceleration(ins, lever_arm_b)
     return MeasurementBatch("velocity", ["vn", "ve"], C_e_ne @ (np.asarray(v_fix_e, float) - v_ant), H,
