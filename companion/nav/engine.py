@@ -964,7 +964,7 @@ def sats_by_system(reports) -> dict[str, int]:
     sats = {sat for r in reports for lab, a in zip(r.labels, r.accepted) if a
             for sat in lab.split(" ", 1)[0].split("-") if sat[:1].isalpha()}
     out: dict[str, int] = {}
-    for sat in sorted(sats):
+    for sat in sorted(sats, key=lambda x: ("GECJ".find(x[0]) % 9, x)):     # GPS, Galileo, BeiDou, QZSS, others
         out[sat[0]] = out.get(sat[0], 0) + 1
     return out
 
