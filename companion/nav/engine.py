@@ -847,7 +847,8 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
     def _feedback(self, dx: np.ndarray) -> None:
         """Closed loop: fold the estimated errors into the nominal state (error state back to zero)."""
         L = self.layout
-        self.C_b_e = rotation_from_rotvec(dx[L.att]) @ self.C_b_e
+        R = rotation_from_rotvec(dx[L.att])
+        self.C_b_e = R @ self.C_b_e
         self.r_e = self.r_e + dx[L.pos]
         self.v_e = self.v_e + dx[L.vel]
         self.b_a = self.b_a + dx[L.ba]
@@ -861,7 +862,6 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
         # the newest history sample is "now": keep it consistent with the corrected state; the
         # older ones get the same correction, for an epoch that arrives right behind this one (a
         # burst after a data gap: 1.2 s late, the next 0.2 s) is predicted from them
-        R = rotation_from_rotvec(dx[L.att])
         self._history = deque((t, r + dx[L.pos], v + dx[L.vel], R @ C) for t, r, v, C in self._history)
         self._history[-1] = (self.t_gps, self.r_e, self.v_e, self.C_b_e)
 
