@@ -123,6 +123,10 @@ GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a r
                               # (the GSF's convergence took several already; at 1 Hz a wrong heading
                               # in motion costs metres per second)
 TRUSTED_HEADING_MAX_AGE_S = 5.0   # a dual-antenna heading fused this recently vouches for our heading
+#: a GNSS velocity this much older than the IMU's time is not fused by the yaw from motion: its
+#: bank predicts the velocity at the IMU's time, and a burst of epochs delivered late (the GPS port
+#: re-claimed after an outage: 4 s of them at once) converged it 125 deg off in a straight leg
+GSF_MAX_VELOCITY_AGE_S = 1.0
 GSF_RESTART_PROBATION_S = 30.0    # a yaw-from-motion bank restarted after a GNSS gap does not overrule
                                   # a heading more certain than its own for this long (GPS time)
 
@@ -701,6 +705,9 @@ class NavPipeline:
         Cne = C_n_e(lat, lon)
         v_n = Cne.T @ v_ant_e
         lag = max(0.0, self.last_imu.t_gps - t_gps) if self.last_imu is not None else 0.0
+        if lag > GSF_MAX_VELOCITY_AGE_S or t_gps <= g.t_last_vel:
+            self.counters["yaw from motion: velocity too old or out of order (not fused)"] += 1
+            return
         extra = float(np.linalg.norm(g.omega_b_radps)) * float(np.linalg.norm(self.lever_b)) \
             + g.kinematic_accel_mps2 * lag
         sig = math.hypot(sigma_mps, extra)

@@ -5,7 +5,7 @@ What it does (ArduPilot-like, system 1 component 1, ``MAV_AUTOPILOT_ARDUPILOTMEG
 * sends to the companion's UDP port (the companion listens, ``udpin``; like ArduPilot's
   ``SERIALn_PROTOCOL=2`` telemetry port or ``--out udp:``) and receives its replies on the same socket;
 * HEARTBEAT at 1 Hz (``system_status`` STANDBY while the simulated vehicle is at rest before take-off,
-  i.e. disarmed, else ACTIVE) and SYSTEM_TIME at 1 Hz by default (ArduPilot sends it in its EXTRA3
+  i.e. disarmed, else ACTIVE with ``MAV_MODE_FLAG_SAFETY_ARMED``) and SYSTEM_TIME at 1 Hz by default (ArduPilot sends it in its EXTRA3
   stream group); everything else only after the companion asks for it with
   MAV_CMD_SET_MESSAGE_INTERVAL (answered with COMMAND_ACK; -1 disables, 0 restores the default);
 * HIGHRES_IMU (or RAW_IMU, in mG and mrad/s, int16, like ArduPilot) from the simulated IMU samples:
@@ -24,7 +24,8 @@ What it does (ArduPilot-like, system 1 component 1, ``MAV_AUTOPILOT_ARDUPILOTMEG
   pyubx2's ``UBXMessage`` from the rover GnssEpochs, appended to the port buffer ``receiver_latency_s``
   after each epoch) is returned only in answer to requests with RESPOND, <= 70 bytes per reply,
   more replies while full ones were sent and MULTI is set (ArduPilot ``handle_serial_control``).
-  Ephemerides are *not* sent as RXM-SFRBX: the base station's RTCM 1019 (sitl.caster) carries them;
+  Bytes stay in the buffer only while a request with EXCLUSIVE holds the port locked: unlocked,
+  ArduPilot's own GPS driver reads them.  Ephemerides are *not* sent as RXM-SFRBX: the base station's RTCM 1019 (sitl.caster) carries them;
 * TIMESYNC: answers requests (tc1 = boot time in ns);
 * the EKF origin like ArduPilot (``GCS_MAVLINK::set_ekf_origin``): the first SET_GPS_GLOBAL_ORIGIN
   is kept (altitude in whole cm, ``altitude / 10``), later ones are ignored, GPS_GLOBAL_ORIGIN
@@ -233,6 +234,10 @@ class EmulatedAutopilot:
         self.default_intervals = {m.MAVLINK_MSG_ID_HEARTBEAT: 1e6, m.MAVLINK_MSG_ID_SYSTEM_TIME: 1e6}
         self.intervals: dict[int, float] = dict(self.default_intervals)
         self.gps1 = bytearray()
+        # GPS1 locked by a SERIAL_CONTROL request with EXCLUSIVE (AP_GPS::lock_port); while it is
+        # not, ArduPilot's own GPS driver reads the port, so the receiver's bytes do not pile up
+        # for the companion's next probe (they did: a re-claim after an outage read a 4-s backlog)
+        self.gps1_locked = False
         self.received: list[Received] = []
         self.imu_sent: dict[int, list] = defaultdict(list)    # boot_us -> [(send_mono_ns, t_gps)]
         self.counters = defaultdict(int)
@@ -431,6 +436,7 @@ class EmulatedAutopilot:
             self.send(self.mav.timesync_encode(now_boot_ns, msg.ts1))
         elif mt == "SERIAL_CONTROL" and msg.device == m.SERIAL_CONTROL_DEV_GPS1:
             self.counters["serial_control_requests"] += 1
+            self.gps1_locked = bool(msg.flags & m.SERIAL_CONTROL_FLAG_EXCLUSIVE)
             if not (msg.flags & m.SERIAL_CONTROL_FLAG_RESPOND):
                 return
             replies = 0
@@ -530,6 +536,7 @@ class EmulatedAutopilot:
                 self.intervals = dict(self.default_intervals)
                 self._next_due.clear()
                 self.gps1.clear()
+                self.gps1_locked = False
                 self.ekf_origin = None
                 self.counters["reboots"] += 1
             if jumps and t_rel >= jumps[0][0]:
@@ -545,7 +552,9 @@ class EmulatedAutopilot:
                 if any(a <= ep.t_gps - self.t0 < b for a, b in faults.gnss_outage):
                     continue
                 self.gps1 += rawx_frame(self._faulty_epoch(ep), self.leap_seconds) + extra
-                if len(self.gps1) > 16384:          # a UART buffer overflows: oldest bytes lost
+                if not self.gps1_locked:
+                    self.gps1.clear()                # the autopilot's GPS driver took them
+                elif len(self.gps1) > 16384:        # a UART buffer overflows: oldest bytes lost
                     del self.gps1[:len(self.gps1) - 16384]
             while i_fix < len(self._fix_list) and self._fix_list[i_fix][0] + self.receiver_latency_s <= t:
                 last_fix = self._fix_list[i_fix]
@@ -591,9 +600,10 @@ class EmulatedAutopilot:
                 self.counters[f"imu_unit{unit}_sent"] += 1
             # other streams
             if self._interval_due(m.MAVLINK_MSG_ID_HEARTBEAT, t):
-                status = m.MAV_STATE_STANDBY if t < armed_at else m.MAV_STATE_ACTIVE
+                armed = t >= armed_at
+                status = m.MAV_STATE_ACTIVE if armed else m.MAV_STATE_STANDBY
                 self.send(self.mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                                    0, 0, status))
+                                                    m.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0, 0, status))
             if self._interval_due(m.MAVLINK_MSG_ID_SYSTEM_TIME, t):
                 boot_ms = boot_us // 1000
                 t_gps_ms = self.boot0_gps + boot_ms * 1e-3

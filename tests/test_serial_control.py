@@ -187,6 +187,45 @@ def test_raw_observations_claim_the_port_until_they_stop():
 
 
 @pytest.mark.real_data
+def test_after_an_outage_in_flight_the_port_is_claimed_again_when_the_autopilot_gps_is_back():
+    """Raw epochs stop (the sky is blocked: the receiver sends nothing at all), the port goes back to
+    the autopilot; once its GPS has a new 3-D fix the receiver tracks again, so the next probe comes
+    at once -- armed, where retries wait for the landing -- and finds the raw epochs."""
+    raw = UBX_FILE.read_bytes()
+    before, after = recording_receiver(raw, 30_000.0), recording_receiver(raw, 30_000.0)
+    sky_back_s = 6.0
+
+    def receiver(t):
+        if t < 2.5:
+            return before(t)
+        return b"" if t < sky_back_s else after(t - sky_back_s)
+
+    async def main():
+        ap = FakeArduPilot(receiver)
+        link = await start_pair(ap)
+        tunnel, claim = _claim(link, retry_initial_s=30.0)
+        runner = asyncio.create_task(claim.run())
+        try:
+            assert await wait_for(lambda: claim.state == "claimed", 3.0)
+            ap.armed = True                                     # take-off
+            assert await wait_for(lambda: claim.state == "released", 4.0)
+            assert claim.counters["releases: raw stopped"] == 1
+            assert await wait_for(lambda: claim.state == "claimed", sky_back_s + 3.0 - ap.now())
+            t_claim = ap.now()
+            # the autopilot's driver detected the receiver again (0.3 s), then the probe found RAWX
+            assert sky_back_s < t_claim < sky_back_s + 1.5, t_claim
+            assert claim.armed and claim.counters["probes on the autopilot's GPS back"] == 1
+            assert claim.counters["probes"] == 2 and never_a_nonexclusive_read(ap)
+        finally:
+            runner.cancel()
+            claim.close()
+            ap.stop()
+            await link.close()
+
+    asyncio.run(asyncio.wait_for(main(), 30))
+
+
+@pytest.mark.real_data
 def test_no_probe_while_armed_and_close_gives_the_port_back():
     raw = UBX_FILE.read_bytes()
 

@@ -44,7 +44,11 @@ hold the port at all.  What ArduPilot does (``GCS_serial_control.cpp``, ``AP_GPS
   reboot a claim is re-checked as a fresh probe.
 * ``close()`` (service shutdown) releases the port whenever it was ever locked.
 * After each release the time until GPS_RAW_INT carries a new 3-D fix is measured
-  (``autopilot_gps_back_s``): the proof the autopilot got its GPS back.
+  (``autopilot_gps_back_s``): the proof the autopilot got its GPS back.  After a release because
+  raw epochs stopped (the sky was blocked, the receiver lost track) that new fix also means the
+  receiver tracks again: the next probe starts at once instead of after the back-off (a 30-s
+  outage left the port to the autopilot for 5 s after the sky was back, and the RTK fix with it),
+  armed or not (raw GNSS flowed in this run: otherwise an outage in flight lost it until landing).
 * ``"always"``: the old behaviour, EXCLUSIVE from the start and never released -- only for a port
   with no GPS driver of the autopilot on it (``GPSn_TYPE 0``).
 
@@ -295,7 +299,8 @@ class PortClaim:
             "probes": 0, "probes without raw": 0, "claims": 0, "releases: raw stopped": 0,
             "releases: no raw in probe": 0, "re-checks after link loss or reboot": 0, "raw epochs": 0,
             "raw epochs too few measurements": 0, "sfrbx frames": 0, "ubx frames": 0,
-            "probes deferred: armed": 0, "autopilot GPS back after release": 0}
+            "probes deferred: armed": 0, "autopilot GPS back after release": 0,
+            "probes on the autopilot's GPS back": 0}
         self.last_raw_mono: float | None = None
         self.autopilot_gps_back_s: float | None = None
         self._scanner = UbxFrameScanner()
@@ -310,6 +315,8 @@ class PortClaim:
         self._reboots_seen = self.link.counters.get("autopilot_reboots", 0)
         self._deferred_logged = False
         self._gps_wait: tuple[float, int | None] | None = None   # (release time, GPS_RAW_INT time_usec then)
+        self._probe_when_gps_back = False         # released because raw stopped: probe on the next 3-D fix
+        self._probing_on_gps_back = False         # that probe is due (it may start while armed)
         self._gps_time_usec: int | None = None
         tunnel.listeners.append(self._on_bytes)
         self.link.subscribe("HEARTBEAT", self._on_heartbeat)
@@ -334,6 +341,11 @@ class PortClaim:
             log.info("the autopilot's GPS has a 3-D fix again %.2f s after the port was released",
                      self.autopilot_gps_back_s)
             self._gps_wait = None
+            if self._probe_when_gps_back and self.state == self.RELEASED:
+                self._probe_when_gps_back = False
+                self._probing_on_gps_back = True      # armed or not: raw GNSS was flowing in this run
+                self._next_probe = -float("inf")
+                self.counters["probes on the autopilot's GPS back"] += 1
 
     def _on_bytes(self, data: bytes) -> None:
         for cls, mid, payload in self._scanner.feed(data):
@@ -373,6 +385,7 @@ class PortClaim:
         self.counters["claims"] += 1
         self._retry_s = self.retry_initial_s
         self._quiet_probe = False
+        self._probe_when_gps_back = False
         if self.mode == "always":
             self._event(MAV_SEVERITY_INFO, f"{self.tunnel.device_name}: port claimed (always)")
         else:
@@ -389,6 +402,7 @@ class PortClaim:
         dev = self.tunnel.device_name
         if reason == "raw stopped":
             self.counters["releases: raw stopped"] += 1
+            self._probe_when_gps_back = True
             self._retry_s = self.retry_initial_s
             self._next_probe = now + self._retry_s
             self._quiet_probe = False
@@ -437,13 +451,16 @@ class PortClaim:
                 self._claim(now)
             elif now < self._next_probe:
                 return False
-            elif self.armed and not self.probe_when_armed:
+            elif self.armed and not (self.probe_when_armed or self._probing_on_gps_back):
                 self.counters["probes deferred: armed"] += int(not self._deferred_logged)
                 self._deferred_logged = True
                 return False
             else:
                 self._deferred_logged = False
-                self._start_probe(now, "first" if self.counters["probes"] == 0 else "retry")
+                why = "autopilot's GPS back" if self._probing_on_gps_back else (
+                    "first" if self.counters["probes"] == 0 else "retry")
+                self._probing_on_gps_back = False
+                self._start_probe(now, why)
         if self.state == self.PROBING:
             if self.last_raw_mono is not None and self.last_raw_mono >= self._probe_t0:
                 self._claim(now)
