@@ -97,6 +97,13 @@ its 0.3 m/s rate std also corrupts undifferenced TDCP range rates).
   0.4 m (tau 8 s), carrier 2 mm / 8 mm (tau 8 s), all x 1/sin(el); Doppler 0.05 m/s.  Base
   (geodetic choke ring): 0.1 m, 0.1 m, 1 mm, 2 mm, x 1/sin(el).  Clocks steered, tau 30 s.
 
+"rtk-gec" (issue 12: 'rtk' under the 'uav-gec' sky)
+---------------------------------------------------
+* 'rtk' (short baseline, dual-frequency rover, three slips on the same GPS satellites, the 30-s
+  outage) with the 'uav-gec' sky and dual_frequency on every system: GPS L1 C/A + L2 P(Y), Galileo
+  E1 + E5b, BeiDou B1I + B3I.  The GPS observables are 'rtk''s bit for bit.  No QZSS: the
+  recording the sky is moved from has no QZSS ephemerides.
+
 "uav-gec" (issue 11: 'uav' under GPS + Galileo + BeiDou)
 --------------------------------------------------------
 * Sky: 'uav''s GPS (GEONET 2005) plus the real Galileo I/NAV and BeiDou D1/D2 (MEO, IGSO, GEO)
