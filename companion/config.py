@@ -294,7 +294,8 @@ class FilterConfig:
     systems: tuple[str, ...] = _f(("G", "E", "C", "J"), choices=("G", "E", "C", "J"),
                                   doc="constellations fused: G GPS, E Galileo, C BeiDou, J QZSS (one receiver "
                                   "clock plus a bias state per other system; GLONASS is not supported yet). "
-                                  "RTK double differences use GPS only")
+                                  "With rtk_enabled, the systems double-differenced too, each within itself "
+                                  "(a reference satellite per system and signal, no inter-system bias)")
     pseudorange_signal: str = _f("L1C", choices=("L1C", "IF"),
                                  doc="'L1C': each system's single-frequency code (GPS/QZSS L1 C/A, Galileo E1, "
                                  "BeiDou B1I; Klobuchar when standalone); 'IF': the dual-frequency iono-free pair "
@@ -379,7 +380,9 @@ class FilterConfig:
     # best dual-frequency), and its simulated figures still miss the 2-cm RMS after the
     # first fix (the float seconds after an outage); turning it on is a decision about the base.
     rtk_enabled: bool = _f(False, doc="carrier-phase RTK against the correction stream's base (double-"
-                           "differenced L1 C/A, L2C and L2 P(Y) phase and code, integer ambiguities; "
+                           "differenced phase and code of every system in filter.systems on its own signals: GPS/QZSS "
+                           "L1 C/A, L2C, L2 P(Y), L5; Galileo E1, E5a, E5b; BeiDou B1I, B3I, B2I, B1C, B2a; integer "
+                           "ambiguities; "
                            "GPS_INPUT fix type 5/6). Needs corrections with carrier phase from a base "
                            "within ~10 km. Off by default: DD code and phase then replace the DGPS "
                            "pseudoranges and TDCP whenever a base epoch is near")

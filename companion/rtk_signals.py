@@ -19,9 +19,17 @@ tracking one code), so the pipeline renames each family to one **canonical code*
 (:data:`RTK_FAMILIES`) before the engine sees the epochs; a rover L2L then pairs with a base 2X,
 and a base sending only 2W has no L2 partner for an L2C rover (L1 carries the fix alone).
 
-Only GPS is renamed and RTK-paired (the other systems' pseudoranges are fused, not RTK-paired);
-Galileo E1 is also called ``L1C`` and differencing it against GPS would need the inter-system
-phase bias, which differs between receiver makes.
+Every system is renamed and RTK-paired **within itself** (keys carry the system: Galileo E1 and
+GPS L1 C/A are both ``L1C`` in RINEX 3, and a ``(sat, signal)`` key keeps them apart); the RTK
+update double-differences only satellites of one system against a reference of that system, so no
+inter-system phase bias (which differs between receiver makes) is ever needed.  Families:
+
+* GPS / QZSS: L1 C/A; L2C (M+L, L, M); L2 P(Y) (GPS only); L5 (Q pilot, I+Q);
+* Galileo: E1 (C pilot, B+C); E5a (Q, I+Q); E5b (Q, I+Q) -- the data components (E1B, E5aI, E5bI)
+  are a half / quarter cycle off their pilots when a receiver does not align them, so they are not
+  mixed in;
+* BeiDou: B1I (I, I+Q); B3I (I, I+Q); B2I (I, I+Q; BDS-2 only, see
+  :func:`companion.gnss.signals.is_transmitted`); B1C (pilot P, D+P); B2a (P, D+P).
 """
 from __future__ import annotations
 
@@ -29,31 +37,70 @@ import dataclasses
 
 from .messages import GnssEpoch
 
-#: GPS tracking families: canonical code -> the RINEX 3 codes on the same carrier component,
+#: tracking families per system: canonical code -> the RINEX 3 codes on the same carrier component,
 #: preferred first (when one receiver reports two codes of a family, the first one listed is kept)
-RTK_FAMILIES: dict[str, tuple[str, ...]] = {
-    "L1C": ("L1C",),                              # L1 C/A (L1 P(Y) 'L1W'/'L1P' is in quadrature)
-    "L2X": ("L2X", "L2L", "L2S", "L2C"),          # L2C (M+L, L, M); 'L2C' = legacy 1004 'C/A on L2'
-    "L2W": ("L2W", "L2P", "L2D", "L2Y"),          # L2 P(Y): Z-tracking, codeless, cross-correlated
+RTK_FAMILIES_BY_SYSTEM: dict[str, dict[str, tuple[str, ...]]] = {
+    "G": {
+        "L1C": ("L1C",),                              # L1 C/A (L1 P(Y) 'L1W'/'L1P' is in quadrature)
+        "L2X": ("L2X", "L2L", "L2S", "L2C"),          # L2C (M+L, L, M); 'L2C' = legacy 1004 'C/A on L2'
+        "L2W": ("L2W", "L2P", "L2D", "L2Y"),          # L2 P(Y): Z-tracking, codeless, cross-correlated
+        "L5Q": ("L5Q", "L5X"),                        # L5 pilot / I+Q (the data component L5I is in quadrature)
+    },
+    "J": {
+        "L1C": ("L1C",),
+        "L2X": ("L2X", "L2L", "L2S"),
+        "L5Q": ("L5Q", "L5X"),
+    },
+    "E": {
+        "L1C": ("L1C", "L1X"),                        # E1 C pilot / B+C
+        "L5Q": ("L5Q", "L5X"),                        # E5a
+        "L7Q": ("L7Q", "L7X"),                        # E5b
+    },
+    "C": {
+        "L2I": ("L2I", "L2X"),                        # B1I
+        "L6I": ("L6I", "L6X"),                        # B3I
+        "L7I": ("L7I", "L7X"),                        # B2I (BDS-2)
+        "L1P": ("L1P", "L1X"),                        # B1C pilot / D+P
+        "L5P": ("L5P", "L5X"),                        # B2a pilot / D+P
+    },
 }
 
-#: the engine's RTK signal list: L1 C/A first (receiver_sats needs its pseudorange), then L2C, L2 P(Y)
-RTK_SIGNALS: tuple[str, ...] = ("L1C", "L2X", "L2W")
+#: GPS's families (kept under their old name)
+RTK_FAMILIES: dict[str, tuple[str, ...]] = RTK_FAMILIES_BY_SYSTEM["G"]
 
-_CANONICAL = {code: canon for canon, codes in RTK_FAMILIES.items() for code in codes}
-_RANK = {code: i for codes in RTK_FAMILIES.values() for i, code in enumerate(codes)}
-RTK_SYSTEMS = "G"
+#: systems whose observations are renamed and may be RTK-paired (the engine pairs those of
+#: ``[filter] systems`` among them)
+RTK_SYSTEMS = "GECJ"
+
+#: per system, the engine's RTK signal list: the first one is the code whose pseudorange places the
+#: satellite (receiver_sats), the rest in order of preference
+RTK_SIGNALS_BY_SYSTEM: dict[str, tuple[str, ...]] = {sys: tuple(f) for sys, f in RTK_FAMILIES_BY_SYSTEM.items()}
+
+#: the engine's RTK signal list (every system's canonical codes, GPS's first: L1 C/A, L2C, L2 P(Y), L5)
+RTK_SIGNALS: tuple[str, ...] = tuple(dict.fromkeys(c for f in RTK_SIGNALS_BY_SYSTEM.values() for c in f))
+
+_CANONICAL = {(sys, code): canon for sys, fam in RTK_FAMILIES_BY_SYSTEM.items()
+              for canon, codes in fam.items() for code in codes}
+_RANK = {(sys, code): i for sys, fam in RTK_FAMILIES_BY_SYSTEM.items()
+         for codes in fam.values() for i, code in enumerate(codes)}
+
+
+def signals_for_system(system: str, signals) -> tuple[str, ...]:
+    """The canonical codes of ``system`` among ``signals`` (a configured RTK signal list), in the
+    system's order (its positioning code first); empty when the system's positioning code is not
+    among them."""
+    own = RTK_SIGNALS_BY_SYSTEM.get(system, ())
+    out = tuple(s for s in own if s in signals)
+    return out if out and out[0] == own[0] else ()
 
 
 def canonical_signal(sat: str, signal: str) -> str | None:
     """The family name a (satellite, signal) is paired under, or None (not RTK-paired)."""
-    if sat[:1] not in RTK_SYSTEMS:
-        return None
-    return _CANONICAL.get(signal)
+    return _CANONICAL.get((sat[:1], signal))
 
 
 def rtk_epoch(epoch: GnssEpoch) -> GnssEpoch:
-    """``epoch`` with every GPS observation of a known family renamed to its canonical code (one
+    """``epoch`` with every GPS / Galileo / BeiDou / QZSS observation of a known family renamed to its canonical code (one
     per satellite and family: the preferred code); everything else is passed unchanged.  An epoch
     that needs no renaming is returned as is (the same object)."""
     best: dict[tuple[str, str], int] = {}         # (sat, canonical) -> index of the kept observation
@@ -62,7 +109,7 @@ def rtk_epoch(epoch: GnssEpoch) -> GnssEpoch:
         if canon is None:
             continue
         j = best.get((o.sat, canon))
-        if j is None or _RANK[o.signal] < _RANK[epoch.observations[j].signal]:
+        if j is None or _RANK[(o.sat[:1], o.signal)] < _RANK[(o.sat[:1], epoch.observations[j].signal)]:
             best[(o.sat, canon)] = i
     out, changed = [], False
     keep = set(best.values())
@@ -80,4 +127,5 @@ def rtk_epoch(epoch: GnssEpoch) -> GnssEpoch:
     return dataclasses.replace(epoch, observations=tuple(out)) if changed else epoch
 
 
-__all__ = ["RTK_FAMILIES", "RTK_SIGNALS", "RTK_SYSTEMS", "canonical_signal", "rtk_epoch"]
+__all__ = ["RTK_FAMILIES", "RTK_FAMILIES_BY_SYSTEM", "RTK_SIGNALS", "RTK_SIGNALS_BY_SYSTEM", "RTK_SYSTEMS",
+           "canonical_signal", "rtk_epoch", "signals_for_system"]

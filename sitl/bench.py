@@ -89,13 +89,19 @@ def _run(sim, tuning, with_gnss: bool, seed: int = 0, timed: bool = False, cfg=N
     return (len(sim.imu) / elapsed, len(sim.imu) / max(cpu, 1e-9)), lat_ns, dict(eng.counters)
 
 
-def rtk_workload(duration_s: float | None = None, mask_deg: float = RTK_MASK_DEG):
-    """The 'rtk' scenario (dual-frequency rover, base 0.1-0.5 km away) with the elevation mask at
-    ``mask_deg`` for simulator and engine, simulated once: (sim, tuning, engine configuration).
-    The 2005 GPS-only sky gives ~10-11 satellites above 0 deg (the issue's 20-satellite load does
-    not exist in it: 10-11 satellites x 2 frequencies = 20-22 ambiguities, ~40 DD rows)."""
+def rtk_workload(duration_s: float | None = None, mask_deg: float = RTK_MASK_DEG, systems: str = "GE"):
+    """The issue's RTK load, "20 satellites, two frequencies": the 'rtk-gec' flight (dual-frequency
+    rover, base 0.1-0.5 km away) under GPS + Galileo (L1 C/A + L2 P(Y), E1 + E5b: 19.8 satellites,
+    39.6 signals above 0 deg), the elevation mask at ``mask_deg`` for simulator and engine,
+    simulated once: (sim, tuning, engine configuration).  ``systems`` 'G': the former load, the
+    'rtk' flight's GPS-only 2005 sky (10.2 satellites, 20.4 signals); 'GEC' adds BeiDou (38.8
+    satellites).  Every system double-differenced within itself."""
     from .rtk_score import rtk_config
-    scn = dataclasses.replace(build_scenario("rtk"), mask_deg=mask_deg)
+    scn = build_scenario("rtk" if systems == "G" else "rtk-gec")
+    if systems != "G":
+        scn = dataclasses.replace(scn, systems=systems,
+                                  ephemerides=tuple(e for e in scn.ephemerides if e.sat[0] in systems))
+    scn = dataclasses.replace(scn, mask_deg=mask_deg)
     if duration_s is not None:
         scn = dataclasses.replace(scn, duration_s=float(duration_s))
     sim = simulate(scn, 0)

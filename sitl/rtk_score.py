@@ -1,10 +1,11 @@
 """The ``rtk`` scenario through the engine offline, scored against the truth.
 
-``python -m sitl rtk [--runs N] [--seed S] [--duration S] [--json PATH]``
+``python -m sitl rtk [--scenario rtk|rtk-gec] [--runs N] [--seed S] [--duration S] [--json PATH]``
 
 The production tight coupling (``sitl.paper`` mode ``tdcp_dgps``: DGPS pseudoranges and TDCP) with
 carrier-phase RTK on (:mod:`companion.nav.rtk_update`), base epochs fed as they come, the filter
-told the simulator's noise levels (:func:`rtk_config`), nothing tuned to the truth.  Per run:
+told the simulator's noise levels (:func:`rtk_config`), nothing tuned to the truth; on 'rtk-gec'
+every system of the scenario double-differenced within itself on its two frequencies.  Per run:
 
 * **first fix**: seconds from the start to the application of the first epoch whose fix state is
   ``fixed`` (epoch time + the tuning's 80-ms GNSS latency);
@@ -41,11 +42,33 @@ def rtk_config(scenario, tuning) -> EngineConfig:
     code_var = rv.code_noise_m ** 2 + rv.code_mp_m ** 2 + bs.code_noise_m ** 2 + bs.code_mp_m ** 2
     # sd_variance_m2 = 2 (a^2 + b^2 / sin^2 el): all in b when the errors scale with elevation
     a, b = (1e-4, math.sqrt(phase_var / 2.0)) if rv.el_scaling else (math.sqrt(phase_var / 2.0), 1e-4)
-    cfg = mode_config("tdcp_dgps", tuning, scenario.lever_arm_b)
+    systems = getattr(scenario, "systems", "G")
+    cfg = mode_config("tdcp_dgps", tuning, scenario.lever_arm_b, systems)
     return dataclasses.replace(cfg, elevation_mask_deg=scenario.mask_deg, rtk_enabled=True,
-                               rtk_signals=("L1C", "L2W") if scenario.dual_frequency else ("L1C",),
+                               rtk_signals=rtk_signals(systems, scenario.dual_frequency),
                                rtk_sigma_phase_a_m=a, rtk_sigma_phase_b_m=b,
                                rtk_code_phase_ratio=math.sqrt(code_var / phase_var))
+
+
+def rtk_signals(systems: str, dual_frequency: bool) -> tuple[str, ...]:
+    """The canonical RTK codes (companion.rtk_signals) of the simulator's signals of ``systems``
+    (one or two per system); GPS alone: ('L1C', 'L2W') as before."""
+    from companion.rtk_signals import canonical_signal
+    from .simulate import SIGNALS
+    out = []
+    for sys in systems:
+        for sig in SIGNALS[sys][:2 if dual_frequency else 1]:
+            c = canonical_signal(sys + "01", sig)
+            if c is not None and c not in out:
+                out.append(c)
+    return tuple(out)
+
+
+def _renamed(epochs):
+    """The epochs with their codes renamed to the RTK families, as the pipeline does (QZSS L2L ->
+    L2X); unchanged epochs are the same objects."""
+    from companion.rtk_signals import rtk_epoch
+    return [rtk_epoch(e) for e in epochs]
 
 
 def run_rtk(seed: int = 0, duration_s: float | None = None, scenario_name: str = "rtk", cfg=None,
@@ -87,11 +110,11 @@ def run_rtk(seed: int = 0, duration_s: float | None = None, scenario_name: str =
 
     eng.on_epoch = on_epoch
     lat = tuning.gnss_latency_s
-    rover = rover_hook(sim.rover_epochs) if rover_hook is not None else None
+    rover = _renamed(rover_hook(sim.rover_epochs) if rover_hook is not None else sim.rover_epochs)
     step = max(1, int(round(1.0 / (truth.t_gps[1] - truth.t_gps[0]))))
     ts, err_h = [], []
     t_eng = time.process_time()
-    for k, s in feed_engine(eng, sim, lat, rover=rover):
+    for k, s in feed_engine(eng, sim, lat, rover=rover, base=_renamed(sim.base_epochs)):
         if hook is not None:
             hook(eng, s.t_gps - t0)
         if k % step == 0:
@@ -106,7 +129,7 @@ def run_rtk(seed: int = 0, duration_s: float | None = None, scenario_name: str =
         later = t_applied[t_applied >= b - t0]
         outages.append((a - t0, float(later[0]) if len(later) else scn.duration_s))
     extra = {"engine": eng, "sim": sim} if keep_engine else {}
-    return {**extra, "seed": seed, "duration_s": scn.duration_s, "outages_s": outages, "t_s": np.array(ts),
+    return {**extra, "scenario": scenario_name, "seed": seed, "duration_s": scn.duration_s, "outages_s": outages, "t_s": np.array(ts),
             "err_h_m": np.array(err_h), "epochs": epochs, "counters": dict(eng.counters),
             "cpu_simulate_s": t_sim, "cpu_engine_s": t_eng, "imu_samples": len(sim.imu),
             **score(np.array(ts), np.array(err_h), epochs, outages)}
@@ -144,7 +167,8 @@ def format_rtk(runs: list[dict]) -> str:
 
 def cmd_rtk(args) -> int:
     from .__main__ import _write_json
-    runs = [run_rtk(args.seed + i, args.duration) for i in range(args.runs)]
+    runs = [run_rtk(args.seed + i, args.duration, scenario_name=args.scenario) for i in range(args.runs)]
+    print(f"scenario {args.scenario}")
     print(format_rtk(runs))
     _write_json(args.json, [{k: v for k, v in r.items() if k not in ("t_s", "err_h_m", "epochs")} for r in runs])
     return 0
@@ -152,6 +176,8 @@ def cmd_rtk(args) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("rtk", help="the rtk scenario through the engine offline: first fix, RMS, re-fix, wrong fixes")
+    p.add_argument("--scenario", default="rtk", choices=("rtk", "rtk-gec"),
+                   help="rtk (GPS L1+L2) or rtk-gec (GPS+Galileo+BeiDou, two frequencies each)")
     p.add_argument("--runs", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=None, help="seconds of the scenario (default: all)")

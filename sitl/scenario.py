@@ -97,6 +97,13 @@ its 0.3 m/s rate std also corrupts undifferenced TDCP range rates).
   0.4 m (tau 8 s), carrier 2 mm / 8 mm (tau 8 s), all x 1/sin(el); Doppler 0.05 m/s.  Base
   (geodetic choke ring): 0.1 m, 0.1 m, 1 mm, 2 mm, x 1/sin(el).  Clocks steered, tau 30 s.
 
+"rtk-gec" (issue 12: 'rtk' under the 'uav-gec' sky)
+---------------------------------------------------
+* 'rtk' (short baseline, dual-frequency rover, three slips on the same GPS satellites, the 30-s
+  outage) with the 'uav-gec' sky and dual_frequency on every system: GPS L1 C/A + L2 P(Y), Galileo
+  E1 + E5b, BeiDou B1I + B3I.  The GPS observables are 'rtk''s bit for bit.  No QZSS: the
+  recording the sky is moved from has no QZSS ephemerides.
+
 "uav-gec" (issue 11: 'uav' under GPS + Galileo + BeiDou)
 --------------------------------------------------------
 * Sky: 'uav''s GPS (GEONET 2005) plus the real Galileo I/NAV and BeiDou D1/D2 (MEO, IGSO, GEO)
@@ -556,19 +563,21 @@ RTK_SLIPS = ((60.0, 0, 1), (95.0, 3, -5), (200.0, 5, 2))
 RTK_OUTAGE_S = (130.0, 160.0)
 
 
-def _rtk() -> Scenario:
+def _rtk(systems: str = "G") -> Scenario:
     """'uav' with a short baseline and a dual-frequency (L1 C/A + L2 P(Y)) RTK rover: the base on
     station 0759's header position (110 m from the take-off, at most ~0.5 km away), the rover a
-    drone-class RTK receiver, three cycle slips and the 30-s outage."""
+    drone-class RTK receiver, three cycle slips and the 30-s outage.  ``systems`` 'GEC': the
+    'uav-gec' sky (Galileo E1 + E5b, BeiDou B1I + B3I as well); the slips hit the same GPS
+    satellites as in 'rtk' (ranked among GPS only), whose observables are 'rtk''s bit for bit."""
     import dataclasses
     from companion.gnss.ephemeris import satellite_state
-    uav = _uav()
+    uav = _uav(systems)
     t0 = uav.t0_gps
     base = sky.GEONET_0759_R_E.copy()
     slips = []
     for dt, rank, cyc in RTK_SLIPS:
         els = sorted(((sky.elevation_azimuth(base, satellite_state(e, t0 + dt)[0])[0], e.sat)
-                      for e in uav.ephemerides), reverse=True)
+                      for e in uav.ephemerides if e.sat[0] == "G"), reverse=True)
         els = [x for x in els if x[0] > math.radians(uav.mask_deg + 5.0)]
         slips.append((t0 + dt, els[min(rank, len(els) - 1)][1], cyc))
     return dataclasses.replace(
@@ -586,14 +595,22 @@ def _rtk() -> Scenario:
         cycle_slips=tuple(slips))
 
 
+def _rtk_gec() -> Scenario:
+    """'rtk' under GPS + Galileo + BeiDou (the 'uav-gec' sky), dual-frequency on every system."""
+    import dataclasses
+    s = _rtk("GEC")
+    return dataclasses.replace(s, name="rtk-gec", description=s.description + ", GPS+Galileo+BeiDou "
+                               "(E1+E5b, B1I+B3I)")
+
+
 _BUILDERS = {"paper": _paper, "paper-nosa": _paper_nosa, "uav": _uav, "uav-gec": _uav_gec, "nhc": _nhc,
              "nhc-skid": lambda: _nhc(skid=True), "attitude": _attitude,
-             "attitude-mems": _attitude_mems, "rtk": _rtk}
+             "attitude-mems": _attitude_mems, "rtk": _rtk, "rtk-gec": _rtk_gec}
 
 
 def build_scenario(name: str) -> Scenario:
     """'paper', 'paper-nosa', 'uav', 'uav-gec', 'nhc', 'nhc-skid', 'attitude', 'attitude-mems' or
-    'rtk' (see the module docstring)."""
+    'rtk', 'rtk-gec' (see the module docstring)."""
     try:
         return _BUILDERS[name]()
     except KeyError:

@@ -74,7 +74,7 @@ def test_tracking_families_pair_like_with_like():
     bs = {(o.sat, o.signal) for o in b.observations}
     assert ("G05", "L2X") in rs and ("G05", "L2X") in bs          # L2C with L2C
     assert ("G05", "L2W") in bs and ("G05", "L2W") not in rs      # P(Y) has no partner on an L2C rover
-    assert ("E11", "L1C") in rs                                   # not renamed: the pipeline cuts it from the base
+    assert ("E11", "L1C") in rs                                   # Galileo E1 C: its own family's canonical code
     g07 = [o for o in r.observations if o.sat == "G07"]
     assert len(g07) == 1 and g07[0].signal == "L2X" and g07[0].carrier_cycles == 7.0    # L2L preferred over L2S
     assert rtk_epoch(b) is b                                      # already canonical: the same object
@@ -84,9 +84,11 @@ def test_tracking_families_pair_like_with_like():
 
 def test_pipeline_renames_both_sides_and_cuts_other_systems_from_the_base():
     pipe = NavPipeline(config_from_dict(RTK_ON))
-    base = GnssEpoch(100.0, (_obs("G05", "L1C"), _obs("G05", "L2X"), _obs("E11", "L1C")), source="base")
+    # Galileo is RTK-paired within Galileo (issue 12); GLONASS (FDMA, not modelled) is cut
+    base = GnssEpoch(100.0, (_obs("G05", "L1C"), _obs("G05", "L2X"), _obs("E11", "L1X"), _obs("R01", "L1C")),
+                     source="base")
     out = pipe._rtk_epoch(base)
-    assert {(o.sat, o.signal) for o in out.observations} == {("G05", "L1C"), ("G05", "L2X")}
+    assert {(o.sat, o.signal) for o in out.observations} == {("G05", "L1C"), ("G05", "L2X"), ("E11", "L1C")}
     off = NavPipeline(config_from_dict({}))
     assert not off.rtk_enabled and off.wait_for_base is False
 

@@ -44,16 +44,24 @@ class ReceiverSat:
     eph: object = None              # the ephemeris used (both receivers must use the same one)
 
 
+def signals_of(signals, sat: str) -> tuple[str, ...]:
+    """The signal list of ``sat``: ``signals`` itself (one list for every system) or, a mapping
+    system -> list, its system's (empty when absent)."""
+    return tuple(signals.get(sat[:1], ())) if isinstance(signals, dict) else tuple(signals)
+
+
 def receiver_sats(epoch: GnssEpoch, store: EphemerisStore, r_rx_e: np.ndarray, signals) -> dict[str, ReceiverSat]:
     """Satellite geometry and observables of one receiver's epoch (satellites with ephemerides
-    and a pseudorange on the first of ``signals``)."""
+    and a pseudorange on the first of their signals).  ``signals``: one list for every satellite,
+    or a mapping system -> list (a multi-system RTK: 'L1C' is GPS L1 C/A and Galileo E1, BeiDou is
+    placed by its B1I 'L2I')."""
     by_sat: dict[str, dict] = {}
     for o in epoch.observations:
-        if o.signal in signals:
+        if o.signal in signals_of(signals, o.sat):
             by_sat.setdefault(o.sat, {})[o.signal] = o
     out = {}
     for sat, obs in by_sat.items():
-        first = obs.get(signals[0])
+        first = obs.get(signals_of(signals, sat)[0])
         if first is None or not math.isfinite(first.pseudorange_m):
             continue
         eph = store.select(sat, epoch.t_gps)
@@ -114,4 +122,4 @@ def dd_covariance(var_sd: list[tuple[float, float]], groups: list[list[int]]) ->
     return R
 
 
-__all__ = ["ReceiverSat", "receiver_sats", "elevation_rad", "model_range_m", "sd_variance_m2", "dd_covariance"]
+__all__ = ["ReceiverSat", "receiver_sats", "signals_of", "elevation_rad", "model_range_m", "sd_variance_m2", "dd_covariance"]

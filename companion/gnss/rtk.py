@@ -7,7 +7,12 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
   ambiguity per (satellite, signal) in cycles, ``N = N_rover - N_base``, added when the satellite
   is acquired or after a slip, dropped when it is lost.  Single differences as states make the
   reference satellite a choice of the measurement, not of the state (RTKLIB's ``IB(s,f)``).
-* **Measurements** per frequency, against the highest-elevation satellite ``j``:
+* **Systems**: GPS, Galileo, BeiDou and QZSS (``systems``), each on its own signals
+  (:data:`companion.rtk_signals.RTK_SIGNALS_BY_SYSTEM` among ``signals``; the epochs renamed to
+  their tracking families first, :func:`companion.rtk_signals.rtk_epoch`) and differenced within
+  the system only (a reference per system and signal: no inter-system bias, as RTKLIB's ``ddres``
+  per system, except that QZSS has its own reference here).
+* **Measurements** per system and frequency, against the highest-elevation satellite ``j``:
   ``DD phase  = lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j) + e``,
   ``DD code   = dP_i - dP_j = DD rho + e`` with ``d = rover - base`` and ``rho`` the geometric
   range (satellite at its own transmit time from each receiver's pseudorange, Sagnac rotation,
@@ -20,7 +25,7 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
   (30 m: no dynamics are assumed); **static**: the position is a constant.  Iterated update
   (``iterations``), so the 30-m prior does not bias the linearisation.
 * **Slips**: the receiver's loss-of-lock flag, or a jump of the geometry-free phase
-  ``lambda_1 phi_1 - lambda_2 phi_2`` of either receiver by more than ``slip_gf_m`` between
+  ``lambda_1 phi_1 - lambda_2 phi_2`` (the satellite's first two signals) of either receiver by more than ``slip_gf_m`` between
   epochs, resets that satellite's ambiguities; a gap longer than ``max_gap_s`` too.
 * **Integer resolution**: the float DD ambiguities ``a = T x`` with covariance ``T P T^T`` go to
   LAMBDA; accepted when the ratio test passes (``ratio_threshold``) and the fixed phase residuals
@@ -40,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..messages import GnssEpoch
+from ..rtk_signals import RTK_SIGNALS, signals_for_system
 from .double_difference import (ReceiverSat, dd_covariance, elevation_rad, model_range_m, receiver_sats,
                                 sd_variance_m2)
 from .ephemeris_store import EphemerisStore
@@ -50,7 +56,8 @@ Q_FIX, Q_FLOAT = 1, 2
 
 @dataclass
 class RtkConfig:
-    signals: tuple[str, ...] = ("L1C", "L2W")      # one per frequency, RINEX 3 codes (L2W = RINEX 2 L2/P2)
+    signals: tuple[str, ...] = RTK_SIGNALS         # canonical family codes (L2W = RINEX 2 L2/P2), per system
+    systems: str = "GECJ"                          # each differenced within itself
     elevation_mask_deg: float = 10.0               # the product's mask (filter.elevation_mask_deg)
     phase_sigma_a_m: float = 0.003
     phase_sigma_b_m: float = 0.003
@@ -101,10 +108,16 @@ class RtkFilter:
         self.P = np.eye(3) * config.position_sigma_m ** 2
         self.amb: dict[tuple[str, str], int] = {}          # (sat, signal) -> state index
         self.last_seen: dict[tuple[str, str], float] = {}
-        self.last_gf: dict[tuple[str, str], float] = {}     # (sat, 'rover'|'base') -> GF phase (m)
+        self.last_gf: dict[tuple, float] = {}    # (sat, 'rover'|'base', second signal) -> GF phase (m)
         self.t_last: float | None = None
         self.initialized = False
         self.counters: dict[str, int] = {}
+        self.sig: dict[str, tuple[str, ...]] = {}       # system -> its signals, positioning code first
+        for sys in dict.fromkeys(config.systems):
+            own = signals_for_system(sys, config.signals)
+            if own:
+                self.sig[sys] = own
+        self._groups = [(sys, q) for sys, sigs in self.sig.items() for q in sigs]
 
     def _count(self, key: str, n: int = 1) -> None:
         self.counters[key] = self.counters.get(key, 0) + n
@@ -133,7 +146,7 @@ class RtkFilter:
     # ------------------------------------------------------------------ one epoch
     def process(self, rover: GnssEpoch, base: GnssEpoch, r_prior_e=None) -> RtkSolution | None:
         cfg = self.cfg
-        sig = cfg.signals
+        sig = self.sig
         r_guess = self.x[:3].copy() if self.initialized else np.asarray(r_prior_e, dtype=float)
         sb = _receiver_sats(base, self.store, self.base_r_e, sig)
         sr = _receiver_sats(rover, self.store, r_guess, sig)
@@ -174,23 +187,25 @@ class RtkFilter:
 
     def _manage_ambiguities(self, t: float, common, sr, sb) -> None:
         cfg = self.cfg
-        s1, s2 = cfg.signals[0], cfg.signals[-1]
         slipped = set()
         for sat in common:
+            sigs = self.sig[sat[:1]]
             for who, sats in (("rover", sr), ("base", sb)):
                 ph, lam = sats[sat].phase_cyc, sats[sat].wavelength_m
-                if len(cfg.signals) > 1 and s1 in ph and s2 in ph:
+                have = [q for q in sigs if q in ph]
+                if len(have) > 1 and have[0] == sigs[0]:
+                    s1, s2 = have[0], have[1]
                     gf = lam[s1] * ph[s1] - lam[s2] * ph[s2]
-                    prev = self.last_gf.get((sat, who))
+                    prev = self.last_gf.get((sat, who, s2))
                     if prev is not None and abs(gf - prev) > cfg.slip_gf_m:
                         slipped.add(sat)
                         self._count("slips: geometry-free")
-                    self.last_gf[(sat, who)] = gf
-                if any(sats[sat].slip.get(s, False) for s in cfg.signals):
+                    self.last_gf[(sat, who, s2)] = gf
+                if any(sats[sat].slip.get(s, False) for s in sigs):
                     slipped.add(sat)
                     self._count("slips: loss of lock flag")
         for sat in common:
-            for s in cfg.signals:
+            for s in self.sig[sat[:1]]:
                 key = (sat, s)
                 ok = s in sr[sat].phase_cyc and s in sb[sat].phase_cyc and s in sr[sat].code_m \
                     and s in sb[sat].code_m
@@ -217,8 +232,8 @@ class RtkFilter:
         model_b = {sat: _model_m(self.base_r_e, sb[sat]) for sat in common}
         rows_v, rows_H, var_sd, groups, keys = [], [], [], [], []
         n = len(x)
-        for s in cfg.signals:
-            sats = [sat for sat in common if (sat, s) in self.amb]
+        for sys, s in self._groups:
+            sats = [sat for sat in common if sat[:1] == sys and (sat, s) in self.amb]
             if len(sats) < 2:
                 continue
             ref = max(sats, key=lambda q: sr[q].elevation_rad)
@@ -290,8 +305,8 @@ class RtkFilter:
     def _dd_ambiguities(self, common, sr, exclude=()):
         """Transformation T (DD ambiguities = T x) and the (sat, signal, ref) of each row."""
         rows, labels = [], []
-        for s in self.cfg.signals:
-            sats = [q for q in common if (q, s) in self.amb and q not in exclude]
+        for sys, s in self._groups:
+            sats = [q for q in common if q[:1] == sys and (q, s) in self.amb and q not in exclude]
             if len(sats) < 2:
                 continue
             ref = max(sats, key=lambda q: sr[q].elevation_rad)

@@ -1,5 +1,6 @@
 """Post-processed RTK from RINEX files: ``companion gnss --mode rtk`` (companion.gnss.rtk on a rover
-and a base observation file and their navigation files).
+and a base observation file and their navigation files): GPS, Galileo, BeiDou and QZSS from RINEX 3
+(GPS from RINEX 2), each system double-differenced within itself.
 
 The base antenna is the base header position (or ``base_xyz``) plus its ``ANTENNA: DELTA H/E/N``;
 solutions are reported at the rover's marker (antenna minus the rover's delta), as RTKLIB does.
@@ -13,6 +14,7 @@ from ..nav.earth import C_n_e, ecef_to_geodetic
 from .ephemeris_store import EphemerisStore
 from .pos_format import PosRecord
 from .rinex import read_rinex_nav, read_rinex_obs
+from ..rtk_signals import rtk_epoch
 from .rtk import RtkConfig, RtkFilter, RtkSolution, pair_epochs
 from .spp import spp_epoch
 
@@ -31,6 +33,8 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
     """(solutions at the rover marker, info) for every paired epoch that could be solved."""
     hr, rover = read_rinex_obs(rover_obs)
     hb, base = read_rinex_obs(base_obs)
+    # each system's tracking families to one code on both sides (a rover's L2L pairs a base's L2X)
+    rover, base = [rtk_epoch(e) for e in rover], [rtk_epoch(e) for e in base]
     ephs = []
     for n in navs:
         ephs += read_rinex_nav(n)

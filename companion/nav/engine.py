@@ -208,7 +208,8 @@ class EngineConfig:
         return tuple(g for g in groups if g != ref)
 
     def rtk_config(self) -> RtkUpdateConfig:
-        return RtkUpdateConfig(signals=tuple(self.rtk_signals), elevation_mask_deg=self.elevation_mask_deg,
+        return RtkUpdateConfig(signals=tuple(self.rtk_signals), systems=self.systems,  # DDs within each system
+                               elevation_mask_deg=self.elevation_mask_deg,
                                sigma_phase_a_m=self.rtk_sigma_phase_a_m, sigma_phase_b_m=self.rtk_sigma_phase_b_m,
                                code_phase_ratio=self.rtk_code_phase_ratio, max_base_age_s=self.rtk_max_base_age_s,
                                ratio_threshold=self.rtk_ratio_threshold,

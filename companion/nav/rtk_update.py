@@ -13,7 +13,14 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   data-link outage while the receiver kept tracking: the ambiguity is unchanged and a held fix
   resumes at the first epoch after it).  Their common part is unobservable and never matters: only
   between-satellite differences enter the rows.
-* **Rows** per signal against the highest satellite ``j`` (``d`` = rover - base):
+* **Systems**: the satellites of ``systems`` (the engine's ``[filter] systems``: GPS, Galileo,
+  BeiDou, QZSS), each on its own signals (:data:`companion.rtk_signals.RTK_SIGNALS_BY_SYSTEM`
+  among ``signals``) and differenced **within its system only**: a reference per (system,
+  signal), so no inter-system phase or code bias enters (receiver-make dependent, and between
+  different frequencies not even defined).  QZSS has its own reference too (RTKLIB differences
+  it against GPS's, which saves one satellite but assumes a zero GPS-QZSS receiver bias).
+  Block names carry the satellite, hence the system: ``"amb E11 L7Q"``.
+* **Rows** per (system, signal) against its highest satellite ``j`` (``d`` = rover - base):
   ``lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j)`` and ``dP_i - dP_j = DD rho``,
   rho modelled at the **INS-predicted antenna position** (the linearisation point) for the rover
   and at the surveyed position for the base.  Jacobians: ``-(u_i - u_j)`` on the antenna position
@@ -41,9 +48,10 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   to the filter as a measurement of the DD ambiguities (``hold_sigma_cycles``), so the whole state
   (position, velocity, attitude, biases) moves to the fixed solution and the next epochs start
   from it.
-* **Wrong fixes**: a held set whose phase rows then fail the gate (more than one row, or most of
-  them) is dropped at once: every ambiguity re-initialised, the position covariance widened by
-  ``wrong_fix_position_sigma_m``.  Counted.
+* **Wrong fixes**, per system: a system whose held phase rows then fail the gate (more than one
+  row, or most of its rows) has all its ambiguities re-initialised and its rows left out of the
+  epoch, and the position covariance is widened by ``wrong_fix_position_sigma_m``; when every
+  held system fails, the whole epoch is dropped.  Counted.
 """
 from __future__ import annotations
 
@@ -55,6 +63,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from ..gnss.double_difference import dd_covariance, model_range_m, receiver_sats, sd_variance_m2
+from ..rtk_signals import signals_for_system
 from ..gnss.lambda_kernel import lambda_ils      # compiled when numba is there, same results
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from .chi2 import chi2_ppf
@@ -68,6 +77,7 @@ FIX_NONE, FIX_FLOAT, FIX_FIXED = "none", "float", "fixed"
 @dataclass(frozen=True)
 class RtkUpdateConfig:
     signals: tuple[str, ...] = ("L1C", "L2W")
+    systems: str = "G"                        # each differenced within itself (signals_for_system)
     elevation_mask_deg: float = 10.0
     sigma_phase_a_m: float = 0.003            # SD variance 2 (a^2 + b^2 / sin^2 el) per receiver pair
     sigma_phase_b_m: float = 0.003
@@ -108,7 +118,7 @@ class RtkEpochRows:
     R: np.ndarray
     kinds: list[str]          # 'phase' / 'code'
     labels: list[str]
-    refs: dict                # signal -> reference satellite
+    refs: dict                # (system, signal) -> reference satellite
     amb_pairs: list           # per phase row: (key_i, key_ref)
     sd_resid: dict            # key -> (SD residual at the INS point (m), rover LOS, ambiguity (cycles))
     P_prior_pos: np.ndarray | None = None
@@ -142,6 +152,13 @@ class RtkUpdate:
         self.held: set = set()                       # keys in the last held fix
         self._reset_after: set = set()               # keys to re-initialise at the end of the epoch
         self.status = RtkStatus()
+        # per system, its signals among the configured ones (positioning code first)
+        self.sig: dict[str, tuple[str, ...]] = {}
+        for sys in dict.fromkeys(cfg.systems):
+            own = signals_for_system(sys, cfg.signals)
+            if own:
+                self.sig[sys] = own
+        self._groups = [(sys, s) for sys, sigs in self.sig.items() for s in sigs]
 
     # ------------------------------------------------------------------ bookkeeping
     def reset(self) -> None:
@@ -201,10 +218,15 @@ class RtkUpdate:
         back along its velocity by the bias (from the code, median over the satellites), since in
         RTK epochs nothing else estimates it (a u-blox rover tags x.99 s, 10 ms off: 8 wrong fixes
         in 120 s at 20 m/s without this, none with it, tests/test_rtk_outputs.py)."""
-        sr0 = receiver_sats(epoch, eng.ephemerides, r_ant_e, self.cfg.signals)
+        # one receiver clock for every system: the bias from the reference system's code alone
+        # (the others carry an inter-system bias of up to tens of metres)
+        sys0 = next(iter(self.sig), None)
+        sig0 = {sys0: self.sig[sys0]} if sys0 is not None else {}
+        sr0 = receiver_sats(epoch, eng.ephemerides, r_ant_e, sig0)
         if len(sr0) >= 2:
-            bias_m = float(np.median([q.code_m[self.cfg.signals[0]] - model_range_m(r_ant_e, q)[0]
-                                      for q in sr0.values() if self.cfg.signals[0] in q.code_m]))
+            p0 = self.sig[sys0][0]
+            bias_m = float(np.median([q.code_m[p0] - model_range_m(r_ant_e, q)[0]
+                                      for q in sr0.values() if p0 in q.code_m]))
             if math.isfinite(bias_m):
                 r_ant_e = r_ant_e - v_ant_e * (bias_m / SPEED_OF_LIGHT_MPS)
         obs = self.observe(eng, epoch, r_ant_e)
@@ -225,9 +247,9 @@ class RtkUpdate:
             self.counters["rtk epochs without a base epoch"] += 1
             return None
         if b[2] is None:
-            b[2] = receiver_sats(b[1], eng.ephemerides, eng.base.r_e, cfg.signals)
+            b[2] = receiver_sats(b[1], eng.ephemerides, eng.base.r_e, self.sig)
         sb = b[2]
-        sr = receiver_sats(epoch, eng.ephemerides, r_ant_e, cfg.signals)
+        sr = receiver_sats(epoch, eng.ephemerides, r_ant_e, self.sig)
         llh_r = ecef_to_geodetic(r_ant_e)
         llh_b = ecef_to_geodetic(eng.base.r_e)
         up = _up(llh_r)
@@ -251,7 +273,7 @@ class RtkUpdate:
         """Add, reset and drop ambiguity blocks from the receivers' flags and the satellites seen."""
         cfg = self.cfg
         for sat in common:
-            for s in cfg.signals:
+            for s in self.sig.get(sat[:1], ()):
                 key = (sat, s)
                 r, q = sr[sat], sb[sat]
                 ok = s in r.phase_cyc and s in q.phase_cyc and s in r.code_m and s in q.code_m \
@@ -299,9 +321,11 @@ class RtkUpdate:
         L = eng.layout
         P = eng.kf.P
         sig_v2 = float(np.trace(P[L.vel, L.vel])) / 3.0
-        for s in cfg.signals:
+        for sys, s in self._groups:
             keys, d, var = [], [], []
             for sat in common:
+                if sat[:1] != sys:
+                    continue
                 key = (sat, s)
                 prev = self._resid.get(key)
                 if key not in self.amb or prev is None or not 0.0 < t - prev[0] <= cfg.slip_max_interval_s:
@@ -337,12 +361,12 @@ class RtkUpdate:
         H_att = skew(l_e)
         z, Hs, var_sd, kinds, labels, refs, pairs = [], [], [], [], [], {}, []
         groups = []
-        for s in cfg.signals:
-            sats = [q for q in common if (q, s) in self.amb]
+        for sys, s in self._groups:
+            sats = [q for q in common if q[:1] == sys and (q, s) in self.amb]
             if len(sats) < 2:
                 continue
             ref = max(sats, key=lambda q: sr[q].elevation_rad)
-            refs[s] = ref
+            refs[(sys, s)] = ref
             kref = (ref, s)
             for kind in ("phase", "code"):
                 grp = []
@@ -404,16 +428,32 @@ class RtkUpdate:
         ok = np.isfinite(ratio) & (ratio <= 1.0)
         phase = np.array([k == "phase" for k in rows.kinds])
         bad_phase = np.flatnonzero(phase & ~ok)
+        keep = ok.copy()
         if len(bad_phase):
-            held_bad = [i for i in bad_phase if rows.amb_pairs[i][0] in self.held]
-            if self.held and (len(held_bad) > 1 or len(bad_phase) > 0.5 * np.count_nonzero(phase)):
+            # per system: more than one held row failing, or most of the system's rows
+            sys_of = [rows.amb_pairs[i][0][0][:1] if phase[i] else "" for i in range(len(phase))]
+            held_sys = {k[0][:1] for k in self.held}
+            wrong = set()
+            for sys in held_sys:
+                mine = [i for i in range(len(phase)) if phase[i] and sys_of[i] == sys]
+                bad = [i for i in bad_phase if sys_of[i] == sys]
+                held_bad = [i for i in bad if rows.amb_pairs[i][0] in self.held]
+                if mine and (len(held_bad) > 1 or len(bad) > 0.5 * len(mine)):
+                    wrong.add(sys)
+            if wrong:
                 self.counters["rtk wrong fixes dropped: phase residuals"] += 1
-                self._wrong_fix(eng)
-                return [], []
+                if wrong >= held_sys:
+                    self._wrong_fix(eng)
+                    return [], []
+                self._wrong_fix_systems(eng, wrong)
+                drop = np.array([s in wrong for s in sys_of]) | np.array(
+                    [rows.labels[i][:1] in wrong for i in range(len(phase))])
+                keep &= ~drop          # that system's rows (phase and code) out of this epoch
             for i in bad_phase:       # the row's own satellite: its ambiguity starts again after this epoch
+                if sys_of[i] in wrong:
+                    continue
                 self.counters["rtk phase rows rejected: innovation gate"] += 1
                 self._reset_after.add(rows.amb_pairs[i][0])
-        keep = ok.copy()
         rows.keep = keep
         batches, reports = [], []
         for kind in ("phase", "code"):
@@ -432,6 +472,16 @@ class RtkUpdate:
             self.counters[f"rtk_{kind} used"] += len(sel)
         self.counters["rtk code rows rejected: innovation gate"] += int(np.count_nonzero(~phase & ~ok))
         return batches, reports
+
+    def _wrong_fix_systems(self, eng, systems) -> None:
+        """A wrong fix of some systems only: their ambiguities start again after this epoch (the
+        layout must not change under the epoch's rows), the position covariance widened."""
+        for key in self.amb:
+            if key[0][:1] in systems:
+                self._reset_after.add(key)
+        self.held = {k for k in self.held if k[0][:1] not in systems}
+        L = eng.layout
+        eng.kf.P[L.pos, L.pos] += np.eye(3) * self.cfg.wrong_fix_position_sigma_m ** 2
 
     def _wrong_fix(self, eng) -> None:
         self._drop_all(eng)
