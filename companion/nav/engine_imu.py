@@ -165,8 +165,9 @@ class ImuPath:
         ws = self._ws
         cap, head = int(ws[S.ST_CAP]), int(ws[S.ST_HEAD])
         ring = ws[S.still_offset(ws):S.still_offset(ws) + 7 * cap].reshape(cap, 7)
-        idx = (np.arange(head - m, head) % cap) if m else np.zeros(0, int)
-        return ring[idx]
+        if m <= head:
+            return ring[head - m:head]          # a view: no copy when the window does not wrap
+        return np.concatenate((ring[cap - (m - head):], ring[:head]))
 
     def _still_due(self, tau_sample: float) -> bool:
         """The stillness test, due after a compiled step (StillnessDetector.add's second half)."""
