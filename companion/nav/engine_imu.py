@@ -116,7 +116,11 @@ class ImuPath:
             self._objects_to_state()
 
     def _objects_to_state(self) -> None:
-        ws, scr, st = self._ws, self.imu_screen, self._still
+        self._screen_to_state()
+        self._still_to_state()
+
+    def _screen_to_state(self) -> None:
+        ws, scr = self._ws, self.imu_screen
         ws[S.SCR_ON] = 1.0 if scr is not None else 0.0
         if scr is not None:
             n = int(ws[S.SCR_N])
@@ -128,6 +132,9 @@ class ImuPath:
             ws[S.SCR_WIN:S.SCR_WIN + 6 * n] = np.ravel(scr._win)
             ws[S.SCR_CW], ws[S.SCR_CF] = scr._clip_w, scr._clip_f
             ws[S.SCR_JW], ws[S.SCR_JF] = scr.gyro_jump_radps, scr.accel_jump_mps2
+
+    def _still_to_state(self) -> None:
+        ws, st = self._ws, self._still
         ws[S.ST_ON] = 1.0 if st is not None else 0.0
         if st is not None:
             cap = int(ws[S.ST_CAP])
@@ -302,7 +309,7 @@ class ImuPath:
                 self._screen_from_state()
             ok = scr.check(th, dvl, tau, s.t_gps)
             if self._fused:
-                self._objects_to_state_screen_only()
+                self._screen_to_state()
             if not ok:
                 if not scr.bridged:
                     return None            # nothing good to hold yet (counted by the screen)
@@ -326,14 +333,6 @@ class ImuPath:
             va, vw = (IMU_GAP_ACCEL_SIGMA_MPS2 * gap) ** 2, (IMU_GAP_RATE_SIGMA_RADPS * gap) ** 2
             self.kf.add_body_noise(self.C_b_e, (vw, vw, vw), (va, va, va))
         return th, dvl, tau, bridged
-
-    def _objects_to_state_screen_only(self) -> None:
-        st, self._still = self._still, None
-        try:
-            self._objects_to_state()
-        finally:
-            self._still = st
-            self._ws[S.ST_ON] = 1.0 if st is not None else 0.0
 
     def _imu_python(self, s):
         """The compiled path's slow branch: screen and gap in Python, the step by the kernel."""
