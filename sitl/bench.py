@@ -43,12 +43,14 @@ RTK_MASK_DEG = 0.0
 
 
 def _run(sim, tuning, with_gnss: bool, seed: int = 0, timed: bool = False, cfg=None, gnss_latency_s: float = 0.0,
-         epoch_mask: np.ndarray | None = None):
+         epoch_mask: np.ndarray | None = None, batched: bool = False):
     """One pass of the engine over the flight.  ``timed``: also time every sample (that timing
     costs a few microseconds itself, so throughput comes from an untimed pass).  ``cfg``: the
     engine's configuration (default: tdcp_dgps with the mask at 0 deg); ``gnss_latency_s``: GNSS
     epochs are handed over this long after their time (as :mod:`sitl.rtk_score` does);
-    ``epoch_mask`` (bool, one per IMU sample): set where a rover epoch was handed over."""
+    ``epoch_mask`` (bool, one per IMU sample): set where a rover epoch was handed over.
+    ``batched``: the IMU samples as arrays through NavEngine.process_imu_batch (as a replay), the
+    GNSS messages between the runs in the same order as the per-sample loop."""
     if cfg is None:
         cfg = mode_config("tdcp_dgps", tuning, sim.lever_arm_b)
         cfg.elevation_mask_deg = 0.0
@@ -69,7 +71,29 @@ def _run(sim, tuning, with_gnss: bool, seed: int = 0, timed: bool = False, cfg=N
     gc.disable()
     cpu_start = time.process_time_ns()
     t_start = clock()
-    for k, s in enumerate(sim.imu):
+    if batched:
+        # the replay's form: the samples as arrays (converted inside the timing), each run of them
+        # between two GNSS messages in one call (NavEngine.process_imu_batch)
+        imu = sim.imu
+        t = np.fromiter((s.t_gps for s in imu), float, len(imu))
+        tau = np.fromiter((s.dt_s for s in imu), float, len(imu))
+        th = np.array([s.dtheta_b for s in imu])
+        dv = np.array([s.dv_b for s in imu])
+        # before sample k: every base message due by its time, then every rover one (as the loop below)
+        events = sorted([(int(np.searchsorted(t, e.t_gps + lat_s, side="left")), 0, j) for j, e in enumerate(base)]
+                        + [(int(np.searchsorted(t, e.t_gps + lat_s, side="left")), 1, j)
+                           for j, e in enumerate(rover)]) if with_gnss else []
+        k = 0
+        for k1, kind, j in events:
+            if k1 >= len(t):
+                break
+            if k1 > k:
+                eng.process_imu_batch(t[k:k1], tau[k:k1], th[k:k1], dv[k:k1])
+                k = k1
+            eng.process((base if kind == 0 else rover)[j])
+        if k < len(t):
+            eng.process_imu_batch(t[k:], tau[k:], th[k:], dv[k:])
+    for k, s in enumerate(sim.imu if not batched else ()):
         t0 = clock() if timed else 0
         if with_gnss:
             while i_b < n_b and base[i_b].t_gps + lat_s <= s.t_gps:
@@ -185,6 +209,8 @@ def run_bench(duration_s: float | None = None, kf_gins_dir=None) -> dict:
     _run(sim, tuning, True)  # warm-up (imports, caches)
     (rate_imu, cpu_rate_imu), _, _ = _run(sim, tuning, False)
     (rate_gnss, cpu_rate_gnss), _, counters = _run(sim, tuning, True)
+    (_, cpu_rate_imu_batch), _, _ = _run(sim, tuning, False, batched=True)
+    (_, cpu_rate_gnss_batch), _, _ = _run(sim, tuning, True, batched=True)
     rtk_cpu_s, rtk_epochs, rtk_sats = _rtk_epoch_cpu_s()
     prop_dense_us, prop_blocks_us = propagation_us()
     _, lat_imu, _ = _run(sim, tuning, False, timed=True)
@@ -202,6 +228,9 @@ def run_bench(duration_s: float | None = None, kf_gins_dir=None) -> dict:
         "imu_samples_per_s_with_gnss": round(rate_gnss, 1),
         "imu_samples_per_cpu_s": round(cpu_rate_imu, 1),
         "imu_samples_per_cpu_s_with_gnss": round(cpu_rate_gnss, 1),
+        # the replay's form: runs of samples between GNSS messages in one call (process_imu_batch)
+        "imu_samples_per_cpu_s_batched": round(cpu_rate_imu_batch, 1),
+        "imu_samples_per_cpu_s_with_gnss_batched": round(cpu_rate_gnss_batch, 1),
         "rtk_epoch_cpu_ms": round(rtk_cpu_s * 1e3, 3),
         "rtk_epochs": rtk_epochs,
         "rtk_mean_satellites": round(rtk_sats, 2),
@@ -263,10 +292,10 @@ def format_bench(r: dict) -> str:
         f"engine benchmark: {r['imu_samples']} IMU samples at {r['imu_rate_hz']:.0f} Hz, "
         f"{r['mean_rover_satellites']} satellites/epoch",
         f"  IMU only            : {r['imu_samples_per_cpu_s']:>10,.0f} samples/CPU-s ({r['imu_samples_per_s']:,.0f}/s wall;"
-        f" p50 {r['latency_us_p50_imu_only']} us)",
+        f" p50 {r['latency_us_p50_imu_only']} us); batched {r['imu_samples_per_cpu_s_batched']:,.0f}",
         f"  IMU + GNSS (PR+TDCP): {r['imu_samples_per_cpu_s_with_gnss']:>10,.0f} samples/CPU-s "
         f"({r['imu_samples_per_s_with_gnss']:,.0f}/s wall; p50 {r['latency_us_p50']} us, p99 {r['latency_us_p99']} us, "
-        f"max {r['latency_us_max']} us)",
+        f"max {r['latency_us_max']} us); batched {r['imu_samples_per_cpu_s_with_gnss_batched']:,.0f}",
         f"  IMU + RTK (L1+L2)   : {r['imu_samples_per_cpu_s_with_rtk']:>10,.0f} samples/CPU-s "
         f"({r['imu_samples_per_s_with_rtk']:,.0f}/s wall; p50 {r['latency_us_p50_with_rtk']} us, "
         f"p99 {r['latency_us_p99_with_rtk']} us, max {r['latency_us_max_with_rtk']} us)",

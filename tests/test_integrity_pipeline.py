@@ -217,7 +217,7 @@ def _displace_at(t_rel_s, d_n_m):
         lat, lon, _ = ecef_to_geodetic(eng.r_e)
         d_e = C_n_e(lat, lon) @ np.array([d_n_m, 0.0, 0.0])
         eng.r_e = eng.r_e + d_e
-        eng._history = type(eng._history)((t, r + d_e, v, C) for t, r, v, C in eng._history)
+        eng._hist.correct(d_e, None, None)
         done.append(sol.t_gps)
     hook.done = done
     return hook

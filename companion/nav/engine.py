@@ -49,7 +49,7 @@ from ..gnss.prepare import prepare_epoch
 from ..gnss.signals import clock_group
 from ..messages import (SPEED_OF_LIGHT_MPS, BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
                         ImuSample, NavSolution)
-from .earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic, gravity_ecef, gravity_gradient_ecef, rotation_from_rotvec
+from .earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic, gravity_ecef, rotation_from_rotvec
 from .slow_errors import raise_to_floor, slow_error_position_floor
 from .filter import ErrorStateKalmanFilter, MeasurementBatch, ProcessNoise, UpdateReport
 from .state_layout import DEFAULT_LAYOUT, REFERENCE_SYSTEM, StateLayout, isb_block_name
@@ -62,19 +62,15 @@ from .integrity import POSITION_SOURCES, IntegrityLimits, IntegrityMonitor, Inte
 from .chi2 import chi2_ppf
 from .protection import ProtectionLevel
 from .rtk_update import FIX_NONE, RtkUpdate, RtkUpdateConfig
-from .strapdown import strapdown_step_with_force
 from .engine_aiding import ReceiverAiding
 from .engine_clock import ClockSeeding
 from .engine_heading import HeadingAlignment
+from .engine_imu import ImuPath
 
 log = logging.getLogger(__name__)
 
 
 FLOOR_MAX_HEADING_SIGMA_RAD = math.radians(10.0)   # slow-error floor only once the heading is known
-# over lost IMU samples the last sample's rate and specific force are held; the change the vehicle
-# could have made meanwhile (1-sigma, a manoeuvring multirotor) widens the covariance
-IMU_GAP_ACCEL_SIGMA_MPS2 = 1.0
-IMU_GAP_RATE_SIGMA_RADPS = 0.1
 
 
 @dataclass
@@ -232,11 +228,12 @@ class EpochReport:
     sats_by_system: dict = field(default_factory=dict)   # satellites with a fused row, per system letter
 
 
-class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
+class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
     """Tightly coupled INS/GNSS fusion.  Feed it with :meth:`process` (any message) in arrival order."""
 
     def __init__(self, config: EngineConfig):
         self.cfg = config
+        self._init_imu_state()            # the packed nominal state and history (companion.nav.engine_imu)
         self.lever_arm_b = np.asarray(config.lever_arm_b_m, float)
         self.ephemerides = EphemerisStore()
         self.dgps = None
@@ -253,12 +250,6 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.clock_initialized = False
         self.imu_time_offset_s = float(config.imu_time_offset_s)
         self.block_states: dict[str, np.ndarray] = {}    # nominal values of the layout's extra blocks
-        self._last_dtheta = (0.0, 0.0, 0.0)
-        self._last_tau = 1.0
-        self._b_a_list = [0.0, 0.0, 0.0]
-        self._b_g_list = [0.0, 0.0, 0.0]
-        self._history: deque = deque()
-        self._history_t: deque = deque()
         self._pending: list = []           # GNSS messages waiting for the IMU to pass their time
         self.carrier = RoverCarrierBook(self.counters)   # the rover's carrier at its last epoch (TDCP)
         self._prev_epoch_v: tuple[float, np.ndarray] | None = None   # (t_gps, corrected v_e) of the last epoch
@@ -283,9 +274,6 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.course_epochs_fused = 0
         self.course_alignment_t_gps = math.nan     # GPS time of the first course alignment
         self._last_epoch_t = math.nan
-        self._grad = None
-        self._grad_r = None
-        self._g_ref = None
         self.last_gnss_update_t = math.nan
         self.reset_counter = 0
         self.epoch_reports: deque = deque(maxlen=16)
@@ -339,14 +327,13 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.C_b_e = np.array(C_b_e, float)
         self.b_a = np.zeros(3) if b_a is None else np.array(b_a, float)
         self.b_g = np.zeros(3) if b_g is None else np.array(b_g, float)
-        self._b_a_list, self._b_g_list = self.b_a.tolist(), self.b_g.tolist()
         self.clock_initialized = clock_bias_m is not None
         self.clock_bias_m = float(clock_bias_m or 0.0)
         self.clock_drift_mps = float(clock_drift_mps)
         self.imu_time_offset_s = float(self.cfg.imu_time_offset_s if imu_time_offset_s is None else imu_time_offset_s)
-        self._history.clear()
-        self._history_t.clear()
+        self._hist.clear()
         self._push_history()
+        self._select_imu_path()
         self.carrier.clear()
         self._prev_epoch_v = None
         self._pending.clear()
@@ -421,93 +408,21 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
             self.base_carrier.remember(self.dgps.last_prepared, self.base.r_e)
         return None
 
-    # ------------------------------------------------------------------ IMU
-    def process_imu(self, s: ImuSample):
-        if not self.initialized:
-            self.counters["imu before init"] += 1
-            return None
-        tau = s.dt_s
-        if not (s.t_gps > self.t_gps):
-            self.counters["imu sample not after previous (dropped)"] += 1
-            return None
-        th = s.dtheta_b.tolist()
-        dvl = s.dv_b.tolist()
-        if not (0.0 < tau < 0.1) or not math.isfinite(th[0] + th[1] + th[2] + dvl[0] + dvl[1] + dvl[2]):
-            self.counters["imu sample invalid (dropped)"] += 1
-            return None
-        scr = self.imu_screen
-        bridged = False
-        if scr is not None and not scr.check(th, dvl, tau, s.t_gps):
-            if not scr.bridged:
-                return None            # nothing good to hold yet (counted by the screen)
-            th, dvl, bridged = scr.dtheta_b, scr.dv_b, True
-        if self.smoother is not None:
-            self.smoother.before_step(self)
-        tau_sample = tau
-        gap = s.t_gps - self.t_gps - tau
-        if abs(gap) > 0.5 * tau:
-            self.counters["imu time gap"] += 1
-        if gap > 0.5 * tau:
-            # lost samples (a link drops IMU messages; the decoder restarts its chain after a long
-            # interval): hold this sample's rate and specific force over the gap -- integrating
-            # only its own interval left the position behind by v x gap (4 m per 0.5 s at 9 m/s,
-            # unseen by the covariance) -- and widen the covariance by what the vehicle could have
-            # done meanwhile (IMU_GAP_*)
-            k = (tau + gap) / tau
-            th = [x * k for x in th]
-            dvl = [x * k for x in dvl]
-            tau += gap
-            self.counters["imu gap bridged (s, x1000)"] += int(round(gap * 1000.0))
-            va, vw = (IMU_GAP_ACCEL_SIGMA_MPS2 * gap) ** 2, (IMU_GAP_RATE_SIGMA_RADPS * gap) ** 2
-            self.kf.add_body_noise(self.C_b_e, (vw, vw, vw), (va, va, va))
-        bg, ba = self._b_g_list, self._b_a_list
-        dtheta = (th[0] - bg[0] * tau, th[1] - bg[1] * tau, th[2] - bg[2] * tau)
-        dv = (dvl[0] - ba[0] * tau, dvl[1] - ba[1] * tau, dvl[2] - ba[2] * tau)
-        C0 = self.C_b_e
-        r0 = self.r_e
-        # gravity: exact model at a reference point, first-order Taylor expansion around it
-        # (second-order error < 1e-7 m/s^2 within the refresh distance)
-        d = r0 - self._grad_r if self._grad is not None else None
-        if d is None or float(d @ d) > self.cfg.gravity_gradient_refresh_m ** 2:
-            self._grad = gravity_gradient_ecef(r0)
-            self._grad_r = r0
-            self._g_ref = gravity_ecef(r0)
-            g = self._g_ref
-        else:
-            g = self._g_ref + self._grad @ d
-        self.r_e, self.v_e, self.C_b_e, dv_e = strapdown_step_with_force(r0, self.v_e, C0, dtheta, dv, tau, g)
-        self.kf.propagate(C0, dv_e, self._grad, tau)
-        if bridged:
-            self.kf.add_body_noise(C0, scr.var_dtheta_b, scr.var_dv_b)    # what the sample could have hidden
-        if self.smoother is not None:
-            self.smoother.after_step(self)
-        self._last_dtheta = dtheta
-        self._last_tau = tau
-        self.clock_bias_m += self.clock_drift_mps * (s.t_gps - self.t_gps)
-        self.t_gps = s.t_gps
-        self._push_history()
-        # ZUPT/ZARU on the ground only: a hovering multirotor with a quiet IMU looks still too
-        if self._still is not None and self._still.add(s.dtheta_b.tolist(), s.dv_b.tolist(), tau_sample) \
-                and self.ground_mode:
-            self._zero_motion_update()
-        if self.cfg.nhc_enabled:
-            self._nhc_countdown_s -= tau
-            if self._nhc_countdown_s <= 0.0:
-                self._nhc_countdown_s += 1.0 / self.cfg.nhc_rate_hz
-                self._nhc_update()
-        if self._pending and self.imu_time_of(self._pending[0]) <= self.t_gps:
-            ready = [e for e in self._pending if self.imu_time_of(e) <= self.t_gps]
-            self._pending = [e for e in self._pending if self.imu_time_of(e) > self.t_gps]
-            for e in ready:
-                if isinstance(e, GnssFix):
-                    self._process_fix(e)
-                elif isinstance(e, GnssAttitude):
-                    self._process_attitude(e)
-                elif isinstance(e, GnssBaseline):
-                    self._process_baseline(e)
-                else:
-                    self._process_epoch(e)
-        return None
+    def _release_pending(self) -> None:
+        """The GNSS messages the IMU has now passed (called after an IMU step)."""
+        if self.imu_time_of(self._pending[0]) > self.t_gps:
+            return
+        ready = [e for e in self._pending if self.imu_time_of(e) <= self.t_gps]
+        self._pending = [e for e in self._pending if self.imu_time_of(e) > self.t_gps]
+        for e in ready:
+            if isinstance(e, GnssFix):
+                self._process_fix(e)
+            elif isinstance(e, GnssAttitude):
+                self._process_attitude(e)
+            elif isinstance(e, GnssBaseline):
+                self._process_baseline(e)
+            else:
+                self._process_epoch(e)
 
     def set_installation(self, lever_arm_b_m, moving_baseline_b_m) -> None:
         """A new lever arm (IMU to antenna, body FRD) and moving baseline while running (a ground
@@ -523,57 +438,11 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
             self.counters["ground mode on" if on_ground else "ground mode off (flight)"] += 1
         self.ground_mode = on_ground
 
-    def _push_history(self):
-        self._history.append((self.t_gps, self.r_e, self.v_e, self.C_b_e))
-        self._history_t.append(self.t_gps)
-        while self._history_t[-1] - self._history_t[0] > self.cfg.history_s:
-            self._history.popleft()
-            self._history_t.popleft()
-
     def imu_time_of(self, msg) -> float:
         """The IMU tag at which a message's measurement is predicted: its own ``t_gps`` if it is
         tagged on the autopilot's clock, else (receiver time) ``t_gps - imu_time_offset_s``."""
         t = msg.t_gps
         return t if getattr(msg, "autopilot_clock", False) else t - self.imu_time_offset_s
-
-    ACCELERATION_HALF_WINDOW_S = 0.05
-
-    def ins_at(self, t_gps: float) -> InsPoint | None:
-        """INS state linearly interpolated to ``t_gps`` (an IMU tag) between the bracketing IMU
-        samples, with the mean acceleration over +-ACCELERATION_HALF_WINDOW_S (for the dt_imu
-        columns: a window, not one interval, so one sample's noise does not enter the Jacobian)."""
-        x = self._interpolate(t_gps)
-        if x is None:
-            return None
-        r, v, C = x
-        ts = self._history_t
-        h = self.ACCELERATION_HALF_WINDOW_S
-        t0, t1 = max(t_gps - h, ts[0]), min(t_gps + h, ts[-1])
-        a = (self._interpolate(t1)[1] - self._interpolate(t0)[1]) / (t1 - t0) if t1 - t0 > 1e-3 else np.zeros(3)
-        clk = self.clock_bias_m - self.clock_drift_mps * (self.t_gps - t_gps)
-        return InsPoint(t_gps, r, v, C, self.omega_ib_b, clk, self.clock_drift_mps, a,
-                        dict(self.block_states) if self.block_states else None)
-
-    def _interpolate(self, t_gps: float):
-        ts = self._history_t
-        if not ts or t_gps > ts[-1] or t_gps < ts[0]:
-            return None
-        k = bisect.bisect_left(ts, t_gps)
-        t1, r1, v1, C1 = self._history[k]
-        if k == 0 or t1 == t_gps:
-            r, v, C = r1, v1, C1
-        else:
-            t0, r0, v0, C0 = self._history[k - 1]
-            a = (t_gps - t0) / (t1 - t0)
-            r = r0 * (1.0 - a) + r1 * a
-            v = v0 * (1.0 - a) + v1 * a
-            C = C0 if a < 0.5 else C1
-        return r, v, C
-
-    @property
-    def omega_ib_b(self) -> np.ndarray:
-        """Body angular rate over the last IMU interval (bias-corrected), rad/s."""
-        return np.array(self._last_dtheta) / self._last_tau
 
     # ------------------------------------------------------------------ GNSS
     def process_gnss(self, epoch: GnssEpoch):
@@ -854,7 +723,6 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.v_e = self.v_e + dx[L.vel]
         self.b_a = self.b_a + dx[L.ba]
         self.b_g = self.b_g + dx[L.bg]
-        self._b_a_list, self._b_g_list = self.b_a.tolist(), self.b_g.tolist()
         self.clock_bias_m += dx[L.clk]
         self.clock_drift_mps += dx[L.drift]
         self.imu_time_offset_s += dx[L.toff]
@@ -863,8 +731,8 @@ class NavEngine(ReceiverAiding, HeadingAlignment, ClockSeeding):
         # the newest history sample is "now": keep it consistent with the corrected state; the
         # older ones get the same correction, for an epoch that arrives right behind this one (a
         # burst after a data gap: 1.2 s late, the next 0.2 s) is predicted from them
-        self._history = deque((t, r + dx[L.pos], v + dx[L.vel], R @ C) for t, r, v, C in self._history)
-        self._history[-1] = (self.t_gps, self.r_e, self.v_e, self.C_b_e)
+        self._hist.correct(dx[L.pos], dx[L.vel], R)
+        self._hist.set_last()
 
     LATENCY_MIN_S = 1e-3
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
 
 import numpy as np
 
@@ -88,7 +87,7 @@ class HeadingAlignment:
         self.kf.P = P
         self.C_b_e = R @ self.C_b_e
         self.v_e = self.v_e + dv
-        self._history = deque((t, r, v + dv, R @ C) for t, r, v, C in self._history)
+        self._hist.correct(None, dv, R)
         self.carrier.clear()     # the antenna moved with the lever arm: restart the carrier bookkeeping
         self._prev_epoch_v = None
         if self.smoother is not None:

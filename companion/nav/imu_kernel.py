@@ -240,8 +240,22 @@ def warm_up() -> float:
         for i in range(extra):
             kf.add_block(f"warm-up {i}", 1, 1.0)
         kf.propagate(C, dv_e, np.zeros((3, 3)), 0.005)
+    _warm_up_engine()
     lambda_ils(np.array([0.2, 1.4, -2.7]), np.array([[1.0, 0.5, 0.2], [0.5, 1.0, 0.3], [0.2, 0.3, 1.0]]))
     return time.perf_counter() - t0
+
+
+def _warm_up_engine() -> None:
+    """The fused IMU step (companion.nav.imu_fused), per sample and by batch, through an engine."""
+    from ..messages import ImuSample
+    from .engine import EngineConfig, NavEngine
+    from .filter import ProcessNoise
+    eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-5, 1e-4), zupt_enabled=True))
+    eng.initialize(0.0, np.array([6378137.0, 0.0, 0.0]), np.zeros(3), np.eye(3),
+                   {"att_rad": 0.01, "pos_m": 1.0, "vel_mps": 0.1, "ba_mps2": 0.1, "bg_radps": 0.01})
+    dv = np.array([0.0, 0.0, -0.049])
+    eng.process_imu(ImuSample(0.005, 0.005, np.zeros(3), dv))
+    eng.process_imu_batch(np.array([0.01, 0.015]), np.full(2, 0.005), np.zeros((2, 3)), np.tile(dv, (2, 1)))
 
 
 if __name__ == "__main__":            # python -m companion.nav.imu_kernel

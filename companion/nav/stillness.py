@@ -31,12 +31,20 @@ class StillnessDetector:
         if self._since_check_s < 0.5 * self.window_s:
             return False
         self._since_check_s = 0.0
-        m = max(2, int(round(self.window_s / tau)))   # one window at the current IMU rate
+        m = self.window_samples(tau)
         if self.buf.maxlen != m:
             self.buf = deque(self.buf, maxlen=m)
         if len(self.buf) < m:
             return False
-        w = np.array(self.buf)
+        return self.evaluate(np.array(self.buf))
+
+    def window_samples(self, tau: float) -> int:
+        """One window at the current IMU rate."""
+        return max(2, int(round(self.window_s / tau)))
+
+    def evaluate(self, w: np.ndarray) -> bool:
+        """The test on one full window (rows: raw dtheta 3, dv 3, tau; oldest first), shared with
+        the compiled path's ring (companion.nav.imu_fused)."""
         rates = w[:, 0:6] / w[:, 6:7]
         std = rates.std(axis=0)
         still = bool(std[0:3].max() < self.gyro_std_radps and std[3:6].max() < self.accel_std_mps2)

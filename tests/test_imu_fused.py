@@ -1,0 +1,92 @@
+"""The fused IMU step (companion.nav.imu_fused) against the readable pure-Python path on the same
+flight, and the batch entry against one call per sample, to the bit, through the rare branches
+too (a time gap, a spike the screen bridges, a repeated and an invalid sample)."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from companion.nav import engine as engine_module
+from companion.nav import imu_kernel
+
+pytest.importorskip("numba")
+pytestmark = pytest.mark.skipif(imu_kernel.compiled() is None, reason="kernels disabled (COMPANION_NUMBA=0)")
+
+
+@pytest.fixture(scope="module")
+def workload():
+    from sitl import bench
+    _, sim, tuning = bench.bench_workload(20.0)
+    imu = list(sim.imu)
+    s = imu[1500]                       # a spike of 200 m/s^2 on x: bridged by the screen
+    imu[1500] = dataclasses.replace(s, dv_b=s.dv_b + np.array([200.0 * s.dt_s, 0.0, 0.0]))
+    del imu[2500:2510]                  # 50 ms of lost samples: a gap bridged by the engine
+    imu.insert(3000, imu[2999])         # a repeated tag: dropped
+    s = imu[3200]
+    imu[3200] = dataclasses.replace(s, dtheta_b=np.array([np.nan, 0.0, 0.0]))   # invalid: dropped
+    sim.imu = imu
+    return sim, tuning
+
+
+def _flight(workload, batched, reference=False):
+    from sitl import bench
+    sim, tuning = workload
+    made = []
+    orig = engine_module.NavEngine.__init__
+
+    def init(self, *a, **k):
+        orig(self, *a, **k)
+        made.append(self)
+    restore = imu_kernel.use_reference_paths() if reference else None
+    try:
+        engine_module.NavEngine.__init__ = init
+        _, _, counters = bench._run(sim, tuning, True, batched=batched)
+    finally:
+        engine_module.NavEngine.__init__ = orig
+        if restore is not None:
+            restore()
+    eng = made[-1]
+    assert eng._fused is not reference
+    return eng, counters
+
+
+def test_batch_is_per_sample_bit_for_bit(workload):
+    a, ca = _flight(workload, batched=False)
+    b, cb = _flight(workload, batched=True)
+    assert ca == cb
+    for name in ("r_e", "v_e", "C_b_e", "b_a", "b_g", "clock_bias_m", "t_gps"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert np.array_equal(a.kf.P, b.kf.P)
+    assert np.array_equal(a._hist.rows(), b._hist.rows())
+    assert np.array_equal(a._ws, b._ws)
+
+
+def test_fused_matches_the_reference_path(workload):
+    a, ca = _flight(workload, batched=False)
+    ref, cr = _flight(workload, batched=False, reference=True)
+    assert ca == cr
+    # the branches were taken
+    assert ca["imu_screen.samples_bridged"] >= 1 and ca["imu time gap"] >= 1
+    assert ca["imu sample not after previous (dropped)"] == 1 and ca["imu sample invalid (dropped)"] == 1
+    assert ca["zupt used"] > 0                      # the stillness ring fed its test
+    # the same compiled pieces and float arithmetic: equal to the bit here (numpy's and scipy's
+    # BLAS alike); bounded to rounding in case the two libraries differ
+    np.testing.assert_allclose(a.r_e, ref.r_e, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(a.v_e, ref.v_e, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(a.C_b_e, ref.C_b_e, rtol=0, atol=1e-10)
+    scale = np.sqrt(np.outer(np.diag(ref.kf.P), np.diag(ref.kf.P)))
+    assert np.all(np.abs(a.kf.P - ref.kf.P) <= 1e-9 * scale + 1e-300)
+    ta, tr = a._hist.rows(), ref._hist.rows()
+    assert ta.shape == tr.shape
+    np.testing.assert_allclose(ta, tr, rtol=1e-14, atol=1e-6)
+
+
+def test_state_properties_copy_in_and_out(workload):
+    a, _ = _flight(workload, batched=True)
+    r = a.r_e
+    r += 1.0                             # a read is a copy: the engine's state is untouched
+    assert not np.array_equal(r, a.r_e)
+    a.r_e = r                            # a write copies in
+    assert np.array_equal(a.r_e, r)
+    pt = a.ins_at(a.t_gps - 0.5)
+    assert pt is not None and pt.r_e.shape == (3,) and pt.C_b_e.shape == (3, 3)
