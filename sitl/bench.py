@@ -11,8 +11,9 @@ Throughput comes from untimed passes, as wall-clock *and* CPU-time rates (proces
 process itself used, which is what means something on a shared, loaded machine); latency from
 separate passes that time every IMU sample (including any GNSS epoch it releases) with
 perf_counter_ns.  The same for carrier-phase RTK inside the filter (:mod:`companion.nav.rtk_update`):
-the 'rtk' scenario (dual-frequency rover, short baseline) with the mask at 0 deg, ~10-11 GPS
-satellites and ~21 signals per epoch.  Also: the cost of one carrier-phase RTK epoch (companion.gnss.rtk, GEONET
+the 'rtk-gec' scenario (dual-frequency GPS + Galileo + BeiDou rover, short baseline) with the mask
+at 0 deg, ~19 satellites and ~38 signals per epoch (the issue's "20 satellites, two frequencies";
+``rtk_workload(systems="G")`` is the older GPS-only load of ~10 satellites).  Also: the cost of one carrier-phase RTK epoch (companion.gnss.rtk, GEONET
 0759/3040, L1+L2) in CPU time, the start-up time of ``import companion.service`` in a fresh
 interpreter, and one covariance propagation step with 40 identity states (float ambiguities) beside
 the standard 18, dense against by blocks (companion.nav.filter).
@@ -257,7 +258,7 @@ def _kernels_on() -> bool:
 
 
 def _rtk_load(duration_s: float | None) -> dict:
-    """RTK inside the filter at IMU rate (the 'rtk' scenario, :func:`rtk_workload`): throughput
+    """RTK inside the filter at IMU rate (the 'rtk-gec' scenario, :func:`rtk_workload`): throughput
     from an untimed pass after a warm-up, latency from a timed one."""
     sim, tuning, cfg = rtk_workload(duration_s)
     lat = tuning.gnss_latency_s
