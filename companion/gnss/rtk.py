@@ -226,7 +226,6 @@ class RtkFilter:
     # ------------------------------------------------------------------ double differences
     def _dd_rows(self, x: np.ndarray, common, sr, sb, *, fixed: dict | None = None):
         """(innovation z - h(x), H, R, keys) of every DD phase and code row at state ``x``."""
-        cfg = self.cfg
         r = x[:3]
         model_r = {sat: _model_m(r, sr[sat]) for sat in common}
         model_b = {sat: _model_m(self.base_r_e, sb[sat]) for sat in common}
