@@ -88,13 +88,28 @@ def _wrap(a):
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def _skew_exp(phi: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (Rodrigues)."""
-    th = float(np.linalg.norm(phi))
-    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-    if th < 1e-9:
-        return np.eye(3) + K
-    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th ** 2) * (K @ K)
+def _rotation_from_vector(x: float, y: float, z: float) -> tuple:
+    """Rotation matrix of the rotation vector (x, y, z) (Rodrigues), row-major 9-tuple of floats.
+    Scalar arithmetic: at the bank's 50 Hz, 3x3 numpy operations cost several times the flops."""
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-18:
+        a, b = 1.0, 0.0
+    else:
+        th = math.sqrt(th2)
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    # I + a K + b K^2, K = [[0, -z, y], [z, 0, -x], [-y, x, 0]]
+    return (1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z,
+            a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z,
+            -a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y))
+
+
+def _mul3(A: tuple, B: tuple) -> tuple:
+    """A @ B of row-major 9-tuples."""
+    a0, a1, a2, a3, a4, a5, a6, a7, a8 = A
+    b0, b1, b2, b3, b4, b5, b6, b7, b8 = B
+    return (a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8,
+            a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8,
+            a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8)
 
 
 def _orthonormalise(C: np.ndarray) -> np.ndarray:
@@ -169,21 +184,23 @@ class YawGsf:
         a[6] += dt_s
         if a[6] < self.cfg.step_s * (1.0 - 1e-6):
             return
-        dth, dv, dt = np.array(a[0:3]), np.array(a[3:6]), a[6]
+        dth, dv, dt = a[0:3], a[3:6], a[6]
         self._acc = [0.0] * 7
-        self.omega_b_radps = dth / dt
+        self.omega_b_radps = np.array(dth) / dt
         self._step(dth, dv, dt)
 
-    def _step(self, dth: np.ndarray, dv: np.ndarray, dt: float) -> None:
+    def _step(self, dth: list, dv: list, dt: float) -> None:
+        """One bank step over ``dt``: summed delta angle ``dth`` and delta velocity ``dv`` (body,
+        plain floats).  The AHRS part is scalar arithmetic (see :func:`_rotation_from_vector`)."""
         cfg = self.cfg
-        f_b = dv / dt
+        fx, fy, fz = dv[0] / dt, dv[1] / dt, dv[2] / dt
         if not self.aligned:
             # level the AHRS on the accelerometer when it is near 1 g (not thrown about)
-            if abs(np.linalg.norm(f_b) / G0_MPS2 - 1.0) < 0.1:
-                roll = math.atan2(-f_b[1], -f_b[2])
-                pitch = math.atan2(f_b[0], math.hypot(f_b[1], f_b[2]))
+            if abs(math.sqrt(fx * fx + fy * fy + fz * fz) / G0_MPS2 - 1.0) < 0.1:
+                roll = math.atan2(-fy, -fz)
+                pitch = math.atan2(fx, math.hypot(fy, fz))
                 self.C_b_n = euler_to_dcm(roll, pitch, 0.0)
-                self.f_lp_b = f_b.copy()
+                self.f_lp_b = np.array([fx, fy, fz])
                 n = cfg.n_models
                 self.x[:, 2] = np.arange(n) * (2.0 * math.pi / n)
                 self.P[:] = 0.0
@@ -191,40 +208,54 @@ class YawGsf:
                 self.aligned = True
             return
         a = dt / (cfg.accel_lowpass_s + dt)
-        self.f_lp_b += a * (f_b - self.f_lp_b)
-        C0 = self.C_b_n
-        yaw0 = math.atan2(C0[1, 0], C0[0, 0])
+        lx, ly, lz = self.f_lp_b.tolist()
+        lx += a * (fx - lx)
+        ly += a * (fy - ly)
+        lz += a * (fz - lz)
+        self.f_lp_b = np.array([lx, ly, lz])
+        C0 = tuple(self.C_b_n.ravel().tolist())
+        c0, c1, c2, c3, c4, c5, c6, c7, c8 = C0
+        yaw0 = math.atan2(c3, c0)
         # tilt correction: rotate the nav frame so that the measured specific force points up
-        f_n = C0 @ self.f_lp_b
-        norm = float(np.linalg.norm(f_n))
+        nx, ny, nz = c0 * lx + c1 * ly + c2 * lz, c3 * lx + c4 * ly + c5 * lz, c6 * lx + c7 * ly + c8 * lz
+        norm = math.sqrt(nx * nx + ny * ny + nz * nz)
         w = max(0.0, 1.0 - abs(norm / G0_MPS2 - 1.0) / cfg.accel_norm_tolerance)
         w *= max(0.0, 1.0 - self.kinematic_accel_mps2 / cfg.kinematic_accel_limit_mps2)
         if math.isfinite(self.t_last_vel) and self.t_gps - self.t_last_vel > cfg.velocity_gap_s:
             # GNSS velocity lost (none yet: levelling at rest, as at the alignment): the acceleration is unknown and |f| near 1 g does not mean level
             # (3 m/s^2 along a leg is 17 deg of 'tilt' at 5 % off 1 g): the gyro alone holds the tilt
             w = 0.0
-        corr_n = np.zeros(3)
+        kx = ky = 0.0
+        bx, by, bz = self.b_g.tolist()
         if w > 0.0 and norm > 0.0:
-            u = f_n / norm
-            err_n = np.array([-u[1], u[0], 0.0])          # u x (0, 0, -1): horizontal axis, |.| = sin(tilt error)
-            corr_n = cfg.tilt_gain_per_s * w * err_n
-            self.b_g -= cfg.gyro_bias_gain_per_s * w * (C0.T @ err_n) * dt
-            np.clip(self.b_g, -cfg.gyro_bias_limit_radps, cfg.gyro_bias_limit_radps, out=self.b_g)
-        C1 = _skew_exp(corr_n * dt) @ C0 @ _skew_exp(dth - self.b_g * dt)
+            ex, ey = -ny / norm, nx / norm                 # u x (0, 0, -1): horizontal axis, |.| = sin(tilt error)
+            kx, ky = cfg.tilt_gain_per_s * w * ex, cfg.tilt_gain_per_s * w * ey
+            g = cfg.gyro_bias_gain_per_s * w * dt          # b_g -= g C0^T err_n, clipped
+            lim = cfg.gyro_bias_limit_radps
+            bx = min(lim, max(-lim, bx - g * (c0 * ex + c3 * ey)))
+            by = min(lim, max(-lim, by - g * (c1 * ex + c4 * ey)))
+            bz = min(lim, max(-lim, bz - g * (c2 * ex + c5 * ey)))
+            self.b_g = np.array([bx, by, bz])
+        C1 = _mul3(_mul3(_rotation_from_vector(kx * dt, ky * dt, 0.0), C0),
+                   _rotation_from_vector(dth[0] - bx * dt, dth[1] - by * dt, dth[2] - bz * dt))
         self._n_steps += 1
-        self.C_b_n = _orthonormalise(C1) if self._n_steps % 50 == 0 else C1
+        C1m = np.array(C1).reshape(3, 3)
+        self.C_b_n = _orthonormalise(C1m) if self._n_steps % 50 == 0 else C1m
         d_yaw = _wrap(math.atan2(self.C_b_n[1, 0], self.C_b_n[0, 0]) - yaw0)
         if not self.vel_initialised:
             self.x[:, 2] = _wrap(self.x[:, 2] + d_yaw)
             self.P[:, 2, 2] += cfg.yaw_noise_psd_rad2ps * dt
             return
         # each model's delta velocity: the shared one turned by the model's yaw offset
-        dv_n = C0 @ dv
-        self.dv_since_velocity_n += dv_n[0:2]
+        dv_n0 = c0 * dv[0] + c1 * dv[1] + c2 * dv[2]
+        dv_n1 = c3 * dv[0] + c4 * dv[1] + c5 * dv[2]
+        d = self.dv_since_velocity_n
+        d[0] += dv_n0
+        d[1] += dv_n1
         c = self.x[:, 2] - yaw0
         cs, sn = np.cos(c), np.sin(c)
-        dvn = cs * dv_n[0] - sn * dv_n[1]
-        dve = sn * dv_n[0] + cs * dv_n[1]
+        dvn = cs * dv_n0 - sn * dv_n1
+        dve = sn * dv_n0 + cs * dv_n1
         self.x[:, 0] += dvn
         self.x[:, 1] += dve
         self.x[:, 2] = _wrap(self.x[:, 2] + d_yaw)
