@@ -42,8 +42,7 @@ def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products a_i . b_i of (n, 3) arrays (b may be one 3-vector): the numbers of
     ``a[i] @ b[i]`` one row at a time (a stacked matmul is one BLAS dot per row; einsum and
     ``a @ b`` sum in other orders, which moves results by rounding)."""
-    b = np.broadcast_to(b, a.shape)
-    return np.matmul(a[:, None, :], b[:, :, None])[:, 0, 0]
+    return np.matmul(a[:, None, :], b[..., None])[:, 0, 0]
 
 
 def _line_of_sight(r_sat_e: np.ndarray, r_ant_e: np.ndarray):
