@@ -2,7 +2,8 @@
 replaced (tests/_gnss_epoch_reference.py, the implementation of commit 3ed8431), and the caches
 it added cannot change a result.
 
-* satellite states (companion.gnss.sat_state) equal companion.gnss.ephemeris's, bit for bit, for
+* satellite states (companion.gnss.sat_state, and compiled: sat_state_kernel) equal
+  companion.gnss.ephemeris's, bit for bit, for
   GPS, Galileo, BeiDou (MEO, IGSO and GEO) and QZSS ephemerides, including week cross-overs;
 * prepare_epoch equals the reference field for field (DGPS, standalone with and without
   Klobuchar, iono-free, unknown position, carrier-only satellites, four systems);
@@ -122,8 +123,42 @@ def test_orbit_constants_cache_is_bounded_and_exact(geonet, monkeypatch):
     assert sat_state.state(sat_state.orbit_constants(twin), t) == cold
 
 
+@pytest.fixture
+def state_kernel():
+    """The compiled satellite state (the engine's kernels loaded), or a skip without numba."""
+    from companion.gnss import sat_state_kernel
+    from companion.nav import imu_kernel
+    if imu_kernel.compiled() is None:
+        pytest.skip("numba not installed or COMPANION_NUMBA=0")
+    kern = sat_state_kernel.compiled()
+    assert kern is not None
+    return kern
+
+
+def test_compiled_satellite_state_equals_python(geonet, hiroshima, state_kernel):
+    ephs = [e for sat in geonet["store"].sats for e in geonet["store"].all(sat)] + hiroshima["ephs"]
+    n = 0
+    for eph in ephs:
+        k = sat_state.orbit_constants(eph)
+        if k.geo:
+            continue
+        for dt in (-7199.0, -1.0, 0.0731, 3600.0, 7199.9):
+            t = eph.t_oe_gps + dt
+            t_tx = sat_state.transmit_time(k, t, 2.2e7)
+            assert state_kernel(k.vec, t, 2.2e7, math.nan) == (t_tx, *sat_state.state(k, t_tx)), eph.sat
+            assert state_kernel(k.vec, t, 0.0, t) == (t, *sat_state.state(k, t)), eph.sat
+            n += 1
+    assert n > 900
+
+
 # ------------------------------------------------------------------------------ prepare_epoch
-def test_prepare_epoch_equals_the_reference_gps(geonet):
+@pytest.mark.parametrize("compiled", [False, True], ids=["python", "compiled"])
+def test_prepare_epoch_equals_the_reference_gps(geonet, compiled, request, monkeypatch):
+    from companion.gnss import prepare as prepare_mod
+    if compiled:
+        request.getfixturevalue("state_kernel")
+    else:
+        monkeypatch.setattr(prepare_mod, "compiled_state", lambda: None)
     store, klob = geonet["store"], geonet["klob"]
     corr = DgpsCorrector()
     r = geonet["r_rover"]
@@ -147,7 +182,13 @@ def test_prepare_epoch_equals_the_reference_gps(geonet):
     assert n > 400 and carrier_only > 20
 
 
-def test_prepare_epoch_equals_the_reference_four_systems(hiroshima):
+@pytest.mark.parametrize("compiled", [False, True], ids=["python", "compiled"])
+def test_prepare_epoch_equals_the_reference_four_systems(hiroshima, compiled, request, monkeypatch):
+    from companion.gnss import prepare as prepare_mod
+    if compiled:
+        request.getfixturevalue("state_kernel")
+    else:
+        monkeypatch.setattr(prepare_mod, "compiled_state", lambda: None)
     store, r = hiroshima["store"], hiroshima["r"]
     from companion.gnss.atmosphere import KLOBUCHAR_DEFAULT
     used = set()

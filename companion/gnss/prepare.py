@@ -55,6 +55,7 @@ from .atmosphere import klobuchar_delay_m, saastamoinen_zenith_m, tropo_mapping
 from .sat_state import orbit_constants
 from .sat_state import state as sat_state
 from .sat_state import transmit_time as sat_transmit_time
+from .sat_state_kernel import compiled as compiled_state
 from .ephemeris_store import EphemerisStore
 from .signals import (IF_FIRST_SIGNALS, IF_SECOND_SIGNALS, PRIMARY_SIGNALS, SUPPORTED_SYSTEMS, frequency_hz,
                       group_delay_m, iono_free_noise_factor, is_transmitted)
@@ -219,7 +220,8 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
     ``apply_models=False`` applies the satellite clock only (used by the DGPS base: raw P + c*dt_sat).
 
     The satellite states come from :mod:`.sat_state` (the expressions of :mod:`.ephemeris` in
-    plain floats, each ephemeris's constants computed once); the rows are gathered as floats and
+    plain floats, each ephemeris's constants computed once), compiled (:mod:`.sat_state_kernel`,
+    the same numbers) while the engine's kernels are loaded; the rows are gathered as floats and
     turned into arrays once.
     """
     t_rx = epoch.t_gps
@@ -249,6 +251,7 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
     w_ie = OMEGA_IE_RADPS
     cos, sin, dist, isfinite = math.cos, math.sin, math.dist, math.isfinite
     select = store.select_with_reason
+    kern = compiled_state()
     for sat, sig in group_by_sat(epoch).items():
         sys_ = sat[0]
         if sys_ not in systems or sys_ not in SUPPORTED_SYSTEMS:
@@ -285,14 +288,22 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
                 rejected[sat] = why
                 continue
         k = orbit_constants(eph)
-        if has_p:
-            t_tx = sat_transmit_time(k, t_rx, p)
-        else:  # phase only: transmit time from the geometric range (GPS time: no satellite clock term)
-            s0 = sat_state(k, t_rx - rx_clock_bias_m / C - 0.075)
-            tau = dist(s0[:3], r0_t) / C if known else 0.075
-            t_tx = t_rx - rx_clock_bias_m / C - tau
+        if kern is not None and not k.geo:     # the same numbers, compiled
+            if has_p:
+                _, x, y, z, vx, vy, vz, dts, ddts = kern(k.vec, t_rx, p, nan)
+            else:
+                s0 = kern(k.vec, t_rx, 0.0, t_rx - rx_clock_bias_m / C - 0.075)
+                tau = dist(s0[1:4], r0_t) / C if known else 0.075
+                _, x, y, z, vx, vy, vz, dts, ddts = kern(k.vec, t_rx, 0.0, t_rx - rx_clock_bias_m / C - tau)
+        else:
+            if has_p:
+                t_tx = sat_transmit_time(k, t_rx, p)
+            else:  # phase only: transmit time from the geometric range (GPS time: no satellite clock term)
+                s0 = sat_state(k, t_rx - rx_clock_bias_m / C - 0.075)
+                tau = dist(s0[:3], r0_t) / C if known else 0.075
+                t_tx = t_rx - rx_clock_bias_m / C - tau
+            x, y, z, vx, vy, vz, dts, ddts = sat_state(k, t_tx)
         # geometric travel time, two iterations (the first from the unrotated position)
-        x, y, z, vx, vy, vz, dts, ddts = sat_state(k, t_tx)
         a = w_ie * (dist((x, y, z), r0_t) / C)
         c, s = cos(a), sin(a)
         tau = dist((c * x + s * y, -s * x + c * y, z), r0_t) / C

@@ -13,7 +13,8 @@ nothing exact to share between the two receivers' states; what they share is the
 The constants are a pure function of the ephemeris: a cache hit and a recomputation give the same
 numbers, so the cache cannot change a result (replays stay bit for bit).  It is keyed by object
 identity and holds the ephemeris itself (an identity cannot be reused while it is held); it is
-bounded (:data:`MAX_CACHED`: cleared when full).
+bounded (:data:`MAX_CACHED`: cleared when full).  :mod:`.sat_state_kernel` is the same state
+compiled, which :func:`companion.gnss.prepare.prepare_epoch` calls when the engine's kernels run.
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ import numpy as np
 
 from ..messages import SPEED_OF_LIGHT_MPS, GpsEphemeris
 from .ephemeris import _GM_OMEGA, REL_F, _beidou_geo_to_ecef, is_beidou_geo
+from .sat_state_kernel import constants_vector
 
 #: ephemerides whose constants are kept (a day of four constellations is ~3000)
 MAX_CACHED = 4096
@@ -35,7 +37,7 @@ class OrbitConstants:
 
     __slots__ = ("eph", "t_oe", "t_oc", "a", "e", "sqrt_a", "n", "m0", "sq", "omega_e", "geo", "rel",
                  "af0", "af1", "af2", "omega_arg", "cus", "cuc", "crs", "crc", "cis", "cic", "i0", "idot",
-                 "omega0", "omega_dot", "omega_rate", "omega_e_toe")
+                 "omega0", "omega_dot", "omega_rate", "omega_e_toe", "vec")
 
     def __init__(self, eph: GpsEphemeris):
         self.eph = eph
@@ -60,6 +62,7 @@ class OrbitConstants:
         # as ephemeris.satellite_state groups them: (omega_dot - omega_e) and omega_e * toe
         self.omega_rate = eph.omega_dot_radps - omega_e
         self.omega_e_toe = omega_e * eph.toe_s
+        self.vec = constants_vector(self)       # for the compiled state (.sat_state_kernel)
 
 
 _cache: dict[int, OrbitConstants] = {}
