@@ -128,3 +128,14 @@ def compiled():
             _clock_bias = jit(_clock_bias)
             _kernel = jit(tx_state)
     return _kernel
+
+
+def warm_up() -> bool:
+    """Compile (or load from numba's disk cache) the kernel now, if the IMU kernels are loaded,
+    so that the first GNSS epoch does not pay it (~3 s cold on a loaded 2-core machine).  For
+    :func:`companion.nav.imu_kernel.warm_up`.  Returns whether the kernel is on."""
+    kern = compiled()
+    if kern is None:
+        return False
+    kern(np.zeros(len(_FIELDS)) + 1.0, 0.0, 2.0e7, math.nan)
+    return True
