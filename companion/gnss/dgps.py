@@ -71,9 +71,11 @@ class DgpsCorrector:
         self.last_prepared = prep      # reused by the engine's base-carrier bookkeeping
         for sat, why in prep.rejected.items():
             self.counters["base: " + why] += 1
-        for i, sat in enumerate(prep.sats):
-            if prep.carrier_cycles[i] == prep.carrier_cycles[i]:
-                self._phase[sat] = (t, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]))
+        sats = prep.sats
+        carrier, wavelength = prep.carrier_cycles.tolist(), prep.wavelength_m.tolist()
+        for i, sat in enumerate(sats):
+            if carrier[i] == carrier[i]:
+                self._phase[sat] = (t, carrier[i], wavelength[i])
             else:
                 self._phase.pop(sat, None)
         ok = np.isfinite(prep.pseudorange_m)
@@ -83,39 +85,53 @@ class DgpsCorrector:
         rho = np.linalg.norm(prep.r_sat_e - r_base, axis=1)
         raw = rho - prep.pseudorange_m
         w = 1.0 / prep.sigma_pseudorange_m ** 2
-        sys_of = np.array([clock_group(sat) for sat in prep.sats])
-        raw_now = {sat: float(raw[i]) for i, sat in enumerate(prep.sats) if ok[i]}
+        groups = [clock_group(sat) for sat in sats]
+        ok_l, raw_l = ok.tolist(), raw.tolist()
+        raw_now = {sat: raw_l[i] for i, sat in enumerate(sats) if ok_l[i]}
         continuing = self.t_base_gps is not None and 0.0 < t - self.t_base_gps <= CLOCK_MAX_GAP_S
         clocks: dict[str, float] = {}
-        for sys_ in dict.fromkeys(sys_of[ok]):      # each system's receiver clock (inter-system biases)
-            clocks[sys_] = self._system_clock(raw, w, ok & (sys_of == sys_), prep, raw_now, continuing, sys_)
+        one_group = len(set(groups)) == 1
+        sys_of = None if one_group else np.array(groups)
+        for sys_ in dict.fromkeys(g for g, k in zip(groups, ok_l) if k):   # each system's clock (ISBs)
+            mine = ok if one_group else ok & (sys_of == sys_)
+            clocks[sys_] = self._system_clock(raw, w, mine, prep, raw_now, continuing, sys_)
         self._raw_prev = raw_now
         self.base_clocks_m = clocks
         self.base_clock_m = next(iter(clocks.values()))
         self.t_base_gps = t
         n = 0
         new_prc = {}
-        for i, sat in enumerate(prep.sats):
-            if not ok[i]:
+        iodes, lol = prep.iode.tolist(), prep.loss_of_lock.tolist()
+        window = self.rrc_window_s + 1e-6
+        centred: dict[tuple, tuple] = {}      # (length, first time) -> (centred times, their sum of squares)
+        for i, sat in enumerate(sats):
+            if not ok_l[i]:
                 continue
-            prc = float(raw[i] - clocks[clock_group(sat)])
-            iode = int(prep.iode[i])
+            prc = raw_l[i] - clocks[groups[i]]
+            iode = iodes[i]
             h = self._hist.get(sat)
-            if h is None or (h and (h[-1][2] != iode or prep.loss_of_lock[i])):
+            if h is None or (h and (h[-1][2] != iode or lol[i])):
                 h = deque()
                 self._hist[sat] = h
             h.append((t, prc, iode))
-            while h and t - h[0][0] > self.rrc_window_s + 1e-6:
+            while h and t - h[0][0] > window:
                 h.popleft()
             rrc = 0.0
-            if len(h) >= 2:
-                # least-squares slope of PRC against time (plain floats: ~30 points, every epoch)
-                n_h = len(h)
-                tm = sum(x[0] - t for x in h) / n_h
-                pm = sum(x[1] for x in h) / n_h
-                den = sum((x[0] - t - tm) ** 2 for x in h)
+            n_h = len(h)
+            if n_h >= 2:
+                # least-squares slope of PRC against time (plain floats: ~30 points, every epoch).  A
+                # history is the run of base epochs since its satellite's last restart, so two of the
+                # same length and start have the same times: their centred times are computed once
+                key = (n_h, h[0][0])
+                ct = centred.get(key)
+                if ct is None:
+                    tm = sum([x[0] - t for x in h]) / n_h
+                    cts = [x[0] - t - tm for x in h]
+                    ct = centred[key] = (cts, sum([c ** 2 for c in cts]))
+                cts, den = ct
                 if den > 0:
-                    rrc = sum((x[0] - t - tm) * (x[1] - pm) for x in h) / den
+                    pm = sum([x[1] for x in h]) / n_h
+                    rrc = sum([c * (x[1] - pm) for c, x in zip(cts, h)]) / den
             new_prc[sat] = (t, prc, rrc, iode)
             n += 1
         for sat in list(self._hist):
@@ -130,14 +146,17 @@ class DgpsCorrector:
         use = mine & (prep.elevation_rad >= CLOCK_MIN_ELEVATION_RAD)
         if not np.any(use):
             use = mine.copy()
+        n_use = int(np.count_nonzero(use))
         for _ in range(5):
-            clk = float(np.sum(w[use] * raw[use]) / np.sum(w[use]))
+            wu = w[use]
+            clk = float(np.sum(wu * raw[use]) / np.sum(wu))
             dev = np.abs(raw - clk)
-            mad = 1.4826 * float(np.median(dev[use]))
+            mad = 1.4826 * median(dev[use].tolist())      # statistics.median: np.median's value, cheaper
             new_use = use & (dev <= max(3.0 * mad, CLOCK_OUTLIER_FLOOR_M))
-            if new_use.sum() == use.sum() or new_use.sum() < 2:
+            n_new = int(np.count_nonzero(new_use))
+            if n_new == n_use or n_new < 2:
                 break
-            use = new_use
+            use, n_use = new_use, n_new
         prev = self._raw_prev
         common = [sat for sat in raw_now if sat in prev and clock_group(sat) == sys_]
         last = self.base_clocks_m.get(sys_, float("nan"))

@@ -4,6 +4,11 @@ Selection rule (deterministic): among the satellite's ephemerides whose fit inte
 ``t_gps`` (|t - toe| <= fit_interval/2, at least :data:`MIN_FIT_INTERVAL_H` of its system: Galileo
 and BeiDou ephemerides decoded from a stream carry no fit interval), take the one with the nearest toe; ties go to the later
 toe, then the higher IODE.  Unhealthy ephemerides (health != 0) are never returned.
+
+Selections are remembered per (satellite, time, IODE) until the next ephemeris is added: the rover
+and the base epoch of the same second ask the same questions (and re-preparing an epoch asks them
+again).  A remembered answer is the one the rule gives, so it cannot change a result; the memory is
+bounded (:data:`MAX_REMEMBERED_SELECTIONS`, cleared when full).
 """
 from __future__ import annotations
 
@@ -17,6 +22,7 @@ FIT_MARGIN_S = 0.0
 #: shortest validity per system, h (RTKLIB's MAXDTOE_GAL 4 h and MAXDTOE_CMP 6 h either side of toe);
 #: GPS and QZSS use their broadcast fit interval (4 h standard)
 MIN_FIT_INTERVAL_H = {"E": 8.0, "C": 12.0}
+MAX_REMEMBERED_SELECTIONS = 1024
 
 
 class EphemerisStore:
@@ -24,6 +30,9 @@ class EphemerisStore:
 
     def __init__(self, ephemerides: Iterable[GpsEphemeris] = ()):
         self._by_sat: dict[str, list[GpsEphemeris]] = {}
+        # per satellite, beside _by_sat: (t_oe_gps, validity half-width s) of each ephemeris
+        self._windows: dict[str, list[tuple[float, float]]] = {}
+        self._selected: dict[tuple, tuple[GpsEphemeris | None, str]] = {}
         self.rejections: Counter = Counter()   # reason -> count
         for e in ephemerides:
             self.add(e)
@@ -38,6 +47,9 @@ class EphemerisStore:
                 return False
         lst.append(eph)
         lst.sort(key=lambda e: (e.t_oe_gps, e.iode))
+        min_h = MIN_FIT_INTERVAL_H.get(eph.sat[0], 0.0)
+        self._windows[eph.sat] = [(e.t_oe_gps, max(e.fit_interval_h, min_h) * 1800.0 + FIT_MARGIN_S) for e in lst]
+        self._selected.clear()
         return True
 
     def __len__(self) -> int:
@@ -54,28 +66,36 @@ class EphemerisStore:
                            ) -> tuple[GpsEphemeris | None, str]:
         """(ephemeris, '') or (None, reason) with reason in 'no ephemeris', 'unhealthy',
         'outside fit interval'.  With ``iode`` only that issue of data is considered."""
+        key = (sat, t_gps, iode)
+        hit = self._selected.get(key)
+        if hit is not None:
+            return hit
         lst = self._by_sat.get(sat)
         if not lst:
             return None, "no ephemeris"
         best = None
         best_key = None
         unhealthy = False
-        for e in lst:
+        for e, (t_oe, half_s) in zip(lst, self._windows[sat]):
             if iode is not None and e.iode != iode:
                 continue
-            dt = abs(t_gps - e.t_oe_gps)
-            if dt > max(e.fit_interval_h, MIN_FIT_INTERVAL_H.get(sat[0], 0.0)) * 1800.0 + FIT_MARGIN_S:
+            dt = abs(t_gps - t_oe)
+            if dt > half_s:
                 continue
             if e.health != 0:
                 unhealthy = True
                 continue
-            key = (dt, -e.t_oe_gps, -e.iode)
-            if best_key is None or key < best_key:
-                best, best_key = e, key
+            k = (dt, -t_oe, -e.iode)
+            if best_key is None or k < best_key:
+                best, best_key = e, k
         if best is not None:
-            return best, ""
-        reason = "unhealthy" if unhealthy else ("no ephemeris" if iode is not None else "outside fit interval")
-        return None, reason
+            out = best, ""
+        else:
+            out = None, "unhealthy" if unhealthy else ("no ephemeris" if iode is not None else "outside fit interval")
+        if len(self._selected) >= MAX_REMEMBERED_SELECTIONS:
+            self._selected.clear()
+        self._selected[key] = out
+        return out
 
     def select(self, sat: str, t_gps: float, iode: int | None = None) -> GpsEphemeris | None:
         """Best healthy ephemeris for ``sat`` at ``t_gps`` or None (the reason is counted)."""

@@ -38,10 +38,27 @@ class PhaseRecord:
     los_rate_mps: float = 0.0   # u . v_ant at that epoch: what a time-tag error did to the range
 
 
+def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products a_i . b_i of (n, 3) arrays (b may be one 3-vector): the numbers of
+    ``a[i] @ b[i]`` one row at a time (a stacked matmul is one BLAS dot per row; einsum and
+    ``a @ b`` sum in other orders, which moves results by rounding)."""
+    return np.matmul(a[:, None, :], b[..., None])[:, 0, 0]
+
+
 def _line_of_sight(r_sat_e: np.ndarray, r_ant_e: np.ndarray):
     d = r_sat_e - r_ant_e
     rho = np.sqrt(np.einsum("ij,ij->i", d, d))
     return rho, d / rho[:, None]
+
+
+def _nearest(hist, t: float):
+    """The record of ``hist`` nearest in time to ``t`` (the first of equals, as min() picks), or None."""
+    best, best_d = None, math.inf
+    for rec in hist:
+        d = abs(rec[0] - t)
+        if d < best_d:
+            best, best_d = rec, d
+    return best
 
 
 class RoverCarrierBook:
@@ -80,15 +97,20 @@ class RoverCarrierBook:
         seen = set()
         finite = np.isfinite(prep.carrier_cycles)
         if np.any(finite):
-            rho, u = _line_of_sight(prep.r_sat_e[finite], r_ant_e)
-            for j, i in enumerate(np.flatnonzero(finite)):
-                sat = prep.sats[i]
-                if bool(prep.half_cycle[i]):
+            rows = np.flatnonzero(finite)
+            rho, u = _line_of_sight(prep.r_sat_e[rows], r_ant_e)
+            v = np.asarray(v_ant_e, dtype=float)
+            los_rate = row_dot(u, v).tolist()
+            rho_l = rho.tolist()
+            carrier, wavelength = prep.carrier_cycles.tolist(), prep.wavelength_m.tolist()
+            clock, lock, half = prep.sat_clock_bias_m.tolist(), prep.lock_time_s.tolist(), prep.half_cycle.tolist()
+            t, sats = prep.t_gps, prep.sats
+            for j, i in enumerate(rows.tolist()):
+                if half[i]:
                     continue   # unresolved half-cycle: do not build on this carrier
-                self.records[sat] = PhaseRecord(prep.t_gps, float(prep.carrier_cycles[i]),
-                                                float(prep.wavelength_m[i]), float(rho[j]),
-                                                float(prep.sat_clock_bias_m[i]), u[j], float(prep.lock_time_s[i]),
-                                                float(u[j] @ v_ant_e))
+                sat = sats[i]
+                self.records[sat] = PhaseRecord(t, carrier[i], wavelength[i], rho_l[j], clock[i], u[j], lock[i],
+                                                los_rate[j])
                 seen.add(sat)
         for sat in [s for s in self.records if s not in seen]:
             del self.records[sat]
@@ -106,16 +128,22 @@ class BaseCarrierBook:
         finite = np.isfinite(prep.carrier_cycles)
         if not np.any(finite):
             return
-        rho, _ = _line_of_sight(prep.r_sat_e[finite], r_base_e)
-        for j, i in enumerate(np.flatnonzero(finite)):
-            sat = prep.sats[i]
-            hist = self.history.setdefault(sat, deque(maxlen=BASE_HISTORY_EPOCHS))
-            if prep.loss_of_lock[i] or prep.half_cycle[i]:
+        rows = np.flatnonzero(finite)
+        rho, _ = _line_of_sight(prep.r_sat_e[rows], r_base_e)
+        rho_l = rho.tolist()
+        carrier, wavelength = prep.carrier_cycles.tolist(), prep.wavelength_m.tolist()
+        clock, lol, half = prep.sat_clock_bias_m.tolist(), prep.loss_of_lock.tolist(), prep.half_cycle.tolist()
+        t, sats = prep.t_gps, prep.sats
+        for j, i in enumerate(rows.tolist()):
+            sat = sats[i]
+            hist = self.history.get(sat)
+            if hist is None:
+                hist = self.history[sat] = deque(maxlen=BASE_HISTORY_EPOCHS)
+            if lol[i] or half[i]:
                 hist.clear()
-                if prep.half_cycle[i]:
+                if half[i]:
                     continue
-            hist.append((prep.t_gps, float(prep.carrier_cycles[i]), float(prep.wavelength_m[i]),
-                         float(rho[j]), float(prep.sat_clock_bias_m[i])))
+            hist.append((t, carrier[i], wavelength[i], rho_l[j], clock[i]))
 
     def tdcp_corrections(self, t_a: float, t_b: float, tol_s: float = 0.05) -> dict[str, float]:
         """Per-satellite correction (m) of a rover TDCP over (t_a, t_b) from the base's TDCP over the
@@ -132,8 +160,7 @@ class BaseCarrierBook:
         2 cm/s and 5 ms; tests/test_engine_tdcp_pairing.py)."""
         resid = {}
         for sat, hist in self.history.items():
-            a = min(hist, key=lambda rec: abs(rec[0] - t_a), default=None)
-            b = min(hist, key=lambda rec: abs(rec[0] - t_b), default=None)
+            a, b = _nearest(hist, t_a), _nearest(hist, t_b)
             if (a is None or a is b or abs(a[0] - t_a) > tol_s or abs(b[0] - t_b) > tol_s
                     or a[2] != b[2]):
                 continue

@@ -52,7 +52,10 @@ import numpy as np
 from ..messages import GPS_L1_HZ, GPS_L2_HZ, SPEED_OF_LIGHT_MPS, GnssEpoch, SatObservation
 from ..nav.earth import OMEGA_IE_RADPS, ecef_to_geodetic
 from .atmosphere import klobuchar_delay_m, saastamoinen_zenith_m, tropo_mapping
-from .ephemeris import satellite_state, transmit_time
+from .sat_state import orbit_constants
+from .sat_state import state as sat_state
+from .sat_state import transmit_time as sat_transmit_time
+from .sat_state_kernel import compiled as compiled_state
 from .ephemeris_store import EphemerisStore
 from .signals import (IF_FIRST_SIGNALS, IF_SECOND_SIGNALS, PRIMARY_SIGNALS, SUPPORTED_SYSTEMS, frequency_hz,
                       group_delay_m, iono_free_noise_factor, is_transmitted)
@@ -185,11 +188,20 @@ def form_pseudorange(sig: dict[str, SatObservation], signal: str, system: str = 
     return o.pseudorange_m, o, (code,), ratio, ratio, 1.0
 
 
-def _rotate(r, v, tau):
-    a = OMEGA_IE_RADPS * tau
-    c, s = math.cos(a), math.sin(a)
-    return ((c * r[0] + s * r[1], -s * r[0] + c * r[1], r[2]),
-            (c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]))
+#: the numeric columns of a row of :func:`prepare_epoch`, in :class:`PreparedEpoch` field order
+_FLOAT_COLS = ("pseudorange_m", "sigma_pseudorange_m", "sat_clock_bias_m", "sat_clock_drift_mps", "carrier_cycles",
+               "wavelength_m", "doppler_hz", "cn0_dbhz", "lock_time_s", "elevation_rad", "azimuth_rad",
+               "dgps_age_s", "iono_m", "tropo_m", "sigma_pseudorange_slow_m")
+
+
+def _empty(t_rx, signal, r0, rejected) -> PreparedEpoch:
+    z = np.zeros(0)
+    return PreparedEpoch(
+        t_gps=t_rx, signal=signal, r_approx_e=r0.copy(), sats=[], r_sat_e=np.zeros((0, 3)),
+        v_sat_e=np.zeros((0, 3)), pseudorange_m=z, sigma_pseudorange_m=z, sat_clock_bias_m=z,
+        sat_clock_drift_mps=z, carrier_cycles=z, wavelength_m=z, doppler_hz=z, cn0_dbhz=z, lock_time_s=z,
+        half_cycle=np.zeros(0, bool), loss_of_lock=np.zeros(0, bool), elevation_rad=z, azimuth_rad=z,
+        iode=np.zeros(0, int), dgps_age_s=z, iono_m=z, tropo_m=z, rejected=rejected)
 
 
 def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
@@ -206,45 +218,55 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
 
     ``klobuchar``: (alpha[4], beta[4]) or None (then no iono correction standalone).
     ``apply_models=False`` applies the satellite clock only (used by the DGPS base: raw P + c*dt_sat).
+
+    The satellite states come from :mod:`.sat_state` (the expressions of :mod:`.ephemeris` in
+    plain floats, each ephemeris's constants computed once), compiled (:mod:`.sat_state_kernel`,
+    the same numbers) while the engine's kernels are loaded; the rows are gathered as floats and
+    turned into arrays once.
     """
     t_rx = epoch.t_gps
     r0 = np.asarray(r_approx_e, dtype=float)
     rx, ry, rz = float(r0[0]), float(r0[1]), float(r0[2])
+    r0_t = (rx, ry, rz)
     known = math.sqrt(rx * rx + ry * ry + rz * rz) > UNKNOWN_POSITION_NORM_M
     ztd = 0.0
     if known:
         lat, lon, h = ecef_to_geodetic(r0)
         sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
-        east = (-so, co, 0.0)
-        north = (-sl * co, -sl * so, cl)
-        up = (cl * co, cl * so, sl)
+        e0, e1 = -so, co
+        n0, n1, n2 = -sl * co, -sl * so, cl
+        u0, u1, u2 = cl * co, cl * so, sl
         if apply_models and dgps is None and tropo and -1000.0 < h < 20000.0:
             zhd, zwd = saastamoinen_zenith_m(lat, h)
             ztd = zhd + zwd
         else:
             ztd = 0.0
     rejected: dict[str, str] = {}
-    rows = []
+    sats: list[str] = []
+    rows: list[tuple] = []
     use_iono = apply_models and dgps is None and klobuchar is not None and known
     alpha, beta = (klobuchar if klobuchar is not None else (None, None))
     nan = float("nan")
+    two_pi = 2.0 * math.pi
+    w_ie = OMEGA_IE_RADPS
+    cos, sin, dist, isfinite = math.cos, math.sin, math.dist, math.isfinite
+    select = store.select_with_reason
+    kern = compiled_state()
     for sat, sig in group_by_sat(epoch).items():
         sys_ = sat[0]
         if sys_ not in systems or sys_ not in SUPPORTED_SYSTEMS:
             rejected[sat] = "system not selected" if sys_ in SUPPORTED_SYSTEMS else "unsupported system"
             continue
         p, o, codes, tgd_fac, iono_fac, code_scale = form_pseudorange(sig, signal, sys_)
-        a2 = (CODE_SIGMA_A_M * code_scale) ** 2
-        b2 = (CODE_SIGMA_B_M * code_scale) ** 2
         if o is None:
             rejected[sat] = "no pseudorange"
             continue
-        has_p = p == p and math.isfinite(p)
+        has_p = p == p and isfinite(p)
         has_l = o.carrier_cycles == o.carrier_cycles
         if not has_p and not has_l:
             rejected[sat] = "no pseudorange"
             continue
-        eph, reason = store.select_with_reason(sat, t_rx)
+        eph, reason = select(sat, t_rx)
         if eph is None:
             rejected[sat] = "no ephemeris" if reason == "outside fit interval" else reason
             continue
@@ -256,7 +278,7 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
                 rejected[sat] = "no DGPS correction"
                 continue
             if iode_c != eph.iode:
-                eph2, _ = store.select_with_reason(sat, t_rx, iode=iode_c)
+                eph2, _ = select(sat, t_rx, iode=iode_c)
                 if eph2 is None:
                     rejected[sat] = "IODE mismatch"
                     continue
@@ -265,38 +287,47 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
             if why:
                 rejected[sat] = why
                 continue
-        if has_p:
-            t_tx = transmit_time(t_rx, p, eph)
+        k = orbit_constants(eph)
+        if kern is not None and not k.geo:     # the same numbers, compiled
+            if has_p:
+                _, x, y, z, vx, vy, vz, dts, ddts = kern(k.vec, t_rx, p, nan)
+            else:
+                s0 = kern(k.vec, t_rx, 0.0, t_rx - rx_clock_bias_m / C - 0.075)
+                tau = dist(s0[1:4], r0_t) / C if known else 0.075
+                _, x, y, z, vx, vy, vz, dts, ddts = kern(k.vec, t_rx, 0.0, t_rx - rx_clock_bias_m / C - tau)
         else:
-            t_tx = None
+            if has_p:
+                t_tx = sat_transmit_time(k, t_rx, p)
+            else:  # phase only: transmit time from the geometric range (GPS time: no satellite clock term)
+                s0 = sat_state(k, t_rx - rx_clock_bias_m / C - 0.075)
+                tau = dist(s0[:3], r0_t) / C if known else 0.075
+                t_tx = t_rx - rx_clock_bias_m / C - tau
+            x, y, z, vx, vy, vz, dts, ddts = sat_state(k, t_tx)
         # geometric travel time, two iterations (the first from the unrotated position)
-        if t_tx is None:  # phase only: transmit time from the geometric range
-            r_s, v_s, dts, ddts = satellite_state(eph, t_rx - rx_clock_bias_m / C - 0.075)
-            tau = math.dist(r_s, r0) / C if known else 0.075
-            t_tx = t_rx - rx_clock_bias_m / C - tau      # GPS time: no satellite clock term here
-        r_s, v_s, dts, ddts = satellite_state(eph, t_tx)
-        tau = math.dist(r_s, r0) / C
-        rr, vv = _rotate(r_s, v_s, tau)
-        tau = math.dist(rr, r0) / C
-        rr, vv = _rotate(r_s, v_s, tau)
-        dx, dy, dz = rr[0] - rx, rr[1] - ry, rr[2] - rz
+        a = w_ie * (dist((x, y, z), r0_t) / C)
+        c, s = cos(a), sin(a)
+        tau = dist((c * x + s * y, -s * x + c * y, z), r0_t) / C
+        a = w_ie * tau
+        c, s = cos(a), sin(a)
+        rr0, rr1 = c * x + s * y, -s * x + c * y
+        dx, dy, dz = rr0 - rx, rr1 - ry, z - rz
         rho = math.sqrt(dx * dx + dy * dy + dz * dz)
         if known:
             ux, uy, uz = dx / rho, dy / rho, dz / rho
-            e_ = ux * east[0] + uy * east[1]
-            n_ = ux * north[0] + uy * north[1] + uz * north[2]
-            u_ = ux * up[0] + uy * up[1] + uz * up[2]
+            e_ = ux * e0 + uy * e1
+            n_ = ux * n0 + uy * n1 + uz * n2
+            u_ = ux * u0 + uy * u1 + uz * u2
             el = math.asin(max(-1.0, min(1.0, u_)))
-            az = math.atan2(e_, n_) % (2.0 * math.pi)
+            az = math.atan2(e_, n_) % two_pi
             if el < elevation_mask_rad:
                 rejected[sat] = "below elevation mask"
                 continue
-            sin_el = max(math.sin(el), 0.05)
+            sin_el = max(sin(el), 0.05)
         else:
             el = az = nan
             sin_el = 1.0
         iono = tro = 0.0
-        var = a2 + b2 / (sin_el * sin_el)
+        var = (CODE_SIGMA_A_M * code_scale) ** 2 + (CODE_SIGMA_B_M * code_scale) ** 2 / (sin_el * sin_el)
         var_slow = 0.0
         pr = nan
         if has_p:
@@ -319,35 +350,28 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
                 if known:
                     var_slow += (TROPO_ZENITH_ERROR_M * tropo_mapping(el)) ** 2
                 var += var_slow
-            if not math.isfinite(pr):
+            if not isfinite(pr):
                 rejected[sat] = "non-finite"
                 continue
-        if not (math.isfinite(rr[0]) and math.isfinite(dts)):
+        if not (isfinite(rr0) and isfinite(dts)):
             rejected[sat] = "non-finite"
             continue
-        rows.append((sat, rr, vv, pr, math.sqrt(var), C * dts, C * ddts, o.carrier_cycles, o.wavelength_m,
-                     o.doppler_hz, o.cn0_dbhz, o.lock_time_s, o.half_cycle_ambiguous, o.loss_of_lock,
-                     el, az, eph.iode, age, iono, tro, math.sqrt(var_slow)))
-    n = len(rows)
-    if n:
-        cols = list(zip(*rows))
-        arr = lambda k: np.array(cols[k], dtype=float)
-        return PreparedEpoch(
-            t_gps=t_rx, signal=signal, r_approx_e=r0.copy(), sats=list(cols[0]),
-            r_sat_e=np.array(cols[1], dtype=float), v_sat_e=np.array(cols[2], dtype=float),
-            pseudorange_m=arr(3), sigma_pseudorange_m=arr(4), sat_clock_bias_m=arr(5),
-            sat_clock_drift_mps=arr(6), carrier_cycles=arr(7), wavelength_m=arr(8), doppler_hz=arr(9),
-            cn0_dbhz=arr(10), lock_time_s=arr(11), half_cycle=np.array(cols[12], dtype=bool),
-            loss_of_lock=np.array(cols[13], dtype=bool), elevation_rad=arr(14), azimuth_rad=arr(15),
-            iode=np.array(cols[16], dtype=int), dgps_age_s=arr(17), iono_m=arr(18), tropo_m=arr(19),
-            rejected=rejected, sigma_pseudorange_slow_m=arr(20))
-    z = np.zeros(0)
+        sats.append(sat)
+        # the order of _FLOAT_COLS, then r_sat, v_sat, half-cycle, loss of lock, IODE
+        rows.append((pr, math.sqrt(var), C * dts, C * ddts, o.carrier_cycles, o.wavelength_m, o.doppler_hz,
+                     o.cn0_dbhz, o.lock_time_s, el, az, age, iono, tro, math.sqrt(var_slow),
+                     rr0, rr1, z, c * vx + s * vy, -s * vx + c * vy, vz,
+                     o.half_cycle_ambiguous, o.loss_of_lock, eph.iode))
+    if not rows:
+        return _empty(t_rx, signal, r0, rejected)
+    cols = np.array(rows, dtype=float).T.copy()       # one conversion; each column contiguous
+    kw = dict(zip(_FLOAT_COLS, cols))
+    nf = len(_FLOAT_COLS)
     return PreparedEpoch(
-        t_gps=t_rx, signal=signal, r_approx_e=r0.copy(), sats=[], r_sat_e=np.zeros((0, 3)),
-        v_sat_e=np.zeros((0, 3)), pseudorange_m=z, sigma_pseudorange_m=z, sat_clock_bias_m=z,
-        sat_clock_drift_mps=z, carrier_cycles=z, wavelength_m=z, doppler_hz=z, cn0_dbhz=z, lock_time_s=z,
-        half_cycle=np.zeros(0, bool), loss_of_lock=np.zeros(0, bool), elevation_rad=z, azimuth_rad=z,
-        iode=np.zeros(0, int), dgps_age_s=z, iono_m=z, tropo_m=z, rejected=rejected)
+        t_gps=t_rx, signal=signal, r_approx_e=r0.copy(), sats=sats,
+        r_sat_e=cols[nf:nf + 3].T.copy(), v_sat_e=cols[nf + 3:nf + 6].T.copy(),
+        half_cycle=cols[nf + 6] != 0.0, loss_of_lock=cols[nf + 7] != 0.0,
+        iode=np.array([r[-1] for r in rows], dtype=int), rejected=rejected, **kw)
 
 
 # ---------------------------------------------------------------------------------------------

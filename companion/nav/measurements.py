@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..gnss.phase import PhaseRecord  # noqa: F401  (re-exported: TDCP's previous-epoch record)
+from ..gnss.phase import PhaseRecord, row_dot  # PhaseRecord re-exported: TDCP's previous-epoch record
 from .earth import OMEGA_IE_RADPS, skew
 from .filter import LAYOUT, MeasurementBatch
 from .state_layout import isb_block_name, system_of
@@ -176,15 +176,18 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
     1/sin(elevation) (multipath), floored at 10 degrees.
     """
     r_ant, v_ant, _ = antenna_state(ins, lever_arm_b)
-    rows, labels, zs, rvar = [], [], [], []
-    f_cross = skew(specific_force_e) if specific_force_e is not None else None
+    # the rows: satellites with a continuous carrier and a previous record (plain Python, cheap),
+    # then every row's arithmetic at once over those satellites
+    idx, prevs, corrs = [], [], []
+    t_now = prep.t_gps
+    carrier, wavelength = prep.carrier_cycles.tolist(), prep.wavelength_m.tolist()
+    isfinite = math.isfinite
     for i, sat in enumerate(prep.sats):
         prev = previous.get(sat)
-        phi = prep.carrier_cycles[i]
-        if prev is None or not math.isfinite(phi):
+        if prev is None or not isfinite(carrier[i]):
             continue
-        T = prep.t_gps - prev.t_gps
-        if not (0.0 < T <= max_interval_s) or prep.wavelength_m[i] != prev.wavelength_m:
+        T = t_now - prev.t_gps
+        if not (0.0 < T <= max_interval_s) or wavelength[i] != prev.wavelength_m:
             continue
         corr = 0.0
         if phase_correction_m is not None:
@@ -192,33 +195,41 @@ def tdcp_batch(ins: InsPoint, prep, previous: dict[str, PhaseRecord], lever_arm_
             if c is None:
                 continue
             corr = c
-        d = prep.r_sat_e[i] - r_ant
-        rho = math.sqrt(float(d @ d))
-        u = d / rho
-        dphase_m = prep.wavelength_m[i] * (phi - prev.carrier_cycles)
-        meas = (dphase_m + prep.sat_clock_bias_m[i] - prev.sat_clock_bias_m + corr) / T
-        pred = (rho - prev.geometric_range_m) / T + ins.clock_drift_mps
-        u_mid = u + prev.los_e
-        u_mid /= math.sqrt(float(u_mid @ u_mid))
-        h = np.zeros(layout.n)
-        h[layout.vel] = -u_mid
-        h[layout.pos] = (prev.los_e - u) / T
-        h[layout.drift] = 1.0
-        # no lever-arm attitude column: see antenna_velocity_attitude_partial
-        if f_cross is not None:
-            h[layout.att] = -0.5 * T * (u_mid @ f_cross)
-            h[layout.ba] = -0.5 * T * (u_mid @ ins.C_b_e)
-        # dt_imu: the same tag error at both epochs moved both ranges by u . v_ant of their epoch
-        h[layout.toff] = (float(u @ v_ant) - prev.los_rate_mps) / T
-        rows.append(h)
-        labels.append(sat)
-        zs.append(meas - pred)
-        sig = sigma_phase_m
-        if elevation_scaling:
-            sig /= math.sin(max(float(prep.elevation_rad[i]), _TEN_DEG_RAD))
-        rvar.append(2.0 * sig * sig / (T * T) + sigma_rate_floor_mps ** 2)
-    H = np.array(rows) if rows else np.zeros((0, layout.n))
-    return MeasurementBatch("tdcp", labels, np.array(zs), H, np.array(rvar))
+        idx.append(i)
+        prevs.append(prev)
+        corrs.append(corr)
+    labels = [prep.sats[i] for i in idx]
+    m = len(idx)
+    if not m:
+        return MeasurementBatch("tdcp", labels, np.zeros(0), np.zeros((0, layout.n)), np.zeros(0))
+    # previous epoch: (t, cycles, range, clock, los rate, los x, y, z) per row
+    pv = np.array([(p.t_gps, p.carrier_cycles, p.geometric_range_m, p.sat_clock_bias_m, p.los_rate_mps,
+                    p.los_e[0], p.los_e[1], p.los_e[2]) for p in prevs], dtype=float)
+    T = t_now - pv[:, 0]
+    los_prev = pv[:, 5:8]
+    d = prep.r_sat_e[idx] - r_ant
+    rho = np.sqrt(row_dot(d, d))
+    u = d / rho[:, None]
+    dphase_m = prep.wavelength_m[idx] * (prep.carrier_cycles[idx] - pv[:, 1])
+    meas = (dphase_m + prep.sat_clock_bias_m[idx] - pv[:, 3] + np.array(corrs)) / T
+    pred = (rho - pv[:, 2]) / T + ins.clock_drift_mps
+    u_mid = u + los_prev
+    u_mid /= np.sqrt(row_dot(u_mid, u_mid))[:, None]
+    H = np.zeros((m, layout.n))
+    H[:, layout.vel] = -u_mid
+    H[:, layout.pos] = (los_prev - u) / T[:, None]
+    H[:, layout.drift] = 1.0
+    # no lever-arm attitude column: see antenna_velocity_attitude_partial
+    if specific_force_e is not None:
+        H[:, layout.att] = (-0.5 * T)[:, None] * (u_mid @ skew(specific_force_e))
+        H[:, layout.ba] = (-0.5 * T)[:, None] * (u_mid @ ins.C_b_e)
+    # dt_imu: the same tag error at both epochs moved both ranges by u . v_ant of their epoch
+    H[:, layout.toff] = (row_dot(u, v_ant) - pv[:, 4]) / T
+    sig = np.full(m, sigma_phase_m)
+    if elevation_scaling:      # math.sin: numpy's may differ from it in the last bit
+        sig = sig / np.array([math.sin(max(e, _TEN_DEG_RAD)) for e in prep.elevation_rad[idx].tolist()])
+    rvar = 2.0 * sig * sig / (T * T) + sigma_rate_floor_mps ** 2
+    return MeasurementBatch("tdcp", labels, meas - pred, H, rvar)
 
 
 def position_fix_batch(ins: InsPoint, r_fix_e: np.ndarray, cov_e: np.ndarray, lever_arm_b: np.ndarray,
