@@ -54,7 +54,26 @@ def receiver_sats(epoch: GnssEpoch, store: EphemerisStore, r_rx_e: np.ndarray, s
     """Satellite geometry and observables of one receiver's epoch (satellites with ephemerides
     and a pseudorange on the first of their signals).  ``signals``: one list for every satellite,
     or a mapping system -> list (a multi-system RTK: 'L1C' is GPS L1 C/A and Galileo E1, BeiDou is
-    placed by its B1I 'L2I')."""
+    placed by its B1I 'L2I').  :func:`transmit_states` then :func:`place_at`."""
+    return place_at(transmit_states(epoch, store, signals), r_rx_e)
+
+
+@dataclass
+class TransmitState:
+    """One satellite of one receiver's epoch at its transmit time: everything of
+    :class:`ReceiverSat` that does not depend on the receiver's position (the transmit time comes
+    from the pseudorange alone), so that the epoch can be placed at several positions
+    (:func:`place_at`) for the price of the light time and the Sagnac rotation."""
+
+    r_s: np.ndarray                 # ECEF of the transmit time (m), velocity (m/s)
+    v_s: np.ndarray
+    clock_m: float
+    fields: tuple                   # ReceiverSat's observables (dicts, not copied by place_at)
+    eph: object
+
+
+def transmit_states(epoch: GnssEpoch, store: EphemerisStore, signals) -> dict[str, TransmitState]:
+    """The position-independent part of :func:`receiver_sats` (the satellites it keeps)."""
     by_sat: dict[str, dict] = {}
     for o in epoch.observations:
         if o.signal in signals_of(signals, o.sat):
@@ -70,16 +89,25 @@ def receiver_sats(epoch: GnssEpoch, store: EphemerisStore, r_rx_e: np.ndarray, s
         t_tx = epoch.t_gps - first.pseudorange_m / SPEED_OF_LIGHT_MPS
         _, _, clk, _ = satellite_state(eph, t_tx)
         r_s, v_s, clk, _ = satellite_state(eph, t_tx - clk)
-        tau = float(np.linalg.norm(r_s - r_rx_e)) / SPEED_OF_LIGHT_MPS
-        r_rot, _ = rotate_to_reception_frame(r_s, v_s, tau)
-        out[sat] = ReceiverSat(r_rot, clk * SPEED_OF_LIGHT_MPS,
-                               {s: o.pseudorange_m for s, o in obs.items() if math.isfinite(o.pseudorange_m)},
-                               {s: o.carrier_cycles for s, o in obs.items() if math.isfinite(o.carrier_cycles)},
-                               {s: o.wavelength_m for s, o in obs.items()},
-                               {s: bool(o.loss_of_lock) for s, o in obs.items()},
-                               half_cycle={s: bool(o.half_cycle_ambiguous) for s, o in obs.items()},
-                               lock_time_s={s: float(o.lock_time_s) for s, o in obs.items()},
-                               eph=eph)
+        fields = ({s: o.pseudorange_m for s, o in obs.items() if math.isfinite(o.pseudorange_m)},
+                  {s: o.carrier_cycles for s, o in obs.items() if math.isfinite(o.carrier_cycles)},
+                  {s: o.wavelength_m for s, o in obs.items()},
+                  {s: bool(o.loss_of_lock) for s, o in obs.items()},
+                  {s: bool(o.half_cycle_ambiguous) for s, o in obs.items()},
+                  {s: float(o.lock_time_s) for s, o in obs.items()})
+        out[sat] = TransmitState(r_s, v_s, clk * SPEED_OF_LIGHT_MPS, fields, eph)
+    return out
+
+
+def place_at(states: dict[str, TransmitState], r_rx_e: np.ndarray) -> dict[str, ReceiverSat]:
+    """:func:`receiver_sats` of the receiver at ``r_rx_e``: the light time from there and the
+    rotation into the reception frame (the observables' dicts are shared, not copied)."""
+    out = {}
+    for sat, st in states.items():
+        tau = float(np.linalg.norm(st.r_s - r_rx_e)) / SPEED_OF_LIGHT_MPS
+        r_rot, _ = rotate_to_reception_frame(st.r_s, st.v_s, tau)
+        code, phase, wl, slip, half, lock = st.fields
+        out[sat] = ReceiverSat(r_rot, st.clock_m, code, phase, wl, slip, half_cycle=half, lock_time_s=lock, eph=st.eph)
     return out
 
 
@@ -122,4 +150,4 @@ def dd_covariance(var_sd: list[tuple[float, float]], groups: list[list[int]]) ->
     return R
 
 
-__all__ = ["ReceiverSat", "receiver_sats", "signals_of", "elevation_rad", "model_range_m", "sd_variance_m2", "dd_covariance"]
+__all__ = ["ReceiverSat", "TransmitState", "receiver_sats", "transmit_states", "place_at", "signals_of", "elevation_rad", "model_range_m", "sd_variance_m2", "dd_covariance"]
