@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
-from ..nav.earth import C_n_e, ecef_to_geodetic
+from ..nav.earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic
 from .atmosphere import tropo_delay_m
-from .ephemeris import rotate_to_reception_frame, satellite_state
+from .ephemeris import satellite_state
 from .ephemeris_store import EphemerisStore
 
 
@@ -101,11 +101,20 @@ def transmit_states(epoch: GnssEpoch, store: EphemerisStore, signals) -> dict[st
 
 def place_at(states: dict[str, TransmitState], r_rx_e: np.ndarray) -> dict[str, ReceiverSat]:
     """:func:`receiver_sats` of the receiver at ``r_rx_e``: the light time from there and the
-    rotation into the reception frame (the observables' dicts are shared, not copied)."""
+    rotation into the reception frame (:func:`~.ephemeris.rotate_to_reception_frame`'s, for all
+    satellites at once; the observables' dicts are shared, not copied)."""
+    if not states:
+        return {}
+    R = np.array([st.r_s for st in states.values()])
+    tau = np.sqrt(np.einsum("ij,ij->i", R - r_rx_e, R - r_rx_e)) / SPEED_OF_LIGHT_MPS
+    a = OMEGA_IE_RADPS * tau
+    c, s = np.cos(a), np.sin(a)
+    rot = np.empty_like(R)
+    rot[:, 0] = c * R[:, 0] + s * R[:, 1]
+    rot[:, 1] = -s * R[:, 0] + c * R[:, 1]
+    rot[:, 2] = R[:, 2]
     out = {}
-    for sat, st in states.items():
-        tau = float(np.linalg.norm(st.r_s - r_rx_e)) / SPEED_OF_LIGHT_MPS
-        r_rot, _ = rotate_to_reception_frame(st.r_s, st.v_s, tau)
+    for (sat, st), r_rot in zip(states.items(), rot):
         code, phase, wl, slip, half, lock = st.fields
         out[sat] = ReceiverSat(r_rot, st.clock_m, code, phase, wl, slip, half_cycle=half, lock_time_s=lock, eph=st.eph)
     return out
