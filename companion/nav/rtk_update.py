@@ -255,7 +255,8 @@ class RtkUpdate:
             self.counters["rtk epochs without a base epoch"] += 1
             return None
         if b[2] is None:
-            b[2] = receiver_sats(b[1], eng.ephemerides, eng.base.r_e, self.sig)
+            # the base's satellites from the rover's orbits where their transmit times agree
+            b[2] = place_at(transmit_states(b[1], eng.ephemerides, self.sig, near=states), eng.base.r_e)
         sb = b[2]
         if sr is None:
             sr = (place_at(states, r_ant_e) if states is not None
