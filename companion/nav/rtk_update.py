@@ -61,8 +61,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..gnss.atmosphere import tropo_delay_m
-from ..gnss.double_difference import model_range_m, place_at, receiver_sats, sd_variance_m2, transmit_states
+from ..gnss.atmosphere import saastamoinen_zenith_m
+from ..gnss.double_difference import place_at, receiver_sats, sd_variance_m2, transmit_states
 from ..rtk_signals import signals_for_system
 from ..gnss.lambda_kernel import lambda_ils      # compiled when numba is there, same results
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
@@ -230,8 +230,8 @@ class RtkUpdate:
             sr0 = [q for sat, q in sr.items() if sat[:1] == sys0]
             if len(sr0) >= 2:
                 p0 = self.sig[sys0][0]
-                bias_m = float(np.median([q.code_m[p0] - model_range_m(r_ant_e, q)[0]
-                                          for q in sr0 if p0 in q.code_m]))
+                sr0 = [q for q in sr0 if p0 in q.code_m]
+                bias_m = float(np.median(np.array([q.code_m[p0] for q in sr0]) - _model_ranges_m(r_ant_e, sr0)[0]))
                 if math.isfinite(bias_m):
                     r_ant_e = r_ant_e - v_ant_e * (bias_m / SPEED_OF_LIGHT_MPS)
                     sr = None
@@ -261,23 +261,23 @@ class RtkUpdate:
         if sr is None:
             sr = (place_at(states, r_ant_e) if states is not None
                   else receiver_sats(epoch, eng.ephemerides, r_ant_e, self.sig))
-        llh_r = ecef_to_geodetic(r_ant_e)
-        llh_b = ecef_to_geodetic(eng.base.r_e)
-        up_r = _up(llh_r)
-        up_b = _up(llh_b)
-        mask = math.radians(cfg.elevation_mask_deg)
-        model_r, model_b, common = {}, {}, []
+        cand = []
         for sat in sorted(set(sr) & set(sb)):
             if sr[sat].eph is not sb[sat].eph:
                 self.counters["rtk satellite skipped: base and rover ephemerides differ"] += 1
                 continue
-            mr = _model_range_m(r_ant_e, sr[sat], llh_r, up_r)
-            el = math.asin(max(-1.0, min(1.0, float(mr[1] @ up_r))))
-            if el < mask:
-                continue
-            sr[sat].elevation_rad = el
-            model_r[sat] = mr
-            model_b[sat] = _model_range_m(eng.base.r_e, sb[sat], llh_b, up_b)
+            cand.append(sat)
+        model_r, model_b, common = {}, {}, []
+        if not cand:
+            return epoch.t_gps, common, sr, sb, model_r, model_b
+        rho_r, U_r, el_r = _model_ranges_m(r_ant_e, [sr[q] for q in cand])
+        above = np.flatnonzero(el_r >= math.radians(cfg.elevation_mask_deg))
+        cand = [cand[i] for i in above]
+        rho_b, U_b, _ = _model_ranges_m(eng.base.r_e, [sb[q] for q in cand])
+        for k, (i, sat) in enumerate(zip(above, cand)):
+            sr[sat].elevation_rad = float(el_r[i])
+            model_r[sat] = (float(rho_r[i]), U_r[i])
+            model_b[sat] = (float(rho_b[k]), U_b[k])
             common.append(sat)
         return epoch.t_gps, common, sr, sb, model_r, model_b
 
@@ -670,13 +670,24 @@ def _up(llh) -> np.ndarray:
     return -C_n_e(llh[0], llh[1])[:, 2]
 
 
-def _model_range_m(r_rx_e: np.ndarray, sat, llh, up: np.ndarray) -> tuple[float, np.ndarray]:
-    """:func:`~companion.gnss.double_difference.model_range_m` with the receiver's up vector
-    given (the same operations, without a rotation matrix per satellite)."""
-    d = sat.r_sat_e - r_rx_e
-    rho = float(np.linalg.norm(d))
-    el = max(math.asin(float(up @ d) / rho), _ONE_DEG_RAD)
-    return rho + tropo_delay_m(llh[0], llh[2], el) - sat.clock_m, d / rho
+def _model_ranges_m(r_rx_e: np.ndarray, sats: list):
+    """:func:`~companion.gnss.double_difference.model_range_m` of several satellites at once
+    (rho + troposphere - satellite clock, unit lines of sight), and their elevations (rad): the
+    receiver's zenith delay once, the mapping per satellite (as ``tropo_delay_m``)."""
+    llh = ecef_to_geodetic(r_rx_e)
+    up = _up(llh)
+    d = np.array([q.r_sat_e for q in sats]) - r_rx_e
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    U = d / rho[:, None]
+    sin_el = U @ up
+    el = np.arcsin(np.clip(sin_el, -1.0, 1.0))
+    tropo = np.zeros(len(sats))
+    if -1000.0 <= llh[2] <= 20000.0:
+        zhd, zwd = saastamoinen_zenith_m(llh[0], llh[2])
+        s = np.sin(np.maximum(el, _ONE_DEG_RAD))      # elevation floored at 1 deg, as model_range_m
+        tropo = (zhd + zwd) * (1.001 / np.sqrt(0.002001 + s * s))
+    clock = np.array([q.clock_m for q in sats])
+    return rho + tropo - clock, U, el
 
 
 _ONE_DEG_RAD = math.radians(1.0)
