@@ -96,43 +96,45 @@ def reduce_inverse(L, D, two):
     transformation of Z's column j by column i adds row j to row i of ``Z^-1``, a permutation of
     columns swaps its rows), so that the candidates go back to the original ambiguities as
     ``Z^-T z`` in exact integer arithmetic instead of a linear solve.  Z, L and D exactly
-    :func:`reduce`'s."""
+    :func:`reduce`'s; Z is kept transposed inside (its column operations on contiguous rows) and
+    L's column operations run on a transposed copy, the same arithmetic element by element."""
     n = len(D)
-    Z = np.eye(n)
+    Zt = np.eye(n)
     Zi = np.eye(n)
+    Lt = L.T.copy()
     j = k = n - 2
     while j >= 0:
         if j <= k:
             for i in range(j + 1, n):
-                mu = math.floor(L[i, j] + 0.5)
+                mu = math.floor(Lt[j, i] + 0.5)
                 if mu != 0:
                     for r in range(i, n):
-                        L[r, j] -= mu * L[r, i]
+                        Lt[j, r] -= mu * Lt[i, r]
                     for r in range(n):
-                        Z[r, j] -= mu * Z[r, i]
+                        Zt[j, r] -= mu * Zt[i, r]
                     for c in range(n):
                         Zi[i, c] += mu * Zi[j, c]
-        delta = D[j] + L[j + 1, j] ** two * D[j + 1]
+        delta = D[j] + Lt[j, j + 1] ** two * D[j + 1]
         if delta + 1e-6 < D[j + 1]:
             eta = D[j] / delta
-            lam = D[j + 1] * L[j + 1, j] / delta
+            lam = D[j + 1] * Lt[j, j + 1] / delta
             D[j] = eta * D[j + 1]
             D[j + 1] = delta
-            l10 = L[j + 1, j]
+            l10 = Lt[j, j + 1]
             for c in range(j):
-                a0 = L[j, c]
-                a1 = L[j + 1, c]
-                L[j, c] = -l10 * a0 + a1
-                L[j + 1, c] = eta * a0 + lam * a1
-            L[j + 1, j] = lam
+                a0 = Lt[c, j]
+                a1 = Lt[c, j + 1]
+                Lt[c, j] = -l10 * a0 + a1
+                Lt[c, j + 1] = eta * a0 + lam * a1
+            Lt[j, j + 1] = lam
             for r in range(j + 2, n):
-                t = L[r, j]
-                L[r, j] = L[r, j + 1]
-                L[r, j + 1] = t
+                t = Lt[j, r]
+                Lt[j, r] = Lt[j + 1, r]
+                Lt[j + 1, r] = t
             for r in range(n):
-                t = Z[r, j]
-                Z[r, j] = Z[r, j + 1]
-                Z[r, j + 1] = t
+                t = Zt[j, r]
+                Zt[j, r] = Zt[j + 1, r]
+                Zt[j + 1, r] = t
             for c in range(n):
                 t = Zi[j, c]
                 Zi[j, c] = Zi[j + 1, c]
@@ -141,7 +143,8 @@ def reduce_inverse(L, D, two):
             j = n - 2
         else:
             j -= 1
-    return Z, Zi
+    L[:, :] = Lt.T
+    return Zt.T.copy(), Zi
 
 
 def search(L, D, zs, m, max_loops):
