@@ -231,7 +231,8 @@ class RtkUpdate:
             if len(sr0) >= 2:
                 p0 = self.sig[sys0][0]
                 sr0 = [q for q in sr0 if p0 in q.code_m]
-                bias_m = float(np.median(np.array([q.code_m[p0] for q in sr0]) - _model_ranges_m(r_ant_e, sr0)[0]))
+                bias_m = float(np.median(np.array([q.code_m[p0] for q in sr0]) - _model_ranges_m(r_ant_e, sr0)[0])) \
+                    if sr0 else math.nan
                 if math.isfinite(bias_m):
                     r_ant_e = r_ant_e - v_ant_e * (bias_m / SPEED_OF_LIGHT_MPS)
                     sr = None
@@ -273,6 +274,8 @@ class RtkUpdate:
         rho_r, U_r, el_r = _model_ranges_m(r_ant_e, [sr[q] for q in cand])
         above = np.flatnonzero(el_r >= math.radians(cfg.elevation_mask_deg))
         cand = [cand[i] for i in above]
+        if not cand:
+            return epoch.t_gps, common, sr, sb, model_r, model_b
         rho_b, U_b, _ = _model_ranges_m(eng.base.r_e, [sb[q] for q in cand])
         for k, (i, sat) in enumerate(zip(above, cand)):
             sr[sat].elevation_rad = float(el_r[i])
