@@ -91,6 +91,62 @@ def reduce(L, D, two):
     return Z
 
 
+def reduce_inverse(L, D, two):
+    """:func:`reduce` that also returns ``Z^-1`` (kept by the inverse operations: a Gauss
+    transformation of Z's column j by column i adds row j to row i of ``Z^-1``, a permutation of
+    columns swaps its rows), so that the candidates go back to the original ambiguities as
+    ``Z^-T z`` in exact integer arithmetic instead of a linear solve.  Z, L and D exactly
+    :func:`reduce`'s; Z is kept transposed inside (its column operations on contiguous rows) and
+    L's column operations run on a transposed copy, the same arithmetic element by element."""
+    n = len(D)
+    Zt = np.eye(n)
+    Zi = np.eye(n)
+    Lt = L.T.copy()
+    j = k = n - 2
+    while j >= 0:
+        if j <= k:
+            for i in range(j + 1, n):
+                mu = math.floor(Lt[j, i] + 0.5)
+                if mu != 0:
+                    for r in range(i, n):
+                        Lt[j, r] -= mu * Lt[i, r]
+                    for r in range(n):
+                        Zt[j, r] -= mu * Zt[i, r]
+                    for c in range(n):
+                        Zi[i, c] += mu * Zi[j, c]
+        delta = D[j] + Lt[j, j + 1] ** two * D[j + 1]
+        if delta + 1e-6 < D[j + 1]:
+            eta = D[j] / delta
+            lam = D[j + 1] * Lt[j, j + 1] / delta
+            D[j] = eta * D[j + 1]
+            D[j + 1] = delta
+            l10 = Lt[j, j + 1]
+            for c in range(j):
+                a0 = Lt[c, j]
+                a1 = Lt[c, j + 1]
+                Lt[c, j] = -l10 * a0 + a1
+                Lt[c, j + 1] = eta * a0 + lam * a1
+            Lt[j, j + 1] = lam
+            for r in range(j + 2, n):
+                t = Lt[j, r]
+                Lt[j, r] = Lt[j + 1, r]
+                Lt[j + 1, r] = t
+            for r in range(n):
+                t = Zt[j, r]
+                Zt[j, r] = Zt[j + 1, r]
+                Zt[j + 1, r] = t
+            for c in range(n):
+                t = Zi[j, c]
+                Zi[j, c] = Zi[j + 1, c]
+                Zi[j + 1, c] = t
+            k = j
+            j = n - 2
+        else:
+            j -= 1
+    L[:, :] = Lt.T
+    return Zt.T.copy(), Zi
+
+
 def search(L, D, zs, m, max_loops):
     """Reference :func:`~companion.gnss.lambda_ils.search` before its final sort: (candidates
     n x m, squared norms, finished)."""
@@ -154,6 +210,7 @@ class _Compiled:
         jit = numba.njit(**jit_options(numba))
         self.ldl = jit(ldl)
         self.reduce = jit(reduce)
+        self.reduce_inverse = jit(reduce_inverse)
         self.search = jit(search)
 
 
@@ -177,11 +234,13 @@ def lambda_ils(a: np.ndarray, Q: np.ndarray, m: int = 2, max_loops: int = 100000
     L, D, ok = k.ldl(np.array(Q, dtype=float))
     if not ok:
         raise np.linalg.LinAlgError("ambiguity covariance not positive definite")
-    Z = k.reduce(L, D, 2.0)
+    Z, Zi = k.reduce_inverse(L, D, 2.0)
     zs = Z.T @ a
     zn, s, finished = k.search(L, D, zs, m, max_loops)
     if not finished:
         raise RuntimeError("LAMBDA search did not finish: ambiguity covariance too ill-conditioned")
     order = np.argsort(s)
-    F = np.linalg.solve(Z.T, zn[:, order])
+    # Z unimodular: Z^-T z is an integer vector, here exactly (the reference solves Z^T F = z and
+    # rounds, the same integers while they are far below 2^53)
+    F = Zi.T @ zn[:, order]
     return reference.IlsResult(np.round(F), s[order], reference.bootstrap_success_rate(D))

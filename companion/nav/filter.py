@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg.lapack import dpotrf as _potrf, dtrtrs as _trtrs
 from .chi2 import chi2_ppf
 
 from . import imu_kernel
@@ -371,19 +372,56 @@ class ErrorStateKalmanFilter:
         return ratio
 
     def update(self, batches: list[MeasurementBatch], reports: list[UpdateReport]) -> np.ndarray:
-        """Joseph-form update with the accepted rows of all batches at once.  Returns dx."""
-        rows_H, rows_z, rows_r = [], [], []
-        for b, rep in zip(batches, reports):
-            if rep.n_accepted:
-                rows_H.append(b.H[rep.accepted])
-                rows_z.append(b.z[rep.accepted])
-                rows_r.append(b.r_var[rep.accepted])
+        """Update with the accepted rows of all batches at once.  Returns dx.
+
+        On the columns the rows touch only (an RTK epoch's rows see the INS core and the
+        ambiguities of the signals present, not the rest of the state), with S = C C^T:
+
+            W = P H^T C^-T,   dx = W C^-1 z,   P <- P - W W^T
+
+        which is the Joseph form (:meth:`update_joseph`) for the optimal gain up to rounding, at
+        O(n^2 m) instead of O(n^3) (W W^T symmetric by construction, P symmetrised).  A diagonal that this
+        leaves negative (a cancellation the subtraction cannot afford) falls back to the
+        Joseph form, whose products of PSD terms keep it."""
+        H, z, r = _accepted_rows(batches, reports)
         n = self.layout.n
-        if not rows_H:
+        if H is None:
             return np.zeros(n)
-        H = np.vstack(rows_H)
-        z = np.concatenate(rows_z)
-        r = np.concatenate(rows_r)
+        P = self.P
+        cols = np.flatnonzero(np.any(H != 0.0, axis=0))
+        Hc = H[:, cols]
+        PHt = P[:, cols] @ Hc.T                       # (n, m)
+        S = Hc @ PHt[cols]
+        S[np.diag_indices_from(S)] += r
+        C = cholesky_lower(S)
+        # one triangular solve for C^-1 [H P | z] (LAPACK directly: scipy's wrapper costs more
+        # than the solve at these sizes)
+        B = np.empty((len(z), n + 1), order="F")
+        B[:, :n] = PHt.T
+        B[:, n] = z
+        X = solve_lower(C, B)
+        W = X[:, :n].T                                # P H^T C^-T
+        dx = W @ X[:, n]
+        if self.on_update is not None:
+            self.on_update(P, dx)
+        P_new = P - W @ W.T
+        if not np.all(np.diagonal(P_new) >= 0.0):
+            return self._joseph(H, z, r)
+        # the propagation's rounding leaves P a little asymmetric: not carried on
+        P_new += P_new.T
+        P_new *= 0.5
+        self.P = P_new
+        return dx
+
+    def update_joseph(self, batches: list[MeasurementBatch], reports: list[UpdateReport]) -> np.ndarray:
+        """The dense Joseph-form update (the reference of :meth:`update`, and its fallback)."""
+        H, z, r = _accepted_rows(batches, reports)
+        if H is None:
+            return np.zeros(self.layout.n)
+        return self._joseph(H, z, r)
+
+    def _joseph(self, H: np.ndarray, z: np.ndarray, r: np.ndarray) -> np.ndarray:
+        n = self.layout.n
         P = self.P
         PHt = P @ H.T
         S = H @ PHt
@@ -398,6 +436,43 @@ class ErrorStateKalmanFilter:
         P = IKH @ P @ IKH.T + (K * r) @ K.T
         self.P = 0.5 * (P + P.T)
         return dx
+
+
+def _accepted_rows(batches, reports):
+    """(H, z, r) of the accepted rows of all batches, (None, None, None) when there are none."""
+    rows_H, rows_z, rows_r = [], [], []
+    for b, rep in zip(batches, reports):
+        if rep.n_accepted:
+            if rep.accepted.all():
+                rows_H.append(b.H)
+                rows_z.append(b.z)
+                rows_r.append(b.r_var)
+            else:
+                rows_H.append(b.H[rep.accepted])
+                rows_z.append(b.z[rep.accepted])
+                rows_r.append(b.r_var[rep.accepted])
+    if not rows_H:
+        return None, None, None
+    if len(rows_H) == 1:
+        return rows_H[0], rows_z[0], np.asarray(rows_r[0], float)
+    return np.vstack(rows_H), np.concatenate(rows_z), np.concatenate(rows_r)
+
+
+def cholesky_lower(S: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factor of a symmetric positive definite S (its lower triangle is read);
+    LinAlgError otherwise.  LAPACK's potrf without scipy's checks."""
+    C, info = _potrf(S, lower=1, clean=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("matrix not positive definite")
+    return C
+
+
+def solve_lower(C: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """C^-1 B for a lower triangular C (LAPACK trtrs: scipy's solve_triangular, its checks aside)."""
+    X, info = _trtrs(C, B, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("singular triangular factor")
+    return X
 
 
 def _cho_factor(S):

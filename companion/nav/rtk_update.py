@@ -60,15 +60,15 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import solve_triangular
 
-from ..gnss.double_difference import dd_covariance, model_range_m, receiver_sats, sd_variance_m2
+from ..gnss.atmosphere import saastamoinen_zenith_m
+from ..gnss.double_difference import place_at, receiver_sats, sd_variance_m2, transmit_states
 from ..rtk_signals import signals_for_system
 from ..gnss.lambda_kernel import lambda_ils      # compiled when numba is there, same results
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from .chi2 import chi2_ppf
-from .earth import ecef_to_geodetic, skew
-from .filter import MeasurementBatch, UpdateReport
+from .earth import C_n_e, ecef_to_geodetic, skew
+from .filter import MeasurementBatch, UpdateReport, cholesky_lower, solve_lower
 from .measurements import antenna_state
 
 FIX_NONE, FIX_FLOAT, FIX_FIXED = "none", "float", "fixed"
@@ -123,6 +123,7 @@ class RtkEpochRows:
     sd_resid: dict            # key -> (SD residual at the INS point (m), rover LOS, ambiguity (cycles))
     P_prior_pos: np.ndarray | None = None
     keep: np.ndarray | None = None
+    amb_cols: np.ndarray | None = None   # per phase row: state indices of (ambiguity i, reference's)
 
 
 @dataclass
@@ -219,17 +220,23 @@ class RtkUpdate:
         RTK epochs nothing else estimates it (a u-blox rover tags x.99 s, 10 ms off: 8 wrong fixes
         in 120 s at 20 m/s without this, none with it, tests/test_rtk_outputs.py)."""
         # one receiver clock for every system: the bias from the reference system's code alone
-        # (the others carry an inter-system bias of up to tens of metres)
+        # (the others carry an inter-system bias of up to tens of metres).  The satellites at
+        # their transmit times once (they depend on the pseudoranges only), placed at the
+        # antenna for the bias, then again at the antenna taken back by it
+        states = transmit_states(epoch, eng.ephemerides, self.sig)
+        sr = place_at(states, r_ant_e)
         sys0 = next(iter(self.sig), None)
-        sig0 = {sys0: self.sig[sys0]} if sys0 is not None else {}
-        sr0 = receiver_sats(epoch, eng.ephemerides, r_ant_e, sig0)
-        if len(sr0) >= 2:
-            p0 = self.sig[sys0][0]
-            bias_m = float(np.median([q.code_m[p0] - model_range_m(r_ant_e, q)[0]
-                                      for q in sr0.values() if p0 in q.code_m]))
-            if math.isfinite(bias_m):
-                r_ant_e = r_ant_e - v_ant_e * (bias_m / SPEED_OF_LIGHT_MPS)
-        obs = self.observe(eng, epoch, r_ant_e)
+        if sys0 is not None:
+            sr0 = [q for sat, q in sr.items() if sat[:1] == sys0]
+            if len(sr0) >= 2:
+                p0 = self.sig[sys0][0]
+                sr0 = [q for q in sr0 if p0 in q.code_m]
+                bias_m = float(np.median(np.array([q.code_m[p0] for q in sr0]) - _model_ranges_m(r_ant_e, sr0)[0])) \
+                    if sr0 else math.nan
+                if math.isfinite(bias_m):
+                    r_ant_e = r_ant_e - v_ant_e * (bias_m / SPEED_OF_LIGHT_MPS)
+                    sr = None
+        obs = self.observe(eng, epoch, r_ant_e, states=states, sr=sr)
         if obs is None:
             return None
         t, common, sr, sb, model_r, model_b = obs
@@ -237,35 +244,43 @@ class RtkUpdate:
         self._slip_test(eng, t, common, sr, sb, model_r, model_b)
         return self.build(eng, obs, l_e, v_ant_e, code_variance_factor)
 
-    def observe(self, eng, epoch: GnssEpoch, r_ant_e: np.ndarray):
+    def observe(self, eng, epoch: GnssEpoch, r_ant_e: np.ndarray, states=None, sr=None):
         """The rover epoch and its base epoch modelled (rover at the antenna position ``r_ant_e``):
         (t, common satellites above the mask, rover sats, base sats, rover and base models);
-        changes nothing but the base epoch's cached geometry."""
+        changes nothing but the base epoch's cached geometry.  ``states``: the rover epoch's
+        :func:`transmit_states` if known; ``sr``: the rover's satellites placed at ``r_ant_e``
+        if known."""
         cfg = self.cfg
         b = self._base_for(epoch.t_gps)
         if b is None:
             self.counters["rtk epochs without a base epoch"] += 1
             return None
         if b[2] is None:
-            b[2] = receiver_sats(b[1], eng.ephemerides, eng.base.r_e, self.sig)
+            # the base's satellites from the rover's orbits where their transmit times agree
+            b[2] = place_at(transmit_states(b[1], eng.ephemerides, self.sig, near=states), eng.base.r_e)
         sb = b[2]
-        sr = receiver_sats(epoch, eng.ephemerides, r_ant_e, self.sig)
-        llh_r = ecef_to_geodetic(r_ant_e)
-        llh_b = ecef_to_geodetic(eng.base.r_e)
-        up = _up(llh_r)
-        mask = math.radians(cfg.elevation_mask_deg)
-        model_r, model_b, common = {}, {}, []
+        if sr is None:
+            sr = (place_at(states, r_ant_e) if states is not None
+                  else receiver_sats(epoch, eng.ephemerides, r_ant_e, self.sig))
+        cand = []
         for sat in sorted(set(sr) & set(sb)):
             if sr[sat].eph is not sb[sat].eph:
                 self.counters["rtk satellite skipped: base and rover ephemerides differ"] += 1
                 continue
-            mr = model_range_m(r_ant_e, sr[sat], llh_r)
-            el = math.asin(max(-1.0, min(1.0, float(mr[1] @ up))))
-            if el < mask:
-                continue
-            sr[sat].elevation_rad = el
-            model_r[sat] = mr
-            model_b[sat] = model_range_m(eng.base.r_e, sb[sat], llh_b)
+            cand.append(sat)
+        model_r, model_b, common = {}, {}, []
+        if not cand:
+            return epoch.t_gps, common, sr, sb, model_r, model_b
+        rho_r, U_r, el_r = _model_ranges_m(r_ant_e, [sr[q] for q in cand])
+        above = np.flatnonzero(el_r >= math.radians(cfg.elevation_mask_deg))
+        cand = [cand[i] for i in above]
+        if not cand:
+            return epoch.t_gps, common, sr, sb, model_r, model_b
+        rho_b, U_b, _ = _model_ranges_m(eng.base.r_e, [sb[q] for q in cand])
+        for k, (i, sat) in enumerate(zip(above, cand)):
+            sr[sat].elevation_rad = float(el_r[i])
+            model_r[sat] = (float(rho_r[i]), U_r[i])
+            model_b[sat] = (float(rho_b[k]), U_b[k])
             common.append(sat)
         return epoch.t_gps, common, sr, sb, model_r, model_b
 
@@ -337,11 +352,9 @@ class RtkUpdate:
                 var.append(2.0 * v + sig_v2 * (t - prev[0]) ** 2)
             if len(keys) < 4:
                 continue
-            d = np.asarray(d)
-            dev = np.abs(d - np.median(d))
-            lim = np.maximum(cfg.slip_min_m, cfg.slip_sigmas * np.sqrt(var))
-            for key, bad in zip(keys, dev > lim):
-                if bad:
+            med = _median(d)
+            for key, di, vi in zip(keys, d, var):
+                if abs(di - med) > max(cfg.slip_min_m, cfg.slip_sigmas * math.sqrt(vi)):
                     a = self.amb[key]
                     self._drop_amb(eng, key)
                     sat = key[0]
@@ -353,77 +366,105 @@ class RtkUpdate:
     def build(self, eng, obs, l_e: np.ndarray, v_ant_e: np.ndarray,
               code_variance_factor: float = 1.0) -> RtkEpochRows | None:
         """DD phase and code rows (innovations at the INS point, Jacobians over the engine's
-        layout, DD covariance) of the modelled epoch ``obs`` (:meth:`observe`)."""
+        layout, DD covariance) of the modelled epoch ``obs`` (:meth:`observe`): phase rows then
+        code rows, each (system, signal) a run of rows against its reference, so that the DD
+        covariance is block diagonal, a block ``v_ref + diag(v_i)`` per run."""
         t, common, sr, sb, model_r, model_b = obs
         cfg = self.cfg
         L = eng.layout
         n = L.n
-        H_att = skew(l_e)
-        z, Hs, var_sd, kinds, labels, refs, pairs = [], [], [], [], [], {}, []
-        groups = []
+        bs = eng.block_states
+        amb = self.amb
+        sa, sb_, ratio = cfg.sigma_phase_a_m, cfg.sigma_phase_b_m, cfg.code_phase_ratio
+        var_ph = {q: sd_variance_m2(sr[q].elevation_rad, "phase", sa, sb_, ratio) for q in common}
+        refs, pairs, cols = {}, [], []
+        z_ph, z_co, lab_ph, lab_co, lam_ph, du = [], [], [], [], [], []
+        runs = []               # per (system, signal): (own SD variances, reference's), phase
         for sys, s in self._groups:
-            sats = [q for q in common if q[:1] == sys and (q, s) in self.amb]
+            sats = [q for q in common if q[:1] == sys and (q, s) in amb]
             if len(sats) < 2:
                 continue
             ref = max(sats, key=lambda q: sr[q].elevation_rad)
             refs[(sys, s)] = ref
             kref = (ref, s)
-            for kind in ("phase", "code"):
-                grp = []
-                for sat in sats:
-                    if sat == ref:
-                        continue
-                    key = (sat, s)
-                    du = model_r[sat][1] - model_r[ref][1]
-                    dd_rho = (model_r[sat][0] - model_b[sat][0]) - (model_r[ref][0] - model_b[ref][0])
-                    h = np.zeros(n)
-                    h[L.pos] = -du
-                    h[L.att] = du @ H_att
-                    h[L.toff] = du @ v_ant_e
-                    if kind == "phase":
-                        a, ar = self.amb[key], self.amb[kref]
-                        lam = a.wavelength_m
-                        obs = lam * ((sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
-                                     - (sr[ref].phase_cyc[s] - sb[ref].phase_cyc[s]))
-                        amb = float(eng.block_states[a.name][0]) - float(eng.block_states[ar.name][0])
-                        h[L.index(a.name)] = lam
-                        h[L.index(ar.name)] = -lam
-                        z.append(obs - dd_rho - lam * amb)
-                        pairs.append((key, kref))
-                    else:
-                        obs = (sr[sat].code_m[s] - sb[sat].code_m[s]) - (sr[ref].code_m[s] - sb[ref].code_m[s])
-                        z.append(obs - dd_rho)
-                    Hs.append(h)
-                    f = code_variance_factor if kind == "code" else 1.0
-                    var_sd.append(tuple(f * sd_variance_m2(sr[q].elevation_rad, kind, cfg.sigma_phase_a_m,
-                                                           cfg.sigma_phase_b_m, cfg.code_phase_ratio)
-                                        for q in (sat, ref)))
-                    kinds.append(kind)
-                    labels.append(f"{sat}-{ref} {s} {kind}")
-                    grp.append(len(z) - 1)
-                groups.append(grp)
-        if not z:
+            ar = amb[kref]
+            rr, br = sr[ref], sb[ref]
+            sd_phi_ref = rr.phase_cyc[s] - br.phase_cyc[s]
+            sd_code_ref = rr.code_m[s] - br.code_m[s]
+            rho_ref = model_r[ref][0] - model_b[ref][0]
+            u_ref = model_r[ref][1]
+            n_ref = float(bs[ar.name][0])
+            col_ref = L.index(ar.name)
+            own = []
+            for sat in sats:
+                if sat == ref:
+                    continue
+                key = (sat, s)
+                a = amb[key]
+                lam = a.wavelength_m
+                q, qb = sr[sat], sb[sat]
+                dd_rho = (model_r[sat][0] - model_b[sat][0]) - rho_ref
+                z_ph.append(lam * ((q.phase_cyc[s] - qb.phase_cyc[s]) - sd_phi_ref) - dd_rho
+                            - lam * (float(bs[a.name][0]) - n_ref))
+                z_co.append(((q.code_m[s] - qb.code_m[s]) - sd_code_ref) - dd_rho)
+                du.append(model_r[sat][1] - u_ref)
+                lam_ph.append(lam)
+                cols.append((L.index(a.name), col_ref))
+                pairs.append((key, kref))
+                lab_ph.append(f"{sat}-{ref} {s} phase")
+                lab_co.append(f"{sat}-{ref} {s} code")
+                own.append(var_ph[sat])
+            runs.append((own, var_ph[ref]))
+        if not z_ph:
             self.counters["rtk epochs without DD rows"] += 1
             return None
+        k = len(z_ph)
+        DU = np.array(du)
+        H = np.zeros((2 * k, n))
+        H[:k, L.pos] = -DU
+        H[:k, L.att] = DU @ skew(l_e)
+        H[:k, L.toff] = DU @ v_ant_e
+        H[k:, :] = H[:k, :]
+        c = np.array(cols)
+        lam = np.array(lam_ph)
+        rk = np.arange(k)
+        H[rk, c[:, 0]] = lam
+        H[rk, c[:, 1]] = -lam
+        # the DD covariance: phase runs, then the same runs for the code (x ratio^2 x factor)
+        R = np.zeros((2 * k, 2 * k))
+        code_f = ratio ** 2
+        i = 0
+        for own, v_ref in runs:
+            m = len(own)
+            for kind, off, f in (("phase", 0, None), ("code", k, code_variance_factor)):
+                blk = R[off + i:off + i + m, off + i:off + i + m]
+                if f is None:
+                    blk[...] = v_ref
+                    blk[np.diag_indices(m)] += own
+                else:
+                    blk[...] = f * (v_ref * code_f)
+                    blk[np.diag_indices(m)] = [f * (v_ref * code_f) + f * (v * code_f) for v in own]
+            i += m
         sd_resid = {}
-        for key, a in self.amb.items():
+        for key, a in amb.items():
             if key[0] in model_r:
                 sd_resid[key] = (self._sd_residual(eng, key, sr, sb, model_r, model_b), model_r[key[0]][1],
-                                 float(eng.block_states[a.name][0]))
-        order = [i for i, k in enumerate(kinds) if k == "phase"] + [i for i, k in enumerate(kinds) if k == "code"]
-        R = dd_covariance(var_sd, groups)[np.ix_(order, order)]
-        phase_pairs = pairs          # phase rows come first, in the order they were built
-        return RtkEpochRows(t, np.asarray(z)[order], np.asarray(Hs)[order], R, [kinds[i] for i in order],
-                            [labels[i] for i in order], refs, phase_pairs, sd_resid)
+                                 float(bs[a.name][0]))
+        return RtkEpochRows(t, np.array(z_ph + z_co), H, R, ["phase"] * k + ["code"] * k,
+                            lab_ph + lab_co, refs, pairs, sd_resid, amb_cols=c)
 
     # ------------------------------------------------------------------ gating and batches
     def gate(self, eng, rows: RtkEpochRows) -> tuple[list[MeasurementBatch], list[UpdateReport]]:
         """Per-row chi-square test against the predicted variance (correlations ignored for the
         test only).  A failing phase row of a held ambiguity set means a wrong fix (dropped at
         once); any other failing phase row re-initialises that satellite's ambiguity.  Returns the
-        whitened phase and code batches with their reports."""
+        whitened phase and code batches with their reports.  The products on the columns the
+        rows touch only (the INS core, the ambiguities of the signals present)."""
         P = eng.kf.P
-        S = np.einsum("ij,jk,ik->i", rows.H, P, rows.H) + np.diag(rows.R)
+        cols = np.flatnonzero(np.any(rows.H != 0.0, axis=0))
+        Hc = rows.H[:, cols]
+        Pc = P[np.ix_(cols, cols)]
+        S = np.einsum("ij,ij->i", Hc @ Pc, Hc) + np.diag(rows.R)
         ratio = rows.z ** 2 / (S * self.gate_chi2)
         ok = np.isfinite(ratio) & (ratio <= 1.0)
         phase = np.array([k == "phase" for k in rows.kinds])
@@ -456,17 +497,25 @@ class RtkUpdate:
                 self._reset_after.add(rows.amb_pairs[i][0])
         rows.keep = keep
         batches, reports = [], []
+        n = rows.H.shape[1]
+        P = eng.kf.P                  # a wrong fix of some systems widened it
+        Pc = P[np.ix_(cols, cols)]
         for kind in ("phase", "code"):
             sel = np.flatnonzero(keep & (phase if kind == "phase" else ~phase))
             if not len(sel):
                 continue
-            Rk = rows.R[np.ix_(sel, sel)]
-            C = np.linalg.cholesky(Rk)
-            zw = solve_triangular(C, rows.z[sel], lower=True)
-            Hw = solve_triangular(C, rows.H[sel], lower=True)
+            C = cholesky_lower(rows.R[np.ix_(sel, sel)])
+            B = np.empty((len(sel), len(cols) + 1), order="F")
+            B[:, :-1] = Hc[sel]
+            B[:, -1] = rows.z[sel]
+            X = solve_lower(C, B)
+            zw = X[:, -1].copy()
+            Hwc = X[:, :-1]
+            Hw = np.zeros((len(sel), n))
+            Hw[:, cols] = Hwc
             labels = [rows.labels[i] for i in sel]
             b = MeasurementBatch(f"rtk_{kind}", labels, zw, Hw, np.ones(len(sel)))
-            Sw = np.einsum("ij,jk,ik->i", Hw, P, Hw) + 1.0
+            Sw = np.einsum("ij,ij->i", Hwc @ Pc, Hwc) + 1.0
             reports.append(UpdateReport(b.kind, labels, zw, Sw, ratio[sel], np.ones(len(sel), bool), {}))
             batches.append(b)
             self.counters[f"rtk_{kind} used"] += len(sel)
@@ -500,20 +549,27 @@ class RtkUpdate:
         n_dd = len(pairs)
         if n_dd < cfg.min_fix_ambiguities:
             return self._set_status(rows.t_gps, FIX_FLOAT, math.nan, 0, n_dd)
-        T = np.zeros((n_dd, L.n))
-        for i, (k, r) in enumerate(pairs):
-            T[i, L.index(self.amb[k].name)] = 1.0
-            T[i, L.index(self.amb[r].name)] = -1.0
-        a = np.array([float(eng.block_states[self.amb[k].name][0] - eng.block_states[self.amb[r].name][0])
-                      for k, r in pairs])
+        ph = [i for i, k in enumerate(rows.kinds) if k == "phase" and keep[i]]
+        if rows.amb_cols is not None:
+            ac = rows.amb_cols[ph]
+        else:
+            ac = np.array([(L.index(self.amb[k].name), L.index(self.amb[r].name)) for k, r in pairs]).reshape(-1, 2)
+        # T (n_dd x n) maps the states to the DD ambiguities; Tc on the columns it touches
+        idx = np.unique(ac)
+        pos = np.searchsorted(idx, ac)
+        rk = np.arange(n_dd)
+        Tc = np.zeros((n_dd, len(idx)))
+        Tc[rk, pos[:, 0]] = 1.0
+        Tc[rk, pos[:, 1]] = -1.0
+        bs = eng.block_states
+        a = np.array([float(bs[self.amb[k].name][0] - bs[self.amb[r].name][0]) for k, r in pairs])
         P = eng.kf.P
-        idx = np.flatnonzero(np.any(T != 0.0, axis=0))
-        Tc = T[:, idx]
-        Qa_full = Tc @ P[np.ix_(idx, idx)] @ Tc.T
+        P_idx = P[:, idx]
+        Qa_full = Tc @ P_idx[idx] @ Tc.T
         active = list(np.argsort(-np.diag(Qa_full)))        # the least certain first out
         while len(active) >= cfg.min_fix_ambiguities:
             sel = np.array(sorted(active))
-            out = self._try(eng, rows, dx_float, T[sel], a[sel], Qa_full[np.ix_(sel, sel)])
+            out = self._try(eng, rows, dx_float, P_idx, Tc[sel], a[sel], Qa_full[np.ix_(sel, sel)])
             if out is not None:
                 res, afix = out
                 if len(sel) < n_dd:
@@ -521,7 +577,9 @@ class RtkUpdate:
                 self.counters["rtk fixed epochs"] += 1
                 if not self.held:
                     self.counters["rtk fixes (from float)"] += 1
-                self._hold(eng, T[sel], a[sel], afix)
+                T = np.zeros((len(sel), L.n))
+                T[:, idx] = Tc[sel]
+                self._hold(eng, T, a[sel], afix)
                 self.held = {pairs[i][0] for i in sel} | {pairs[i][1] for i in sel}
                 st = self._set_status(rows.t_gps, FIX_FIXED, res.ratio, len(sel), n_dd)
                 st.success_rate = res.success_rate
@@ -537,7 +595,9 @@ class RtkUpdate:
         self.status = RtkStatus(state, ratio, n_fixed, n_dd, t)
         return self.status
 
-    def _try(self, eng, rows, dx_float, T, a, Qa):
+    def _try(self, eng, rows, dx_float, P_idx, Tc, a, Qa):
+        """One LAMBDA candidate set: ``Tc`` its rows of T on the ambiguity columns ``P_idx`` (P's
+        columns there), ``Qa`` = Tc P Tc^T.  The fix validated, or None."""
         cfg = self.cfg
         try:
             res = lambda_ils(a, Qa, m=2)
@@ -550,9 +610,8 @@ class RtkUpdate:
             self.counters["rtk fixes rejected: success rate"] += 1
             return None
         afix = res.fixed[:, 0]
-        P = eng.kf.P
-        PTt = P @ T.T
-        S = T @ PTt + np.eye(len(a)) * cfg.hold_sigma_cycles ** 2
+        PTt = P_idx @ Tc.T
+        S = Qa + np.eye(len(a)) * cfg.hold_sigma_cycles ** 2
         dx_hold = PTt @ np.linalg.solve(S, afix - a)
         # the fixed phase residuals against their own noise (the pre-update rows, linear model)
         keep = rows.keep if rows.keep is not None else np.ones(len(rows.z), bool)
@@ -600,6 +659,38 @@ class RtkUpdate:
             self._resid[key] = (rows.t_gps, e_pre + float(u @ dr) - a.wavelength_m * (n_post - n_pre))
 
 
+def _median(x: list) -> float:
+    """np.median of a short list of floats, without its overhead (the same value: the middle
+    element, or the two middle ones' sum halved)."""
+    v = sorted(x)
+    if not all(map(math.isfinite, v)):
+        return float(np.median(x))
+    m = len(v) // 2
+    return v[m] if len(v) % 2 else (v[m - 1] + v[m]) / 2.0
+
+
 def _up(llh) -> np.ndarray:
-    from .earth import C_n_e
     return -C_n_e(llh[0], llh[1])[:, 2]
+
+
+def _model_ranges_m(r_rx_e: np.ndarray, sats: list):
+    """:func:`~companion.gnss.double_difference.model_range_m` of several satellites at once
+    (rho + troposphere - satellite clock, unit lines of sight), and their elevations (rad): the
+    receiver's zenith delay once, the mapping per satellite (as ``tropo_delay_m``)."""
+    llh = ecef_to_geodetic(r_rx_e)
+    up = _up(llh)
+    d = np.array([q.r_sat_e for q in sats]) - r_rx_e
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    U = d / rho[:, None]
+    sin_el = U @ up
+    el = np.arcsin(np.clip(sin_el, -1.0, 1.0))
+    tropo = np.zeros(len(sats))
+    if -1000.0 <= llh[2] <= 20000.0:
+        zhd, zwd = saastamoinen_zenith_m(llh[0], llh[2])
+        s = np.sin(np.maximum(el, _ONE_DEG_RAD))      # elevation floored at 1 deg, as model_range_m
+        tropo = (zhd + zwd) * (1.001 / np.sqrt(0.002001 + s * s))
+    clock = np.array([q.clock_m for q in sats])
+    return rho + tropo - clock, U, el
+
+
+_ONE_DEG_RAD = math.radians(1.0)
