@@ -25,7 +25,9 @@ What it does (ArduPilot-like, system 1 component 1, ``MAV_AUTOPILOT_ARDUPILOTMEG
   after each epoch) is returned only in answer to requests with RESPOND, <= 70 bytes per reply,
   more replies while full ones were sent and MULTI is set (ArduPilot ``handle_serial_control``).
   Bytes stay in the buffer only while a request with EXCLUSIVE holds the port locked: unlocked,
-  ArduPilot's own GPS driver reads them.  Ephemerides are *not* sent as RXM-SFRBX: the base station's RTCM 1019 (sitl.caster) carries them;
+  ArduPilot's own GPS driver reads them.  Every system of the sky goes out (gnssId/sigId:
+  :data:`RAWX_SIG_ID`).  Ephemerides are *not* sent as RXM-SFRBX: the base station's RTCM 1019 /
+  1046 / 1042 (sitl.caster, sitl.rtcm_eph_encode) carry them;
 * TIMESYNC: answers requests (tc1 = boot time in ns);
 * the EKF origin like ArduPilot (``GCS_MAVLINK::set_ekf_origin``): the first SET_GPS_GLOBAL_ORIGIN
   is kept (altitude in whole cm, ``altitude / 10``), later ones are ignored, GPS_GLOBAL_ORIGIN
@@ -119,18 +121,42 @@ def relposned_frame(t_gps: float, ned_m, sigma_ned_m) -> bytes:
 #: tracks L1 C/A and L2C(L) (sigId 3, RINEX L2L), not P(Y): the dual-frequency simulator's one L2
 #: observable goes out as L2C, as from an F9P
 RAWX_GPS_SIG_ID = {"L1C": 0, "L2W": 3}
+#: u-blox gnssId per system and, per simulator signal, the sigId (u-blox interface description,
+#: "Signal identifiers"): Galileo E1 C 0, E5b Q 6 (an F9P's E1/E5b); BeiDou B1I D1 0 / D2 1, B3I D1 4
+#: / D2 10 (the simulator's second BeiDou frequency is B3I; an F9P's is B2I, sigId 2/3).  D2 (the
+#: GEO navigation message) is what the GEO satellites (PRN 1-5, 59-63) broadcast.
+RAWX_GNSS_ID = {"G": 0, "E": 2, "C": 3, "J": 5}
+RAWX_SIG_ID = {"G": RAWX_GPS_SIG_ID, "E": {"L1C": 0, "L7Q": 6}, "C": {"L2I": 0, "L6I": 4},
+               "J": {"L1C": 0, "L2L": 5}}
+_BEIDOU_D2_SIG_ID = {0: 1, 4: 10}
+
+
+def _rawx_sig_id(sat: str, signal: str) -> int | None:
+    sig = RAWX_SIG_ID.get(sat[0], {}).get(signal)
+    prn = int(sat[1:])
+    if sig is not None and sat[0] == "C" and (prn <= 5 or prn >= 59):
+        sig = _BEIDOU_D2_SIG_ID[sig]
+    return sig
+
+
+def _rawx_sv_id(sat: str) -> int:
+    """UBX svId: the PRN, QZSS 193-202."""
+    return int(sat[1:]) + (192 if sat[0] == "J" else 0)
 
 
 def rawx_frame(epoch, leap_seconds: int) -> bytes:
-    """UBX RXM-RAWX for a rover GnssEpoch (GPS L1C/A, and L2 as L2C(L) when the scenario is dual
-    frequency), built with pyubx2."""
+    """UBX RXM-RAWX for a rover GnssEpoch, built with pyubx2: every system of :data:`RAWX_SIG_ID`
+    (GPS L1C/A, and L2 as L2C(L) when the scenario is dual frequency; Galileo, BeiDou, QZSS on
+    their signals), GPS first as before."""
     from pyubx2 import GET, UBXMessage
     week = int(epoch.t_gps // SECONDS_PER_WEEK)
     tow = epoch.t_gps - week * SECONDS_PER_WEEK
     kw = {}
     n = 0
-    for o in epoch.observations:
-        if not o.sat.startswith("G") or o.signal not in RAWX_GPS_SIG_ID:
+    order = sorted(epoch.observations, key=lambda o: "GECJ".find(o.sat[0]) % 5)   # stable: GPS first
+    for o in order:
+        sig = _rawx_sig_id(o.sat, o.signal)
+        if sig is None:
             continue
         n += 1
         s = f"_{n:02d}"
@@ -139,7 +165,8 @@ def rawx_frame(epoch, leap_seconds: int) -> bytes:
         kw.update({f"prMes{s}": o.pseudorange_m if pr_ok else 0.0,
                    f"cpMes{s}": o.carrier_cycles if cp_ok else 0.0,
                    f"doMes{s}": o.doppler_hz if math.isfinite(o.doppler_hz) else 0.0,
-                   f"gnssId{s}": 0, f"svId{s}": int(o.sat[1:]), f"sigId{s}": RAWX_GPS_SIG_ID[o.signal], f"freqId{s}": 0,
+                   f"gnssId{s}": RAWX_GNSS_ID[o.sat[0]], f"svId{s}": _rawx_sv_id(o.sat), f"sigId{s}": sig,
+                   f"freqId{s}": 0,
                    f"locktime{s}": int(min(64500, max(0, round((o.lock_time_s if math.isfinite(o.lock_time_s) else 0) * 1000)))),
                    f"cno{s}": int(max(0, min(255, round(o.cn0_dbhz if math.isfinite(o.cn0_dbhz) else 0)))),
                    f"prStdev{s}": 5, f"cpStdev{s}": 2, f"doStdev{s}": 4,
