@@ -4,6 +4,7 @@ sky, decoded back by the companion's own decoders, and a short live flight that 
 from __future__ import annotations
 
 import dataclasses
+import io
 import math
 
 import pytest
@@ -55,7 +56,7 @@ def test_msm7_of_every_system_decodes_to_one_base_epoch(gec):
     enc = MultiMsm7Encoder(scn.base_station_id, "GEC")
     dec = RtcmDecoder(week_hint=lambda: scn.t0_gps)
     frames = [enc.encode(ep) for ep in sim.base_epochs[:3]]
-    ids = [m.identity for _raw, m in RTCMReader(__import__("io").BytesIO(frames[0]))]
+    ids = [m.identity for _raw, m in RTCMReader(io.BytesIO(frames[0]))]
     assert ids == ["1077", "1097", "1127"]
     out = [m for fr in frames for m in dec.feed(fr)]
     assert len(out) == 3 and dec.counters.get("epoch_incomplete", 0) == 0, dec.counters
