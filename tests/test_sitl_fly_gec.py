@@ -128,3 +128,45 @@ def test_rtk_gec_flight_fixes_on_every_system_through_the_service(tmp_path):
     from sitl.fly import _fix_states_by_boot_us
     n_fixed = max(n for _st, n in _fix_states_by_boot_us(r["field_log_dir"]).values())
     assert n_fixed > 12, n_fixed
+
+
+def _rawx_pyubx2(epoch, leap_seconds: int) -> bytes:
+    """The reference: the RXM-RAWX sitl.autopilot built with pyubx2 1.4 before (the same keywords; pyubx2
+    ignores version and the std-dev names, which it calls prStd etc., and writes 0 there)."""
+    from pyubx2 import GET, UBXMessage
+    from companion.messages import SECONDS_PER_WEEK
+    from sitl.autopilot import RAWX_GNSS_ID, _rawx_sig_id, _rawx_sv_id
+    week = int(epoch.t_gps // SECONDS_PER_WEEK)
+    kw, n = {}, 0
+    for o in sorted(epoch.observations, key=lambda o: "GECJ".find(o.sat[0]) % 5):
+        sig = _rawx_sig_id(o.sat, o.signal)
+        if sig is None:
+            continue
+        n += 1
+        s = f"_{n:02d}"
+        pr_ok, cp_ok = math.isfinite(o.pseudorange_m), math.isfinite(o.carrier_cycles)
+        lock = o.lock_time_s if math.isfinite(o.lock_time_s) else 0
+        kw.update({f"prMes{s}": o.pseudorange_m if pr_ok else 0.0, f"cpMes{s}": o.carrier_cycles if cp_ok else 0.0,
+                   f"doMes{s}": o.doppler_hz if math.isfinite(o.doppler_hz) else 0.0,
+                   f"gnssId{s}": RAWX_GNSS_ID[o.sat[0]], f"svId{s}": _rawx_sv_id(o.sat), f"sigId{s}": sig,
+                   f"freqId{s}": 0, f"locktime{s}": int(min(64500, max(0, round(lock * 1000)))),
+                   f"cno{s}": int(max(0, min(255, round(o.cn0_dbhz if math.isfinite(o.cn0_dbhz) else 0)))),
+                   f"prStdev{s}": 5, f"cpStdev{s}": 2, f"doStdev{s}": 4, f"prValid{s}": int(pr_ok),
+                   f"cpValid{s}": int(cp_ok), f"halfCyc{s}": int(cp_ok and not o.half_cycle_ambiguous),
+                   f"subHalfCyc{s}": 0})
+    return UBXMessage("RXM", "RXM-RAWX", GET, rcvTow=epoch.t_gps - week * SECONDS_PER_WEEK, week=week,
+                      leapS=leap_seconds, numMeas=n, leapSec=1, version=1, **kw).serialize()
+
+
+def test_packed_rawx_is_byte_for_byte_pyubx2s(gec):
+    """The struct-packed RXM-RAWX equals pyubx2's, also with invalid code / carrier, a half-cycle
+    ambiguous carrier and no Doppler."""
+    from sitl.autopilot import rawx_frame
+    _, sim = gec
+    ep = sim.rover_epochs[2]
+    obs = list(ep.observations)
+    obs[0] = dataclasses.replace(obs[0], pseudorange_m=math.nan)
+    obs[1] = dataclasses.replace(obs[1], carrier_cycles=math.nan, doppler_hz=math.nan)
+    obs[2] = dataclasses.replace(obs[2], half_cycle_ambiguous=True, lock_time_s=100.0)
+    for e in (ep, dataclasses.replace(ep, observations=tuple(obs))):
+        assert rawx_frame(e, 13) == _rawx_pyubx2(e, 13)
