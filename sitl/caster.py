@@ -13,10 +13,14 @@ cross-checked by decoding them back with :class:`companion.io.rtcm.RtcmDecoder` 
   referenced to the *quantised* pseudorange so that its 0.5 mm resolution survives; its integer
   cycle offset (DF012 only spans +-262 m) is chosen per satellite at the first epoch of a lock and
   kept constant (the decoder's roll-over logic does the rest), so time-differenced carrier is exact;
-* or, with ``observations='msm7'`` (the dual-frequency ``rtk`` scenario), **1077** GPS MSM7 L1 C/A
-  and L2 (as 2W and 2X) with Doppler: :class:`sitl.rtcm_msm.Msm7Encoder`;
-* **1019** GPS ephemerides (the ephemerides go to the companion this way instead of as UBX
-  RXM-SFRBX subframes from the rover: simpler and documented in :mod:`sitl.autopilot`).
+* or, with ``observations='msm7'`` (the dual-frequency ``rtk`` scenarios, and any sky beyond GPS),
+  **1077** GPS MSM7 L1 C/A and L2 (as 2W and 2X) with Doppler, and for a multi-GNSS sky also
+  **1097** Galileo (E1 1C, E5b 7Q) and **1127** BeiDou (B1I 2I, B3I 6I), one epoch's frames back
+  to back with the multiple-message bit: :class:`sitl.rtcm_msm.MultiMsm7Encoder`;
+* **1019** GPS, **1046** Galileo I/NAV and **1042** BeiDou ephemerides
+  (:mod:`sitl.rtcm_eph_encode`; the ephemerides go to the companion this way instead of as UBX
+  RXM-SFRBX subframes from the rover: simpler, and what a multi-GNSS base or caster sends;
+  documented in :mod:`sitl.autopilot`).
 
 Serving
 -------
@@ -267,9 +271,11 @@ class RtcmSource(RtcmServer):
         self.base, self.clock = base, clock
         self.latency_s = latency_s
         self.station_interval_s, self.ephemeris_interval_s = station_interval_s, ephemeris_interval_s
-        if observations == "msm7":        # L1 + L2 with Doppler (sitl.rtcm_msm; the rtk scenario)
-            from .rtcm_msm import Msm7Encoder
-            self.enc = Msm7Encoder(base.station_id)
+        if observations == "msm7":        # two frequencies with Doppler, every system (sitl.rtcm_msm)
+            from .rtcm_msm import MultiMsm7Encoder
+            systems = "".join(sorted({o.sat[0] for ep in self.epochs[:1] for o in ep.observations}
+                                     | {e.sat[0] for e in self.ephemerides})) or "G"
+            self.enc = MultiMsm7Encoder(base.station_id, systems)
         elif observations == "1004":
             self.enc = Rtcm1004Encoder(base.station_id)
         else:
@@ -278,6 +284,7 @@ class RtcmSource(RtcmServer):
 
     async def run(self, t_end_gps: float | None = None) -> None:
         """Stream every base epoch at its simulated availability time."""
+        from .rtcm_eph_encode import encode_ephemeris
         await self.clock.started.wait()
         last_station = last_eph = -1e18
         for ep in self.epochs:
@@ -295,7 +302,12 @@ class RtcmSource(RtcmServer):
                 self.counters["frames"] += 1
             if ep.t_gps - last_eph >= self.ephemeris_interval_s:
                 for e in self.ephemerides:
-                    out += encode_1019(e)
+                    fr = encode_ephemeris(e)
+                    if fr is None:
+                        self.counters["ephemerides_not_encodable"] = self.counters.get(
+                            "ephemerides_not_encodable", 0) + 1
+                        continue
+                    out += fr
                     self.counters["frames"] += 1
                 last_eph = ep.t_gps
             out += self.enc.encode(ep)

@@ -52,6 +52,9 @@ def load_sim(scenario: str, seed: int, duration_s: float | None, imu_rate_hz: fl
     if imu_rate_hz is not None and float(imu_rate_hz) != scn.imu.rate_hz:
         scn = dataclasses.replace(scn, imu=dataclasses.replace(scn.imu, rate_hz=float(imu_rate_hz)))
         rate_tag = f"-imu{float(imu_rate_hz):g}"
+    if getattr(scn, "systems", "G") != "G":        # a moved sky's revision: no stale pickle of an older one
+        from .sky_multignss import SKY_REVISION
+        rate_tag += f"-sky{SKY_REVISION}"
     key = CACHE_DIR / f"{scenario}-s{seed}-d{scn.duration_s:g}{rate_tag}.pkl"
     try:
         with key.open("rb") as fh:
@@ -514,7 +517,8 @@ async def fly(scenario: str = "uav", duration_s: float = 120.0, speedup: float =
                 base_epochs = [e for e in base_epochs
                                if not base_outage_s[0] <= e.t_gps - t_b0 < base_outage_s[1]]
             src = RtcmSource(base_epochs, sim.ephemerides, sim.base, clock,
-                             observations="msm7" if sim.scenario.dual_frequency else "1004")
+                             observations="msm7" if sim.scenario.dual_frequency
+                             or getattr(sim.scenario, "systems", "G") != "G" else "1004")
             src_port = await src.start()
             if caster_factory is not None:
                 caster = await caster_factory(src_port, out)
@@ -716,7 +720,7 @@ def cmd_fly(args) -> int:
     return 0 if res["estimates_received"] else 1
 
 
-#: the rtk scenario's 30-s outage moved into a flight too short for its own (130-160 s): after the
+#: the rtk (and rtk-gec) scenario's 30-s outage moved into a flight too short for its own (130-160 s): after the
 #: first slip (60 s), swallowing the second (95 s), 20 s left to re-fix in a 120-s flight
 RTK_FLY_OUTAGE_S = (70.0, 100.0)
 
@@ -726,7 +730,7 @@ def _rover_outage(args):
     RTK_FLY_OUTAGE_S (the acceptance asks for a re-fix after a 30-s outage within 120 s)."""
     if args.rover_outage is not None:
         return tuple(args.rover_outage) if args.rover_outage[1] > args.rover_outage[0] else None
-    if args.scenario == "rtk":
+    if args.scenario in ("rtk", "rtk-gec"):
         from .scenario import RTK_OUTAGE_S
         if args.duration < RTK_OUTAGE_S[1] + 10.0:
             return RTK_FLY_OUTAGE_S
@@ -761,7 +765,8 @@ def register(subparsers) -> None:
                    help="from T_S on, unit UNIT's x gyro reads BIAS_RADPS too much (repeatable)")
     p.add_argument("--rover-outage", type=float, nargs=2, metavar=("START_S", "END_S"),
                    help="the rover receiver outputs nothing from START_S to END_S of the flight (0 0: none); "
-                        f"default for the rtk scenario when the flight ends before its own 130-160 s outage: "
+                        f"default for the rtk and rtk-gec scenarios when the flight ends before their own "
+                        f"130-160 s outage: "
                         f"{RTK_FLY_OUTAGE_S[0]:g} {RTK_FLY_OUTAGE_S[1]:g}")
     p.set_defaults(func=cmd_fly)
 

@@ -1,5 +1,5 @@
-"""RTCM 3 MSM4 (GPS: message 1074) and MSM7 (1077, L1 + L2) from a simulated base epoch, RTCM
-10403.3 3.5.12.
+"""RTCM 3 MSM4 (GPS: message 1074) and MSM7 (GPS 1077 L1 + L2, Galileo 1097 E1 + E5b, BeiDou
+1127 B1I + B3I) from a simulated base epoch, RTCM 10403.3 3.5.12.
 
 MSM4 is what a u-blox base sends by default (with 1005): pseudorange, carrier phase range, lock
 time and C/N0 per satellite and signal, no Doppler.  Written with :class:`sitl.caster.BitWriter`
@@ -113,51 +113,79 @@ def lock_indicator_df407(lock_s: float) -> int:
 
 #: RTCM GPS MSM signal ids (RTCM 10403.3 table 3.5-91) of the codes the simulator's signals go out as
 GPS_MSM_SIGNAL_ID = {"1C": 2, "1P": 3, "1W": 4, "2C": 8, "2P": 9, "2W": 10, "2S": 15, "2L": 16, "2X": 17}
+#: Galileo (table 3.5-99) and BeiDou (3.5-108) MSM signal ids of the codes used here
+GALILEO_MSM_SIGNAL_ID = {"1C": 2, "1B": 4, "1X": 5, "7I": 14, "7Q": 15, "7X": 16, "5I": 22, "5Q": 23, "5X": 24}
+BEIDOU_MSM_SIGNAL_ID = {"2I": 2, "2X": 4, "6I": 8, "6X": 10, "7I": 14, "7X": 16}
+#: per system: MSM7 message number, signal ids, the code whose pseudorange gives the rough range,
+#: the simulator signals -> RTCM codes by default, highest PRN, system time - GPS time (s)
+MSM7_SYSTEMS = {
+    "G": (1077, GPS_MSM_SIGNAL_ID, "1C", {"L1C": ("1C",), "L2W": ("2W", "2X")}, 32, 0.0),
+    "E": (1097, GALILEO_MSM_SIGNAL_ID, "1C", {"L1C": ("1C",), "L7Q": ("7Q",)}, 36, 0.0),
+    "C": (1127, BEIDOU_MSM_SIGNAL_ID, "2I", {"L2I": ("2I",), "L6I": ("6I",)}, 63, -14.0),
+}
 MSM7_FINE_PR_LSB_MS = 2.0 ** -29
 MSM7_FINE_PH_LSB_MS = 2.0 ** -31
 MSM7_FINE_RATE_LSB_MPS = 1e-4
 
 
 class Msm7Encoder:
-    """Stateful GPS MSM7 (1077) encoder: L1 C/A and L2 per satellite, with Doppler (rough range
-    rate per satellite from L1, fine rate per cell where the cell's signal has a Doppler).
+    """Stateful MSM7 encoder of one system (``system`` 'G': 1077, 'E': 1097, 'C': 1127): two
+    frequencies per satellite, with Doppler (rough range rate per satellite from the first
+    frequency, fine rate per cell where the cell's signal has a Doppler).
 
-    ``codes``: simulator signal -> the RTCM codes it is sent as.  Default: L1C as ``1C``; the
+    ``codes``: simulator signal -> the RTCM codes it is sent as.  GPS default: L1C as ``1C``; the
     simulator's one L2 observable as ``2W`` and ``2X``, like a geodetic CORS that tracks both
     L2 P(Y) and L2C (the simulator has no quarter cycle between them; a u-blox rover reports L2C
-    only, so the companion must pair its L2L with the 2X cell and never with 2W).  Each (satellite,
-    code) keeps its own carrier reference while locked (:class:`sitl.caster.CarrierReference`)."""
+    only, so the companion must pair its L2L with the 2X cell and never with 2W).  Galileo: E1 as
+    ``1C``, E5b as ``7Q``; BeiDou: B1I as ``2I``, B3I as ``6I`` (:data:`MSM7_SYSTEMS`).  Each
+    (satellite, code) keeps its own carrier reference while locked
+    (:class:`sitl.caster.CarrierReference`).  BeiDou's epoch time is BDT (GPS - 14 s)."""
 
-    def __init__(self, station_id: int, codes: dict | None = None):
+    def __init__(self, station_id: int, codes: dict | None = None, system: str = "G"):
         self.station_id = station_id
-        self.codes = codes if codes is not None else {"L1C": ("1C",), "L2W": ("2W", "2X")}
+        self.system = system
+        (self.message_number, self.signal_ids, self.rough_code, default_codes, self.max_prn,
+         self.time_offset_s) = MSM7_SYSTEMS[system]
+        self.codes = codes if codes is not None else default_codes
         limit = 2.0 ** -8 * LIGHT_MS_M * 0.999          # DF406 spans +-2^-8 ms, as MSM4's DF401
         self._carrier = {c: CarrierReference(limit_m=limit) for cs in self.codes.values() for c in cs}
         self._lock_restart: dict[tuple[str, str], float] = {}
 
-    def encode(self, epoch: GnssEpoch) -> bytes:
+    def has_observations(self, epoch: GnssEpoch) -> bool:
+        """Whether ``epoch`` has a satellite of this system on the rough-range signal."""
+        rough = {sig for sig, cs in self.codes.items() if self.rough_code in cs}
+        return any(o.sat[0] == self.system and o.signal in rough and math.isfinite(o.pseudorange_m)
+                   for o in epoch.observations)
+
+    def encode(self, epoch: GnssEpoch, more_follow: bool = False) -> bytes:
+        """The MSM7 frame of ``epoch``'s observations of this system; ``more_follow``: DF393 set
+        (another system's MSM of the same epoch comes next)."""
         cells: dict[int, dict[int, object]] = {}      # prn -> signal id -> observation
         code_of = {}
         for o in epoch.observations:
-            if not (o.sat.startswith("G") and 1 <= int(o.sat[1:]) <= 32 and math.isfinite(o.pseudorange_m)):
+            if not (o.sat[0] == self.system and 1 <= int(o.sat[1:]) <= self.max_prn
+                    and math.isfinite(o.pseudorange_m)):
                 continue
             for code in self.codes.get(o.signal, ()):
-                sid = GPS_MSM_SIGNAL_ID[code]
+                sid = self.signal_ids[code]
                 cells.setdefault(int(o.sat[1:]), {})[sid] = o
                 code_of[sid] = code
-        prns = sorted(p for p in cells if GPS_MSM_SIGNAL_ID["1C"] in cells[p])   # rough range from L1
+        rough_sid = self.signal_ids[self.rough_code]
+        prns = sorted(p for p in cells if rough_sid in cells[p])   # rough range from the first frequency
         sids = sorted({sid for p in prns for sid in cells[p]})
-        week = int(epoch.t_gps // SECONDS_PER_WEEK)
-        tow_ms = round((epoch.t_gps - week * SECONDS_PER_WEEK) * 1000.0)
+        t_sys = epoch.t_gps + self.time_offset_s
+        week = int(t_sys // SECONDS_PER_WEEK)
+        tow_ms = round((t_sys - week * SECONDS_PER_WEEK) * 1000.0)
         w = BitWriter()
-        w.u(12, 1077).u(12, self.station_id).u(30, tow_ms).u(1, 0).u(3, 0).u(7, 0).u(2, 1).u(2, 0).u(1, 0).u(3, 0)
+        w.u(12, self.message_number).u(12, self.station_id).u(30, tow_ms).u(1, int(more_follow)).u(3, 0).u(7, 0)
+        w.u(2, 1).u(2, 0).u(1, 0).u(3, 0)
         w.u(64, sum(1 << (64 - p) for p in prns)).u(32, sum(1 << (32 - sid) for sid in sids))
         for p in prns:
             for sid in sids:
                 w.u(1, int(sid in cells[p]))
         rough, rates, data, seen = [], [], [], set()
         for p in prns:
-            l1 = cells[p][GPS_MSM_SIGNAL_ID["1C"]]
+            l1 = cells[p][rough_sid]
             r_ms = round(l1.pseudorange_m / LIGHT_MS_M / ROUGH_LSB_MS) * ROUGH_LSB_MS
             rough.append(r_ms)
             rate = -l1.doppler_hz * l1.wavelength_m if math.isfinite(l1.doppler_hz) else math.nan
@@ -211,4 +239,18 @@ class Msm7Encoder:
         return frame(w.to_bytes())
 
 
-__all__ = ["Msm4Encoder", "Msm7Encoder", "lock_indicator_df402", "lock_indicator_df407", "GPS_MSM_SIGNAL_ID"]
+class MultiMsm7Encoder:
+    """One epoch of every system as back-to-back MSM7 frames (GPS 1077, Galileo 1097, BeiDou 1127,
+    in that order), DF393 set on all but the last -- as a multi-GNSS base sends them.  A sky with
+    GPS only gives exactly :class:`Msm7Encoder`'s 1077."""
+
+    def __init__(self, station_id: int, systems: str = "GEC"):
+        self.encoders = [Msm7Encoder(station_id, system=s) for s in "GEC" if s in systems]
+
+    def encode(self, epoch: GnssEpoch) -> bytes:
+        todo = [e for e in self.encoders if e.has_observations(epoch)] or self.encoders[:1]
+        return b"".join(e.encode(epoch, more_follow=i < len(todo) - 1) for i, e in enumerate(todo))
+
+
+__all__ = ["Msm4Encoder", "Msm7Encoder", "MultiMsm7Encoder", "lock_indicator_df402", "lock_indicator_df407",
+           "GPS_MSM_SIGNAL_ID", "GALILEO_MSM_SIGNAL_ID", "BEIDOU_MSM_SIGNAL_ID", "MSM7_SYSTEMS"]

@@ -109,7 +109,8 @@ its 0.3 m/s rate std also corrupts undifferenced TDCP range rates).
 * Sky: 'uav''s GPS (GEONET 2005) plus the real Galileo I/NAV and BeiDou D1/D2 (MEO, IGSO, GEO)
   ephemerides of a base station in Hiroshima, 2022-12-13 01:09 GPST, moved by one common time shift
   onto 2005-04-02 00:20:00 GPST (sitl.sky_multignss: the ECEF orbits at the scenario start are those
-  over Japan at the recording).  Above the 10-deg mask: GPS 7, Galileo 9, BeiDou 19.
+  over Japan 38 s after the recording's start, the shift being on a 120-s grid so that RTCM 1046 /
+  1042 carry the moved ephemerides exactly).  Above the 10-deg mask: GPS 7, Galileo 9, BeiDou 19.
 * Signals (companion.gnss.signals names): Galileo E1 'L1C' (+ E5b 'L7Q' if dual_frequency), BeiDou
   B1I 'L2I' (+ B3I 'L6I'), each with its own carrier wavelength; ionosphere (f_L1/f)^2 x the L1 delay
   (same Klobuchar truth + fluctuation as GPS); the broadcast group delays applied as prepare removes
