@@ -93,6 +93,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from .gnss.spp import spp_epoch  # noqa: E402
 from .io.mavlink import BootToGpsTime, ImuDecoder, gps_fix_from_gps_raw_int, parse_imu_stream  # noqa: E402
+from .io.mavlink_fast import DatagramParser  # noqa: E402
 from .io.rtcm import RtcmDecoder  # noqa: E402
 from .io.ubx import UbxDecoder  # noqa: E402
 from .messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix,  # noqa: E402
@@ -233,6 +234,8 @@ class NavPipeline:
         self._primary_boot_us: dict[float, int] = {}   # primary sample t_gps -> its boot time stamp
         self.parser = mavlink2.MAVLink(None)
         self.parser.robust_parsing = True
+        # logged frames (replay): the high-rate ones through the lean decoder the live link uses
+        self.frame_parser = DatagramParser(self.parser, on_error=self._mavlink_parse_error)
         self.ubx = UbxDecoder(week_hint=self._t_ref)
         self.rtcm = RtcmDecoder(week_hint=self._t_ref, leap_seconds=config.gnss.leap_seconds)
         self.engine = NavEngine(config.engine_config())
@@ -370,7 +373,7 @@ class NavPipeline:
     def _feed(self, kind: str, t_rx_ns: int, data: bytes) -> list[NavSolution]:
         if kind == "mavlink":
             try:
-                msgs = self.parser.parse_buffer(bytes(data)) or []
+                msgs = self.frame_parser.feed(bytes(data))
             except Exception:
                 self.counters["mavlink parse errors"] += 1
                 return []
@@ -387,6 +390,9 @@ class NavPipeline:
             # the receive time closes a base epoch whose last MSM frame was lost (0.3-s timeout)
             return self._feed_rtcm_messages(self.rtcm.feed(bytes(data), t_rx_ns * 1e-9))
         return []
+
+    def _mavlink_parse_error(self, exc) -> None:
+        self.counters["mavlink parse errors"] += 1
 
     def _poll_rtcm(self, t_rx_ns: int) -> list[NavSolution]:
         """A base epoch left open by a lost last frame closes on time even while no RTCM arrives."""

@@ -402,7 +402,7 @@ def _paper() -> Scenario:
     )
 
 
-def _uav(systems: str = "G") -> Scenario:
+def _uav(systems: str = "G", n_legs: int = 6) -> Scenario:
     from companion.gnss.rinex import read_rinex_nav_header_iono
 
     week = 1316
@@ -411,7 +411,7 @@ def _uav(systems: str = "G") -> Scenario:
     lat7, lon7, h7 = ecef_to_geodetic(sky.GEONET_0759_R_E)
     start = sky.GEONET_0759_R_E + C_n_e(lat7, lon7) @ np.array([-100.0, 50.0, 2.0])
     lat0, lon0, h0 = ecef_to_geodetic(start)
-    traj = survey_flight((lat0, lon0, h0), heading0_rad=math.radians(20.0))
+    traj = survey_flight((lat0, lon0, h0), heading0_rad=math.radians(20.0), n_legs=n_legs)
     duration = traj.duration_s
     ephs = sky.select_ephemerides(sky.geonet_ephemerides(), t0, t0 + duration)
     if systems != "G":
@@ -460,6 +460,14 @@ def _uav_gec() -> Scenario:
     import dataclasses
     s = _uav("GEC")
     return dataclasses.replace(s, name="uav-gec", description=s.description + ", GPS+Galileo+BeiDou")
+
+
+def _uav_hour() -> Scenario:
+    """'uav' stretched to an hour: 106 survey legs instead of 6 (a 216-m by 4.2-km strip), the same
+    sensors, sky and 30-s outage.  For long-run checks (the field log of an hour's flight)."""
+    import dataclasses
+    s = _uav(n_legs=106)
+    return dataclasses.replace(s, name="uav-1h", description=s.description + ", one hour (106 legs)")
 
 
 def _paper_nosa() -> Scenario:
@@ -604,13 +612,13 @@ def _rtk_gec() -> Scenario:
                                "(E1+E5b, B1I+B3I)")
 
 
-_BUILDERS = {"paper": _paper, "paper-nosa": _paper_nosa, "uav": _uav, "uav-gec": _uav_gec, "nhc": _nhc,
+_BUILDERS = {"paper": _paper, "paper-nosa": _paper_nosa, "uav": _uav, "uav-gec": _uav_gec, "uav-1h": _uav_hour, "nhc": _nhc,
              "nhc-skid": lambda: _nhc(skid=True), "attitude": _attitude,
              "attitude-mems": _attitude_mems, "rtk": _rtk, "rtk-gec": _rtk_gec}
 
 
 def build_scenario(name: str) -> Scenario:
-    """'paper', 'paper-nosa', 'uav', 'uav-gec', 'nhc', 'nhc-skid', 'attitude', 'attitude-mems' or
+    """'paper', 'paper-nosa', 'uav', 'uav-gec', 'uav-1h', 'nhc', 'nhc-skid', 'attitude', 'attitude-mems' or
     'rtk', 'rtk-gec' (see the module docstring)."""
     try:
         return _BUILDERS[name]()
