@@ -68,6 +68,14 @@ def sigma_major_m(P_h: np.ndarray) -> float:
     return math.sqrt(lam) if lam > 0.0 else 0.0
 
 
+def sigma_major_batch_m(P_h: np.ndarray) -> np.ndarray:
+    """:func:`sigma_major_m` of each 2x2 covariance of a stack (m, 2, 2), the same arithmetic."""
+    a, c = P_h[:, 0, 0], P_h[:, 1, 1]
+    b = 0.5 * (P_h[:, 0, 1] + P_h[:, 1, 0])
+    lam = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
+    return np.sqrt(np.maximum(lam, 0.0))
+
+
 @dataclass
 class SolutionSeparation:
     """Solution separation of one epoch's rows (see the module docstring), per row."""
@@ -159,7 +167,7 @@ class ProtectionLevel:
         ss = self.last
         if ss is None or not len(ss.threshold_m):
             return ProtectionLevels(cov, cov)
-        hpl_ss = max(float(t) + self.k_md * sigma_major_m(P_h + D) for t, D in zip(ss.threshold_m, ss.D_h))
+        hpl_ss = float(np.max(ss.threshold_m + self.k_md * sigma_major_batch_m(P_h + ss.D_h)))
         return ProtectionLevels(max(cov, hpl_ss), cov, hpl_ss, len(ss.threshold_m), self._t_gps,
                                 float(np.max(ss.test_ratio)))
 

@@ -146,6 +146,7 @@ class YawGsf:
         self._v_hist: deque = deque(maxlen=64)   # (t, v_n, v_e) of the GNSS velocities
         self.kinematic_accel_mps2 = 0.0
         self._acc = [0.0] * 7                # summed dtheta (3), dv (3), dt: plain floats at IMU rate
+        self._yaw_cache: tuple[float, float] | None = None
         self._n_steps = 0
         self.omega_b_radps = np.zeros(3)
         self.t_gps = math.nan
@@ -154,6 +155,7 @@ class YawGsf:
         """The models spread over the circle again (model 0 on the AHRS's yaw), equal weights,
         velocities to be re-initialised by the next GNSS velocity; the AHRS keeps its tilt."""
         n = self.cfg.n_models
+        self._yaw_cache = None
         yaw0 = math.atan2(self.C_b_n[1, 0], self.C_b_n[0, 0])
         self.x[:] = 0.0
         self.x[:, 2] = _wrap(yaw0 + np.arange(n) * (2.0 * math.pi / n))
@@ -193,6 +195,7 @@ class YawGsf:
         """One bank step over ``dt``: summed delta angle ``dth`` and delta velocity ``dv`` (body,
         plain floats).  The AHRS part is scalar arithmetic (see :func:`_rotation_from_vector`)."""
         cfg = self.cfg
+        self._yaw_cache = None
         fx, fy, fz = dv[0] / dt, dv[1] / dt, dv[2] / dt
         if not self.aligned:
             # level the AHRS on the accelerometer when it is near 1 g (not thrown about)
@@ -283,6 +286,7 @@ class YawGsf:
         if not (self.aligned and np.all(np.isfinite(v)) and math.isfinite(sigma_mps) and sigma_mps > 0.0):
             return False
         cfg = self.cfg
+        self._yaw_cache = None
         self.dv_since_velocity_n[:] = 0.0
         self._update_kinematic_accel(t_gps, v, sigma_mps)
         r = sigma_mps ** 2
@@ -328,6 +332,7 @@ class YawGsf:
         lw -= math.log(float(np.exp(lw).sum()))
         self.log_w = np.maximum(lw, cfg.log_weight_floor)
         self.log_w -= math.log(float(np.exp(self.log_w).sum()))
+        self._yaw_cache = None
         self.n_fusions += 1
         if self.yaw_var_rad2 < (1.0 - cfg.observed_fraction) * var_before:
             self.t_yaw_observed = t_gps
@@ -356,18 +361,27 @@ class YawGsf:
     def weights(self) -> np.ndarray:
         return np.exp(self.log_w)
 
+    def _composite(self) -> tuple[float, float]:
+        """(yaw, variance) of the bank, computed once per change of the models: the injection gate
+        asks for them several times per solution.  Every method that changes ``x``, ``P`` or
+        ``log_w`` clears the cache (``self._yaw_cache = None``)."""
+        c = self._yaw_cache
+        if c is None:
+            w = np.exp(self.log_w)
+            yaw = self.x[:, 2]
+            mean = math.atan2(float(w @ np.sin(yaw)), float(w @ np.cos(yaw)))
+            d = _wrap(yaw - mean)
+            var = float(w @ (self.P[:, 2, 2] + d * d)) if self.aligned else math.pi ** 2
+            c = self._yaw_cache = (mean, var)
+        return c
+
     @property
     def yaw_rad(self) -> float:
-        w = self.weights
-        return math.atan2(float(w @ np.sin(self.x[:, 2])), float(w @ np.cos(self.x[:, 2])))
+        return self._composite()[0]
 
     @property
     def yaw_var_rad2(self) -> float:
-        if not self.aligned:
-            return math.pi ** 2
-        w = self.weights
-        d = _wrap(self.x[:, 2] - self.yaw_rad)
-        return float(w @ (self.P[:, 2, 2] + d * d))
+        return self._composite()[1]
 
     @property
     def yaw_sigma_rad(self) -> float:
