@@ -5,7 +5,8 @@ instead: every event-loop callback is timed with ``time.thread_time_ns`` and cha
 runs (a task's name, a reader or timer callback's qualified name), the loop's passes are counted,
 and a few named methods get inclusive timers of their own (the receive path's pieces).  At exit
 the totals go to PATH as JSON: CPU seconds and calls per key, the process and main-thread CPU, and
-the other threads' (the field-log flusher) as the difference.  The timers cost ~1 us per call;
+the other threads' (the field-log flusher) as the difference, and the garbage collector's passes
+per generation (CPU, count, the longest).  The timers cost ~1 us per call;
 use the figures as a breakdown, not as the service's CPU (measure that without this).
 """
 from __future__ import annotations
@@ -87,6 +88,18 @@ def install(path: str) -> None:
         return run_once(self)
     asyncio.base_events.BaseEventLoop._run_once = _run_once
     _patch_methods()
+    import gc
+
+    def _gc(phase, info):
+        if phase == "start":
+            _state["gc_t0"] = tt()
+        else:
+            g = info["generation"]
+            dt = tt() - _state.get("gc_t0", tt())
+            _cpu[f"gc generation {g}"] += dt
+            _calls[f"gc generation {g}"] += 1
+            _state["gc_max_ns"] = max(_state.get("gc_max_ns", 0), dt)
+    gc.callbacks.append(_gc)
     atexit.register(dump)
 
 
@@ -101,6 +114,7 @@ def dump() -> None:
     out = {"wall_s": round(wall, 3), "process_cpu_s": round(proc, 3), "main_thread_cpu_s": round(main, 3),
            "other_threads_cpu_s": round(proc - main, 3), "loop_passes": _state["passes"],
            "loop_passes_per_s": round(_state["passes"] / max(wall, 1e-9), 1),
+           "gc_longest_ms": round(_state.get("gc_max_ns", 0) * 1e-6, 2),
            "by_key": {k: {"cpu_s": round(_cpu[k] * 1e-9, 4), "calls": _calls[k],
                           "pct_of_core": round(100.0 * _cpu[k] * 1e-9 / max(wall, 1e-9), 3),
                           "us_per_call": round(_cpu[k] * 1e-3 / max(_calls[k], 1), 2)} for k in keys}}
