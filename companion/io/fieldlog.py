@@ -35,7 +35,8 @@ record) + ``os.fsync``-ed together by a small background thread when the oldest 
 ``fsync_interval_s`` old (without the thread, by ``write`` when the interval since the last sync
 has elapsed), and on ``flush``/``close``.  So ``kill -9`` or a power cut loses at most the records
 of the last ``fsync_interval_s`` plus one write + fsync (the service uses 0.4 s); a normal stop
-loses nothing.  Files are created 0600 (they hold everything the vehicle received).
+loses nothing, and neither does an interpreter exit without ``close`` (an ``atexit`` hook closes
+every open writer).  Files are created 0600 (they hold everything the vehicle received).
 
 Rotation: when a file would exceed ``max_bytes`` a new file with the next sequence number is
 started; ``max_total_bytes`` caps the directory, deleting the oldest files (see FieldLogWriter).  Names are ``<stem>.<sequence:05d>.cflog``; files are created with ``O_EXCL`` and never
@@ -43,12 +44,14 @@ overwritten.  Given a directory the writer picks ``stem = fieldlog-<UTC start ti
 """
 from __future__ import annotations
 
+import atexit
 import errno
 import logging
 import os
 import struct
 import threading
 import time
+import weakref
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,6 +103,20 @@ class _NewFile:
 
 _NEW_FILE = _NewFile()
 _DISK_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
+
+
+_OPEN_WRITERS: "weakref.WeakSet[FieldLogWriter]" = weakref.WeakSet()
+
+
+@atexit.register
+def _flush_open_writers() -> None:
+    """An interpreter that exits without closing a writer (an exception nobody caught,
+    ``sys.exit`` from a callback) still writes what was queued: the flusher is a daemon thread."""
+    for w in list(_OPEN_WRITERS):
+        try:
+            w.close()
+        except Exception:       # at exit: never mask the real error
+            pass
 
 
 class FieldLogWriter:
@@ -179,6 +196,7 @@ class FieldLogWriter:
         if background_flush and self.fsync_interval_s > 0:
             self._thread = threading.Thread(target=self._flusher, name="fieldlog-flush", daemon=True)
             self._thread.start()
+        _OPEN_WRITERS.add(self)
 
     # -- files (under _io_lock) --------------------------------------------------------------
 
