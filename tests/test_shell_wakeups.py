@@ -352,3 +352,25 @@ def test_field_log_records_survive_an_exit_without_close(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=60)
     assert r.returncode != 0 and b"crash without close" in r.stderr
     assert [int.from_bytes(x.payload, "little") for x in read_field_log(tmp_path / "x")] == list(range(100))
+
+
+def test_send_fixed_packs_every_frame_on_a_signed_link():
+    async def main():
+        port = free_udp_port()
+        link, ap, transport = await _start_pair(port)
+        try:
+            sent = []
+            real = link.send
+            link.send = lambda msg: (sent.append(msg), real(msg))[1]
+            cache = {}
+            msg = M.serial_control_request(mav.SERIAL_CONTROL_DEV_GPS1, b"")
+            link.conn.mav.signing.sign_outgoing = True      # what LinkSigning.attach turns on
+            link.conn.mav.signing.secret_key = bytes(32)
+            assert link.send_fixed(msg, cache) and sent == [msg] and cache == {}
+            link.conn.mav.signing.sign_outgoing = False
+            assert link.send_fixed(msg, cache) and sent == [msg] and len(cache) == 1
+        finally:
+            transport.close()
+            await link.close()
+
+    asyncio.run(asyncio.wait_for(main(), 10))
