@@ -51,6 +51,7 @@ import dataclasses
 import json
 import logging
 import math
+import os
 import signal
 import time
 from collections import Counter
@@ -66,9 +67,10 @@ BACKOFF_INITIAL_S = 0.5
 BACKOFF_MAX_S = 30.0
 BACKOFF_RESET_AFTER_S = 60.0
 from .io.origin import ORIGIN_REPEAT_S  # noqa: E402,F401  (SET_GPS_GLOBAL_ORIGIN repeats)
-# kill -9 must lose at most 1 s of field log: data reaches the kernel every fsync interval plus
-# the flusher's period (a quarter of it), so 0.5 s leaves a real margin whatever the config says
-FSYNC_MAX_INTERVAL_S = 0.5
+# a power cut or kill -9 loses at most this much field log plus one write + fsync (the flusher
+# writes when the oldest queued record is this old), whatever the config says: <= 0.5 s with a
+# 0.1-s margin for a slow card
+FSYNC_MAX_INTERVAL_S = 0.4
 DEFAULT_MAX_TOTAL_LOG_BYTES = 1 << 30
 DEFAULT_CORRECTIONS_MAX_RATE_BPS = 64_000.0
 DEFAULT_UBX_MAX_RATE_BPS = 256_000.0
@@ -148,6 +150,9 @@ class Service:
     async def run(self) -> None:
         from .io.mavlink_signing import signing_preflight
         key_warning = signing_preflight(self.cfg)      # SigningKeyError: no start without the key
+        if os.environ.get("COMPANION_CPU_PROFILE"):    # measurements only (companion.cpu_profile)
+            from .cpu_profile import install
+            install(os.environ["COMPANION_CPU_PROFILE"])
         loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         if self.install_signal_handlers:
@@ -333,10 +338,9 @@ class Service:
             g = self.cfg.gnss
             if g.source == "mavlink_serial_control":
                 claim = self._port_claim(link)
+                # the replies reach the pipeline through the logged MAVLink stream: the tunnel
+                # keeps no copy (queue_replies=False), the claim reads them as a listener
                 children.append(asyncio.create_task(claim.run(), name="serial-control-claim"))
-                # the replies reach the pipeline through the logged MAVLink stream; the tunnel's own
-                # copy is discarded
-                children.append(asyncio.create_task(self._drain(self.tunnel), name="serial-control-drain"))
             pipe = self.pipeline
             pet = self.notifier.pet
 
@@ -387,18 +391,13 @@ class Service:
         g = self.cfg.gnss
         dev = mav.SERIAL_CONTROL_DEV_GPS1 if g.serial_control_device == "GPS1" else mav.SERIAL_CONTROL_DEV_GPS2
         self.tunnel = SerialControlTunnel(link, dev, poll_interval_s=g.serial_control_poll_interval_s,
-                                          baudrate=g.serial_control_baud)
+                                          baudrate=g.serial_control_baud, queue_replies=False)
         self.port_claim = PortClaim(self.tunnel, mode=g.serial_control_claim, probe_s=g.serial_control_probe_s,
                                     release_after_s=g.serial_control_release_after_s,
                                     retry_max_s=g.serial_control_retry_max_s,
                                     probe_when_armed=g.serial_control_probe_armed,
                                     enable_sfrbx=g.serial_control_enable_sfrbx)
         return self.port_claim
-
-    @staticmethod
-    async def _drain(tunnel) -> None:
-        async for _ in tunnel:
-            pass
 
     # ------------------------------------------------------------------ outputs
     def _outputs(self, sols) -> None:

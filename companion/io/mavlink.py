@@ -29,8 +29,9 @@ link does that): :func:`vision_position_estimate`, :func:`odometry`, :func:`gps_
 Design of the link (asyncio, no reader thread): pymavlink opens every supported transport
 non-blocking (UDP/TCP sockets ``setblocking(False)``, serial ``timeout=0``), so the link registers
 the connection's file descriptor with ``loop.add_reader`` and drains ``recv_msg()`` until it returns
-``None`` whenever the fd is readable (plus a 10 ms poll as a safety net for transports without an
-fd).  All state lives on the event loop thread: no locks, sends are ordinary calls.  A reader
+``None`` whenever the fd is readable (a transport without an fd is polled every 10 ms).  The
+periodic work (heartbeat, TIMESYNC, link timeout, interval retries) is one loop timer armed for
+its next deadline, at least every 0.25 s -- no task waking every 10 ms.  All state lives on the event loop thread: no locks, sends are ordinary calls.  A reader
 thread would only add a queue hop and locking around pymavlink's shared parser state.  On UDP
 without signing the link reads datagrams itself and decodes their high-rate frames with
 :mod:`companion.io.mavlink_fast` (same messages as pymavlink's, which parses everything else);
@@ -83,6 +84,9 @@ SERIAL_CONTROL_DATA_LEN = 70
 # refuses HIGHRES_IMU or it does not arrive: one IMU stream on the link, never two at 200 Hz
 IMU_AUTO_FALLBACK = {"HIGHRES_IMU": "RAW_IMU"}
 STREAM_FALLBACK_AFTER_S = 3.0
+TIMER_SAFETY_NET_S = 0.25      # the link's periodic work runs at least this often (see _arm)
+POLL_NO_FD_S = 0.01            # a transport without a file descriptor is polled this often
+DEADLINE_SLACK_S = 0.002       # a timeout checked just after it expires, not just before
 
 
 def parse_imu_stream(name: str) -> tuple[str, int | None]:
@@ -846,6 +850,12 @@ class MavlinkLink:
         self._fast = None                  # DatagramParser on a UDP link without signing
         self._sink: Callable | None = None  # deliver_to's consumer, called instead of queueing
         self._sink_done: asyncio.Future | None = None
+        # called after each receive callback: periodic work that rides on a wake-up the process
+        # has anyway (the SERIAL_CONTROL poll, serial_control.run_every)
+        self.rx_hooks: list[Callable[[], None]] = []
+        self._timer: asyncio.TimerHandle | None = None    # the periodic work (_arm)
+        self._timer_when = 0.0
+        self._next_hb = self._next_ts = 0.0
 
     # -- lifecycle ---------------------------------------------------------------------------
     async def start(self) -> None:
@@ -877,11 +887,14 @@ class MavlinkLink:
                 self._fd = fd
             except (ValueError, OSError, NotImplementedError):
                 self._fd = None
-        self._tasks = [asyncio.create_task(self._periodic(), name="mavlink-periodic")]
         self.send(heartbeat())
+        self._start_timer()
 
     async def close(self) -> None:
         self._closed = True
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
         for t in self._tasks:
             t.cancel()
         for t in self._tasks:
@@ -959,11 +972,43 @@ class MavlinkLink:
             log.debug("MAVLink send failed: %r", exc)
             return False
 
+    def send_fixed(self, msg, cache: dict) -> bool:
+        """Send ``msg``, whose fields never change (the SERIAL_CONTROL poll, 50 a second), from
+        ``cache``: its frame packed once per sequence number, ids and protocol version -- byte for
+        byte what :meth:`send` would send, without pymavlink's pack each time.  Signed links pack
+        every frame (the signature changes)."""
+        conn = self.conn
+        if conn is None:
+            return False
+        mav = conn.mav
+        if getattr(mav.signing, "sign_outgoing", False) or mav.send_callback is not None:
+            return self.send(msg)
+        key = (mav.seq, mav.srcSystem, mav.srcComponent, type(mav))     # type: a v1 switch replaces it
+        try:
+            buf = cache.get(key)
+            if buf is None:
+                buf = cache[key] = bytes(msg.pack(mav))
+            conn.write(buf)
+            mav.seq = (mav.seq + 1) % 256
+            mav.total_packets_sent += 1
+            mav.total_bytes_sent += len(buf)
+            self.counters["tx_messages"] += 1
+            return True
+        except Exception as exc:  # socket errors, closed serial port
+            self.counters["tx_errors"] += 1
+            log.debug("MAVLink send failed: %r", exc)
+            return False
+
     # -- receiving ---------------------------------------------------------------------------
     def _drain(self) -> None:
         if self._fast is not None:
             self._drain_datagrams()
-            return
+        else:
+            self._drain_messages()
+        for hook in self.rx_hooks:
+            hook()
+
+    def _drain_messages(self) -> None:
         conn = self.conn
         for _ in range(10000):
             try:
@@ -972,8 +1017,12 @@ class MavlinkLink:
                 self._bad("exception: " + type(exc).__name__)
                 continue
             if msg is None:
-                return
+                break
             self._handle(msg, time.monotonic_ns())
+        if self.signing is not None:
+            # at once, not at the next timer: a protocol auto-switch in recv_msg replaced the
+            # MAVLink object, and what we send next must be signed again
+            self.signing.tick()
 
     def _drain_datagrams(self) -> None:
         """The UDP receive path: each datagram through :class:`~companion.io.mavlink_fast.DatagramParser`
@@ -1070,6 +1119,7 @@ class MavlinkLink:
             self.connected = True
             self._link_up_mono = self.last_heartbeat_mono
             self._request_streams("link up")
+            self._wake_now()               # TIMESYNC and the timeout/fallback deadlines start now
 
     def _on_timesync(self, msg, t_ns: int) -> None:
         if msg.tc1 == 0:
@@ -1176,40 +1226,90 @@ class MavlinkLink:
                                              for p in self._intervals)
 
     # -- periodic work -----------------------------------------------------------------------
-    async def _periodic(self) -> None:
-        next_hb = next_ts = time.monotonic()
-        while not self._closed:
-            now = time.monotonic()
-            if self._fd is None:
-                self._drain()
-            if self.signing is not None:
-                self.signing.tick()
-            if now >= next_hb:
-                self.send(heartbeat())
-                next_hb = now + self.heartbeat_interval_s
-            if self.timesync_interval_s > 0 and now >= next_ts and self.connected:
-                ts1 = time.monotonic_ns()
-                self._ts_sent[ts1] = ts1
-                if len(self._ts_sent) > 32:
-                    self._ts_sent.pop(next(iter(self._ts_sent)))
-                req = _ENC.timesync_encode(0, ts1)
-                if hasattr(req, "target_system"):
-                    req.target_system = self.target_system
-                    req.target_component = self.target_component
-                self.send(req)
-                self.counters["timesync_sent"] += 1
-                next_ts = now + self.timesync_interval_s
-            if self.connected and self.last_heartbeat_mono is not None \
-                    and now - self.last_heartbeat_mono > self.link_timeout_s:
-                self.connected = False
-                self.counters["link_losses"] += 1
-                log.warning("autopilot link lost (no HEARTBEAT for %.1f s)", now - self.last_heartbeat_mono)
-            if self._fallback and self.connected and self._link_up_mono is not None \
-                    and now - self._link_up_mono > self._fallback_after_s:
-                for primary in list(self._fallback):
-                    self._fall_back(primary, f"not sent within {self._fallback_after_s:g} s")
-            self._send_next_interval()
-            await asyncio.sleep(0.01)
+    # No polling task: one loop timer (``call_at``) armed for the earliest deadline -- heartbeat,
+    # TIMESYNC, link timeout, stream fallback, interval retry -- at most TIMER_SAFETY_NET_S ahead,
+    # so anything not computed here is late by at most that; a transport without a file
+    # descriptor (nothing to wake the loop) is still drained every POLL_NO_FD_S.
+    def _start_timer(self) -> None:
+        now = time.monotonic()
+        self._next_hb = self._next_ts = now
+        self._arm(now)
+
+    def _arm(self, when: float) -> None:
+        """(Re-)arm the timer for ``when`` (monotonic s) unless it already fires earlier."""
+        if self._closed or self._loop is None:
+            return
+        h = self._timer
+        if h is not None:
+            if not h.cancelled() and self._timer_when <= when:
+                return
+            h.cancel()
+        # loop.time() is time.monotonic() for the default loops; converted anyway
+        self._timer_when = when
+        self._timer = self._loop.call_at(self._loop.time() + (when - time.monotonic()), self._on_timer)
+
+    def _wake_now(self) -> None:
+        """A state change (link up) brings deadlines forward: run the periodic work next pass."""
+        self._arm(time.monotonic())
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        now = time.monotonic()
+        try:
+            self._tick(now)
+        except Exception:      # a bug here must not end the heartbeats and the timeout checks
+            self.counters["timer_errors"] = self.counters.get("timer_errors", 0) + 1
+            log.exception("MAVLink link periodic work failed")
+        finally:
+            self._arm(self._next_deadline(time.monotonic()))
+
+    def _tick(self, now: float) -> None:
+        if self._fd is None:
+            self._drain()
+        if self.signing is not None:
+            self.signing.tick()
+        if now >= self._next_hb:
+            self.send(heartbeat())
+            self._next_hb = now + self.heartbeat_interval_s
+        if self.timesync_interval_s > 0 and now >= self._next_ts and self.connected:
+            ts1 = time.monotonic_ns()
+            self._ts_sent[ts1] = ts1
+            if len(self._ts_sent) > 32:
+                self._ts_sent.pop(next(iter(self._ts_sent)))
+            req = _ENC.timesync_encode(0, ts1)
+            if hasattr(req, "target_system"):
+                req.target_system = self.target_system
+                req.target_component = self.target_component
+            self.send(req)
+            self.counters["timesync_sent"] += 1
+            self._next_ts = now + self.timesync_interval_s
+        if self.connected and self.last_heartbeat_mono is not None \
+                and now - self.last_heartbeat_mono > self.link_timeout_s:
+            self.connected = False
+            self.counters["link_losses"] += 1
+            log.warning("autopilot link lost (no HEARTBEAT for %.1f s)", now - self.last_heartbeat_mono)
+        if self._fallback and self.connected and self._link_up_mono is not None \
+                and now - self._link_up_mono > self._fallback_after_s:
+            for primary in list(self._fallback):
+                self._fall_back(primary, f"not sent within {self._fallback_after_s:g} s")
+        self._send_next_interval()
+
+    def _next_deadline(self, now: float) -> float:
+        t = min(now + TIMER_SAFETY_NET_S, self._next_hb)
+        if self._fd is None:
+            t = min(t, now + POLL_NO_FD_S)
+        if self.connected:
+            if self.timesync_interval_s > 0:
+                t = min(t, self._next_ts)
+            if self.last_heartbeat_mono is not None:
+                t = min(t, self.last_heartbeat_mono + self.link_timeout_s + DEADLINE_SLACK_S)
+            if self._fallback and self._link_up_mono is not None:
+                t = min(t, self._link_up_mono + self._fallback_after_s + DEADLINE_SLACK_S)
+        for p in self._intervals:
+            if not p.acked:            # one outstanding at a time: the first not acknowledged
+                t = min(t, p.last_sent_mono + self.interval_retry_s if p.sent else now)
+                break
+        return max(t, now + 0.001)
 
     def health(self) -> dict:
         return {"connected": self.connected, **self.counters, "bad_data_reasons": dict(self.bad_data_reasons),

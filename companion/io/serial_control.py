@@ -87,6 +87,59 @@ RELEASE_REPEATS_S = (0.0, 0.2, 0.5)   # the unlock, repeated: a lost one would l
 MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE, MAV_SEVERITY_INFO = 4, 5, 6
 
 
+async def run_every(fn: Callable[[], object], delay_s: Callable[[], float], link=None) -> None:
+    """``fn()``, then again ``delay_s()`` later, forever (cancel to stop); raises what ``fn`` raised.
+
+    No task sleeping in a loop: the calls are due on a fixed grid (so the average rate is exactly
+    ``1 / delay_s()``) and made from ``link``'s receive callback (:attr:`MavlinkLink.rx_hooks`)
+    when a datagram is processed after the due time -- a wake-up the process has anyway, 200 a
+    second with the IMU stream -- or by a loop timer half a period late when none comes (a quiet
+    link).  Without ``link`` the timer alone, on time.  ``delay_s() == 0``: again at once."""
+    loop = asyncio.get_running_loop()
+    done = loop.create_future()
+    handle = None
+    state = {"due": loop.time(), "period": 0.0}
+
+    def fire() -> None:
+        nonlocal handle
+        if handle is not None:
+            handle.cancel()
+            handle = None
+        if done.done():
+            return
+        try:
+            fn()
+            d = delay_s()
+        except BaseException as exc:   # noqa: B902 -- handed to the awaiting task
+            done.set_exception(exc)
+            return
+        now = loop.time()
+        if d <= 0:
+            state["due"], state["period"] = now, 0.0
+            handle = loop.call_soon(fire)
+            return
+        due = state["due"] + d
+        if due < now - d:              # fell behind by more than a period: no burst to catch up
+            due = now
+        state["due"], state["period"] = due, d
+        handle = loop.call_at(due + (0.5 * d if link is not None else 0.0), fire)
+
+    def on_rx() -> None:
+        if state["period"] > 0 and loop.time() >= state["due"]:
+            fire()
+
+    if link is not None:
+        link.rx_hooks.append(on_rx)
+    handle = loop.call_soon(fire)
+    try:
+        await done
+    finally:
+        if handle is not None:
+            handle.cancel()
+        if link is not None and on_rx in link.rx_hooks:
+            link.rx_hooks.remove(on_rx)
+
+
 def _mavlink():
     # imported when used: companion.io.mavlink re-exports SerialControlTunnel from here
     from . import mavlink
@@ -170,10 +223,19 @@ class SerialControlTunnel:
 
     Throughput: each reply carries <= 70 bytes; with MULTI ArduPilot keeps replying while data is
     available (as long as its channel has room), so one poll drains the port.
+
+    Cost: the poll keeps its rate (ArduPilot opens a GPS port with a 256-byte receive buffer,
+    ``AP_SERIALMANAGER_GPS_BUFSIZE_RX``: ~22 ms of bytes at 115200 baud), but the request
+    without data is packed once per sequence number
+    (:meth:`~companion.io.mavlink.MavlinkLink.send_fixed`) and the polls are due on a fixed grid,
+    sent from the link's receive callback when a datagram is processed after the due time
+    (:func:`run_every`): no wake-up of their own while the IMU stream flows.
+    ``queue_replies=False`` (the service): the replies go to :attr:`listeners` only.
     """
 
     def __init__(self, link: "MavlinkLink", device: int = m.SERIAL_CONTROL_DEV_GPS1, poll_interval_s: float = 0.02,
-                 baudrate: int = 0, exclusive: bool = True, multi: bool = True, max_queue: int = 4096):
+                 baudrate: int = 0, exclusive: bool = True, multi: bool = True, max_queue: int = 4096,
+                 queue_replies: bool = True):
         self.link = link
         self.device = device
         self.poll_interval_s = poll_interval_s
@@ -184,7 +246,11 @@ class SerialControlTunnel:
         if multi:
             self.flags |= m.SERIAL_CONTROL_FLAG_MULTI
         self._tx = bytearray()
-        self._rx: asyncio.Queue = asyncio.Queue(maxsize=max_queue)
+        # queue_replies False: the bytes go to the listeners only (the service reads them from the
+        # logged MAVLink stream; a queue nobody needs would wake a draining task per reply)
+        self._rx: asyncio.Queue | None = asyncio.Queue(maxsize=max_queue) if queue_replies else None
+        self._empty_poll = None                 # (flags, device, target) -> the request without data
+        self._poll_frames: dict = {}            # its packed frames (MavlinkLink.send_fixed)
         self.listeners: list[Callable[[bytes], None]] = []
         self.counters: dict[str, int] = {"polls": 0, "replies": 0, "rx_bytes": 0, "tx_bytes": 0,
                                          "rx_overflow": 0, "foreign_replies": 0, "releases_sent": 0}
@@ -225,6 +291,8 @@ class SerialControlTunnel:
                 cb(data)
             except Exception:
                 log.exception("SERIAL_CONTROL listener failed")
+        if self._rx is None:
+            return
         try:
             self._rx.put_nowait(data)
         except asyncio.QueueFull:
@@ -232,21 +300,37 @@ class SerialControlTunnel:
 
     def poll(self) -> None:
         """Send one request (with up to 70 pending bytes)."""
+        link = self.link
+        if not self._tx and (self._baud_sent or not self.baudrate):
+            # the usual poll, no data and no baud rate: the same message every time, packed once
+            # per sequence number (pymavlink's pack was most of a poll's CPU)
+            key = (self.flags, self.device, link.target_system, link.target_component)
+            if self._empty_poll is None or self._empty_poll[0] != key:
+                self._empty_poll = (key, _mavlink().serial_control_request(
+                    self.device, b"", flags=self.flags, target_system=link.target_system,
+                    target_component=link.target_component))
+                self._poll_frames = {}
+            send_fixed = getattr(link, "send_fixed", None)
+            if send_fixed is not None:
+                send_fixed(self._empty_poll[1], self._poll_frames)
+            else:                               # a link without the cache (a test double)
+                link.send(self._empty_poll[1])
+            self.counters["polls"] += 1
+            return
         chunk = bytes(self._tx[:SERIAL_CONTROL_DATA_LEN])
         del self._tx[:len(chunk)]
         baud = self.baudrate if (self.baudrate and not self._baud_sent) else 0
         self._baud_sent = self._baud_sent or bool(baud)
-        self.link.send(_mavlink().serial_control_request(self.device, chunk, flags=self.flags, baudrate=baud,
-                                                         target_system=self.link.target_system,
-                                                         target_component=self.link.target_component))
+        link.send(_mavlink().serial_control_request(self.device, chunk, flags=self.flags, baudrate=baud,
+                                                    target_system=link.target_system,
+                                                    target_component=link.target_component))
         self.counters["polls"] += 1
         self.counters["tx_bytes"] += len(chunk)
 
     async def run(self) -> None:
         """Poll forever (cancel to stop)."""
-        while True:
-            self.poll()
-            await asyncio.sleep(self.poll_interval_s if not self._tx else 0.0)
+        await run_every(self.poll, lambda: self.poll_interval_s if not self._tx else 0.0,
+                        link=self.link if hasattr(self.link, "rx_hooks") else None)
 
     def release(self) -> None:
         """Unlock the port: no EXCLUSIVE (unlock), no RESPOND (do not read the driver's bytes)."""
@@ -259,10 +343,14 @@ class SerialControlTunnel:
         return self._iter()
 
     async def _iter(self):
+        if self._rx is None:
+            raise RuntimeError("SERIAL_CONTROL tunnel made with queue_replies=False: use listeners")
         while True:
             yield await self._rx.get()
 
     async def read(self, timeout: float | None = None) -> bytes:
+        if self._rx is None:
+            raise RuntimeError("SERIAL_CONTROL tunnel made with queue_replies=False: use listeners")
         try:
             return await asyncio.wait_for(self._rx.get(), timeout)
         except asyncio.TimeoutError:
@@ -478,10 +566,9 @@ class PortClaim:
 
     async def run(self) -> None:
         """Step forever (cancel to stop); pending writes go out without waiting."""
-        while True:
-            self.step()
-            await asyncio.sleep(self.tunnel.poll_interval_s
-                                if not (self.tunnel.tx_pending and self.state != self.RELEASED) else 0.0)
+        await run_every(self.step, lambda: self.tunnel.poll_interval_s
+                        if not (self.tunnel.tx_pending and self.state != self.RELEASED) else 0.0,
+                        link=self.link if hasattr(self.link, "rx_hooks") else None)
 
     def close(self) -> None:
         """Give the port back (service shutdown): the lock would otherwise outlive us."""
