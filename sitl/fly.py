@@ -64,7 +64,7 @@ def load_sim(scenario: str, seed: int, duration_s: float | None, imu_rate_hz: fl
     sim = simulate(scn, seed)
     try:
         CACHE_DIR.mkdir(parents=True, exist_ok=True)
-        tmp = key.with_suffix(".tmp")
+        tmp = key.with_suffix(f".{os.getpid()}.tmp")      # parallel test workers write their own
         with tmp.open("wb") as fh:
             pickle.dump(sim, fh, protocol=pickle.HIGHEST_PROTOCOL)
         tmp.replace(key)

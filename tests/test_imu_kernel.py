@@ -115,11 +115,11 @@ def test_engine_replay_is_deterministic_through_the_kernels(monkeypatch):
 
 
 def test_warm_up_compiles_every_kernel():
-    from companion.gnss import lambda_kernel
+    from companion.gnss import lambda_kernel, sat_state_kernel
     assert imu_kernel.warm_up() >= 0.0
     k, lk = imu_kernel.compiled(), lambda_kernel.compiled()
     # every dispatcher has a compiled (or cache-loaded) specialisation: the first flight pays nothing
-    for disp in (k.strapdown, k.propagate, lk.ldl, lk.reduce, lk.search):
+    for disp in (k.strapdown, k.propagate, lk.ldl, lk.reduce_inverse, lk.search, sat_state_kernel.compiled()):
         assert disp.signatures, disp
 
 

@@ -46,58 +46,17 @@ def ldl(Q):
     return L, D, True
 
 
-def reduce(L, D, two):
-    """Reference :func:`~companion.gnss.lambda_ils.reduce` (with its ``_gauss`` and ``_perm``).
-    ``two`` = 2.0, passed at run time: the reference's ``x ** 2`` is the C library's pow(x, 2),
-    which is not always x * x (1 ulp apart in ~1 of 2000 values with glibc); with a constant
-    exponent LLVM would turn it into x * x, with this one it calls pow as CPython does."""
-    n = len(D)
-    Z = np.eye(n)
-    j = k = n - 2
-    while j >= 0:
-        if j <= k:
-            for i in range(j + 1, n):
-                mu = math.floor(L[i, j] + 0.5)
-                if mu != 0:
-                    for r in range(i, n):
-                        L[r, j] -= mu * L[r, i]
-                    for r in range(n):
-                        Z[r, j] -= mu * Z[r, i]
-        delta = D[j] + L[j + 1, j] ** two * D[j + 1]
-        if delta + 1e-6 < D[j + 1]:
-            eta = D[j] / delta
-            lam = D[j + 1] * L[j + 1, j] / delta
-            D[j] = eta * D[j + 1]
-            D[j + 1] = delta
-            l10 = L[j + 1, j]
-            for c in range(j):
-                a0 = L[j, c]
-                a1 = L[j + 1, c]
-                L[j, c] = -l10 * a0 + a1
-                L[j + 1, c] = eta * a0 + lam * a1
-            L[j + 1, j] = lam
-            for r in range(j + 2, n):
-                t = L[r, j]
-                L[r, j] = L[r, j + 1]
-                L[r, j + 1] = t
-            for r in range(n):
-                t = Z[r, j]
-                Z[r, j] = Z[r, j + 1]
-                Z[r, j + 1] = t
-            k = j
-            j = n - 2
-        else:
-            j -= 1
-    return Z
-
-
 def reduce_inverse(L, D, two):
-    """:func:`reduce` that also returns ``Z^-1`` (kept by the inverse operations: a Gauss
+    """Reference :func:`~companion.gnss.lambda_ils.reduce` (with its ``_gauss`` and ``_perm``)
+    that also returns ``Z^-1`` (kept by the inverse operations: a Gauss
     transformation of Z's column j by column i adds row j to row i of ``Z^-1``, a permutation of
     columns swaps its rows), so that the candidates go back to the original ambiguities as
     ``Z^-T z`` in exact integer arithmetic instead of a linear solve.  Z, L and D exactly
-    :func:`reduce`'s; Z is kept transposed inside (its column operations on contiguous rows) and
-    L's column operations run on a transposed copy, the same arithmetic element by element."""
+    the reference's; Z is kept transposed inside (its column operations on contiguous rows) and
+    L's column operations run on a transposed copy, the same arithmetic element by element.
+    ``two`` = 2.0, passed at run time: the reference's ``x ** 2`` is the C library's pow(x, 2),
+    which is not always x * x (1 ulp apart in ~1 of 2000 values with glibc); with a constant
+    exponent LLVM would turn it into x * x, with this one it calls pow as CPython does."""
     n = len(D)
     Zt = np.eye(n)
     Zi = np.eye(n)
@@ -209,7 +168,6 @@ class _Compiled:
     def __init__(self, numba):
         jit = numba.njit(**jit_options(numba))
         self.ldl = jit(ldl)
-        self.reduce = jit(reduce)
         self.reduce_inverse = jit(reduce_inverse)
         self.search = jit(search)
 

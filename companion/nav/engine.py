@@ -61,7 +61,7 @@ from .stillness import StillnessDetector
 from .integrity import POSITION_SOURCES, IntegrityLimits, IntegrityMonitor, IntegrityState
 from .chi2 import chi2_ppf
 from .protection import ProtectionLevel
-from .rtk_update import FIX_NONE, RtkUpdate, RtkUpdateConfig
+from .rtk_update import FIX_FIXED, FIX_FLOAT, FIX_NONE, RtkUpdate, RtkUpdateConfig
 from .engine_aiding import ReceiverAiding
 from .engine_clock import ClockSeeding
 from .engine_heading import HeadingAlignment
@@ -812,6 +812,8 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         rtk = self.rtk.status if self.rtk is not None else None
         if rtk is not None and self.t_gps - rtk.t_gps <= self.cfg.coasting_after_s:
             fix_state, fix_ratio = rtk.fix_state, rtk.ratio
+            if fix_state == FIX_FIXED and float(sig_r @ sig_r) > self.rtk.cfg.max_fixed_sigma_3d_m ** 2:
+                fix_state = FIX_FLOAT       # coasting since the fix (a late epoch): no longer RTK-grade
         sol = NavSolution(self.t_gps, self.r_e.copy(), self.v_e.copy(), self.C_b_e.copy(), sig_r, sig_v, sig_a,
                            status, self.last_gnss_update_t, self.reset_counter,
                            {"clock_bias_m": self.clock_bias_m, "clock_drift_mps": self.clock_drift_mps,

@@ -222,7 +222,8 @@ def use_reference_paths():
 
 def warm_up() -> float:
     """Compile (or load from the disk cache) every kernel now, on tiny data: the IMU kernels in
-    both propagation forms (dense, by blocks) and LAMBDA's.  Returns the seconds it took.  An
+    both propagation forms (dense, by blocks), the satellite state's and LAMBDA's.  Returns the
+    seconds it took.  An
     install runs it (scripts/_venv.sh) so that a first flight does not stall ~3-10 s compiling at
     its first IMU sample or RTK fix; a service may call it at start-up (~0.5 s from the cache)."""
     import time
@@ -241,6 +242,8 @@ def warm_up() -> float:
             kf.add_block(f"warm-up {i}", 1, 1.0)
         kf.propagate(C, dv_e, np.zeros((3, 3)), 0.005)
     _warm_up_engine()
+    from ..gnss import sat_state_kernel
+    sat_state_kernel.warm_up()
     lambda_ils(np.array([0.2, 1.4, -2.7]), np.array([[1.0, 0.5, 0.2], [0.5, 1.0, 0.3], [0.2, 0.3, 1.0]]))
     return time.perf_counter() - t0
 

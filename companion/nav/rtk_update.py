@@ -95,6 +95,10 @@ class RtkUpdateConfig:
     fixed_residual_sigma: float = 4.0
     ins_fix_probability: float = 0.999        # chi-square test of the fixed position against the INS
     hold_sigma_cycles: float = 0.01
+    # a fix must pin the position: its 3-D sigma after the hold at most this (a fixed solution is
+    # 1-2 cm; integers that leave the position at decimetres are not tied to the geometry -- after
+    # a re-initialisation 31-64 of them passed the ratio test at 3.1-6.0 with 0.8 m left, 0.1-1.3 m off)
+    max_fixed_sigma_3d_m: float = 0.10
     wrong_fix_position_sigma_m: float = 0.3
     gate_probability: float = 0.999
 
@@ -622,8 +626,17 @@ class RtkUpdate:
             if float(zr.max()) > cfg.fixed_residual_sigma:
                 self.counters["rtk fixes rejected: phase residuals"] += 1
                 return None
-        # against the INS prediction: the position the fix implies, relative to the predicted one
         L = eng.layout
+        G = PTt[L.pos]                                       # cov(position, DD ambiguities)
+        P_pos_fixed = eng.kf.P[L.pos, L.pos] - G @ np.linalg.solve(S, G.T)
+        # ... at the epoch: an epoch applied late (a backlog after a gap) leaves the INS drift since
+        # then in the current position, up to the velocity sigma times the delay
+        late_s = max(0.0, eng.t_gps - rows.t_gps)
+        limit_m = cfg.max_fixed_sigma_3d_m + late_s * math.sqrt(max(float(np.trace(eng.kf.P[L.vel, L.vel])), 0.0))
+        if not float(np.trace(P_pos_fixed)) <= limit_m ** 2:
+            self.counters["rtk fixes rejected: position not pinned"] += 1
+            return None
+        # against the INS prediction: the position the fix implies, relative to the predicted one
         if rows.P_prior_pos is not None:
             d = dx_float[L.pos] + dx_hold[L.pos]
             if float(d @ np.linalg.solve(rows.P_prior_pos, d)) > self.ins_chi2_3:
