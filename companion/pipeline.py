@@ -100,6 +100,7 @@ from .messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoc
                        GpsEphemeris, ImuSample, NavSolution)
 from .nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm  # noqa: E402
 from .nav.engine import NavEngine  # noqa: E402
+from .nav.rtk_update import FIX_FIXED  # noqa: E402
 from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
 from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale, ImuScreen  # noqa: E402
 from .nav.integrity import GNSS_SOURCES, POSITION_SOURCES  # noqa: E402
@@ -114,6 +115,13 @@ HEADING_RESET_QUIET_S = 60.0   # a heading reset skips probation only this long 
 REINIT_GAP_S = 1.0            # IMU time step (either direction) that restarts the filter
 CLUSTER_OUTPUT_ID = 100       # imu_id of the fused samples of an IMU cluster
 RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GPS_RAW_INT fusion
+# the autopilot's GPS_RAW_INT fixes came back after at least this long without one while the last
+# raw epoch was RTK-fixed: the sky came back for both receivers, so raw observations get
+# RAW_TIMEOUT_S again before loose fusion (the port is re-claimed in ~1-2 s and re-fixes within
+# seconds; 1-2 s of loose 1-m fixes after the rtk flights' 30-s outage were injected up to 1 m off
+# where the re-fix gives centimetres).  Without RTK the loose fixes are as good as the DGPS path:
+# waiting would only withhold the output longer.
+GPS_FIX_GAP_S = 2.0
 ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used to initialise
 BASE_WAIT_S = 0.8             # hold a rover epoch (IMU time) until the base epoch of the same time
                               # arrived (DGPS without extrapolation, base-corrected TDCP), at most this
@@ -251,6 +259,7 @@ class NavPipeline:
         self.last_imu: ImuSample | None = None
         self.last_imu_boot_us: int | None = None
         self.last_raw_t: float = -math.inf        # GPS time (IMU clock) of the last rover epoch
+        self._last_fix_t: float = -math.inf       # GPS time of the last GPS_RAW_INT fix
         self.attitude = None                      # (time_boot_ms, roll, pitch, yaw)
         self._last_ap_heading_boot_s = -1e9       # last autopilot heading fused on the ground
         self.on_ground = False
@@ -1126,6 +1135,11 @@ class NavPipeline:
                          how=f"SPP {'DGPS' if use_dgps else 'standalone'} {sol.n_sats} sats", att_sigmas=att_sigmas)
         self.mode = "tight"
 
+    def _rtk_fixed_last(self) -> bool:
+        """The last raw epoch the RTK update saw was fixed (its status outlives a gap)."""
+        rtk = self.engine.rtk if self.rtk_enabled else None
+        return rtk is not None and rtk.status is not None and rtk.status.fix_state == FIX_FIXED
+
     def _gps_raw(self, msg) -> list[NavSolution]:
         fix = gps_fix_from_gps_raw_int(msg, self.time_map, leap_seconds=self.cfg.gnss.leap_seconds,
                                        latency_s=self.gps_raw_latency_s)
@@ -1139,6 +1153,11 @@ class NavPipeline:
         self._last_fix_key = key
         self.last_fix = fix
         self.counters["GPS_RAW_INT fixes"] += 1
+        if fix.t_gps - self._last_fix_t > GPS_FIX_GAP_S and self._rtk_fixed_last() and self.last_imu is not None \
+                and self.last_imu.t_gps - self.last_raw_t > RAW_TIMEOUT_S:
+            self.last_raw_t = self.last_imu.t_gps
+            self.counters["GPS_RAW_INT back after a gap: raw observations awaited first"] += 1
+        self._last_fix_t = fix.t_gps
         eng = self.engine
         # GPS yaw (dual-antenna GPS on the autopilot): cdeg, 0 = not provided, 65535 = unavailable
         yaw_cdeg = int(getattr(msg, "yaw", 0) or 0)
