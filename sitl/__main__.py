@@ -28,6 +28,13 @@ def _progress(done: int, total: int, elapsed_s: float) -> None:
 def cmd_paper(args) -> int:
     if args.scenario in ("nhc", "nhc-skid", "attitude", "attitude-mems"):
         return _cmd_compare(args)
+    if args.scenario in ("rtk", "rtk-gec"):        # the production mode with RTK on: sitl rtk's scoring
+        from .rtk_score import cmd_rtk
+        if args.plot:
+            print("note: --plot is not drawn for the rtk scenarios (python -m sitl smooth --scenario rtk plots one)",
+                  file=sys.stderr)
+        return cmd_rtk(argparse.Namespace(scenario=args.scenario, runs=args.runs or 5, seed=args.seed,
+                                          duration=None, json=args.json))
     if args.runs is None:
         args.runs = 20
     from .paper import format_table, plot, run_experiment
@@ -86,7 +93,8 @@ def main(argv=None) -> int:
     pp = sub.add_parser("paper", help="seed 000's experiment: five navigation modes on the same simulated data")
     pp.add_argument("--scenario", default="paper",
                     help="paper (seed 000 sec 4.1), paper-nosa, uav (realistic survey flight), "
-                         "uav-gec (uav with GPS+Galileo+BeiDou), "
+                         "uav-gec (uav with GPS+Galileo+BeiDou), rtk / rtk-gec (carrier-phase RTK in the "
+                         "filter, scored as python -m sitl rtk: first fix, RMS, re-fix, wrong fixes; 5 runs), "
                          "nhc / nhc-skid (seed 002: with vs without NHC), attitude / attitude-mems "
                          "(seed 003: PV vs PVA)")
     pp.add_argument("--runs", type=int, default=None,

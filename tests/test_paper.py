@@ -76,3 +76,23 @@ def test_single_difference_form_is_as_good_as_undifferenced():
     print(f"undifferenced {ud:.3f} m, single differences {sd:.3f} m")
     assert sd <= 1.0
     assert abs(sd - ud) < 0.3
+
+
+def test_paper_cli_runs_the_rtk_scenario_with_rtk_scoring(monkeypatch, capsys, tmp_path):
+    """`python -m sitl paper --scenario rtk` is the rtk scorer (sitl.rtk_score), not the five
+    paper modes without RTK; each run's figures reach the table and the JSON."""
+    from sitl import __main__ as cli, rtk_score
+    calls = []
+
+    def fake_run(seed, duration_s=None, scenario_name="rtk", **kw):
+        calls.append((seed, duration_s, scenario_name))
+        return {"seed": seed, "first_fix_s": 3.0, "rms_h_after_first_fix_m": 0.0123, "rms_h_fixed_epochs_m": 0.0095,
+                "refix_after_outage_s": [2.0], "wrong_fixes": 0, "fixed_epochs": 265, "n_epochs": 269,
+                "cpu_engine_s": 2.0}
+    monkeypatch.setattr(rtk_score, "run_rtk", fake_run)
+    out_json = tmp_path / "rtk.json"
+    assert cli.main(["paper", "--scenario", "rtk-gec", "--runs", "2", "--seed", "4", "--json", str(out_json)]) == 0
+    assert calls == [(4, None, "rtk-gec"), (5, None, "rtk-gec")]
+    out = capsys.readouterr().out
+    assert "scenario rtk-gec" in out and "0.0123 m" in out
+    assert [r["seed"] for r in json.loads(out_json.read_text())] == [4, 5]
