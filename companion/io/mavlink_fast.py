@@ -196,6 +196,8 @@ class DatagramParser:
         out = []
         if mav.buf_len() == 0:
             out, data = self.fast.decode(data)
+            if not data:
+                return out          # all taken (the common datagram): pymavlink has nothing to parse
         while True:
             try:
                 msg = mav.parse_char(data)
