@@ -297,6 +297,8 @@ class _FakeSitlPort:
                         self.asked.add(int(m.param1))
             except (socket.timeout, BlockingIOError):
                 pass
+            except OSError:                 # the receiver stopped first (connection reset)
+                break
             if {mav.MAVLINK_MSG_ID_SIM_STATE, mav.MAVLINK_MSG_ID_ATTITUDE} <= self.asked:
                 att, st = sitl.messages(0.0025 + i * 0.02)
                 try:
