@@ -290,6 +290,7 @@ class NavPipeline:
         self._position_hold = False               # the engine holds the GNSS position back
         self._keep_biases_next = False            # ... follows a re-init of the same IMU in flight
         self._sigma_hold = False                  # injection stopped on sigma: resume below the hysteresis
+        self._heading_gate = ""                   # the heading gate's reason for the last withheld solution
         self._hpl_hold = False                    # ... on the protection level (its own hysteresis)
         self._imu_full_scale_for: str | None = None
         # GPS_RAW_INT time_usec is when the autopilot got the fix: the receiver's output latency later
@@ -863,6 +864,7 @@ class NavPipeline:
         heading, sigma = eng.heading_and_sigma()
         if self.gsf.settled and self._gsf_disagrees(heading, sigma):
             self.counters["solutions withheld: heading contradicts the yaw from motion"] += 1
+            self._heading_gate = "heading disputed"
             return False
         if self.gsf.converged:
             return True
@@ -870,6 +872,7 @@ class NavPipeline:
             return True
         if sigma > self.max_sigma_yaw_rad:
             self.counters["solutions withheld: heading unknown"] += 1
+            self._heading_gate = "heading unknown"
             return False
         if self.gsf.in_motion:
             self._t_last_motion = eng.t_gps
@@ -877,6 +880,7 @@ class NavPipeline:
         # at every GNSS velocity, and a start of motion below the moving speed must not toggle
         if not self.heading_confirmed and eng.t_gps - self._t_last_motion < MOTION_HOLD_S:
             self.counters["solutions withheld: heading not yet confirmed in motion"] += 1
+            self._heading_gate = "heading unconfirmed"
             return False
         return True
 
@@ -925,6 +929,7 @@ class NavPipeline:
         good = (sol.status in ("nav", "coasting") and bool(np.all(np.isfinite(sol.r_e)))
                 and bool(np.all(np.isfinite(sr))))
         inject = bool(good and sigma_ok)
+        self._heading_gate = ""                       # why the heading gate withheld this one (STATUSTEXT)
         inject = inject and self._heading_known()      # heading gate (yaw from motion, companion.nav.yaw_gsf)
         if good and not sigma_ok and self.output_state == "injecting":
             self._sigma_hold = True       # stopped on sigma (not the first convergence after an init)
@@ -948,8 +953,11 @@ class NavPipeline:
                 self._event(m.MAV_SEVERITY_INFO, f"nav OK {self.mode}: sigma_h {sig_h:.2f} m")
             elif sol.status not in ("diverged", "converging") and (
                     self.output_state in ("init", "injecting")):     # not every change of the reason
-                self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {sol.status} sigma_h {sig_h:.1f} m"
-                            + ("" if hpl_ok else f" HPL {float(sol.extras.get('hpl_m', math.nan)):.1f} m"))
+                if self._heading_gate:       # the position is good: say what held it back
+                    self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {self._heading_gate}")
+                else:
+                    self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {sol.status} sigma_h {sig_h:.1f} m"
+                                + ("" if hpl_ok else f" HPL {float(sol.extras.get('hpl_m', math.nan)):.1f} m"))
             self.output_state = state
         self.counters["solutions"] += 1
         self.counters["solutions injectable" if inject else "solutions withheld"] += 1

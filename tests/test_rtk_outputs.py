@@ -310,3 +310,22 @@ def test_a_restarted_yaw_from_motion_does_not_overrule_a_more_certain_heading():
     assert not pipe._gsf_restarted_and_less_certain(math.radians(12.0))     # ours less certain: it may
     eng.t_gps += GSF_RESTART_PROBATION_S + 0.1
     assert not pipe._gsf_restarted_and_less_certain(math.radians(1.0))       # watched long enough
+
+
+def test_a_solution_withheld_by_the_heading_gate_says_so():
+    """A good position held back by the heading gate is announced with that reason, not as
+    'nav sigma_h 0.0 m' (what an rtk-gec flight's operator read after its first fix)."""
+    pipe = NavPipeline(config_from_dict(RTK_ON))
+    pipe.mode = "tight"
+    pipe.gsf = SimpleNamespace(gap_restarts=0, converged=True, settled=True, yaw_rad=math.radians(164.0),
+                               yaw_sigma_rad=math.radians(9.5))
+    real_engine = pipe.engine
+    pipe.engine = SimpleNamespace(initialized=True, t_gps=100.0, kf=object(), rtk=real_engine.rtk,
+                                  heading_and_sigma=lambda: (0.0, math.radians(1.0)))
+    pipe._finish(_sol(t=100.0, fix="fixed", ratio=9.0))
+    texts = [text for _, text in pipe.drain_events()]
+    assert "nav not injected: heading disputed" in texts, texts
+    assert not any("sigma_h" in t for t in texts)
+    pipe.gsf.yaw_rad = 0.0                                   # agrees: injected, announced as usual
+    pipe._finish(_sol(t=100.04, fix="fixed", ratio=9.0))
+    assert any(t.startswith("nav OK tight") for _, t in pipe.drain_events())
