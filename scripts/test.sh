@@ -20,5 +20,5 @@ fi
 companion_venv
 companion_install test
 # two workers (pytest-xdist): much of the suite waits on real-time flights and SITL peers, so two
-# processes keep both cores busy (18 -> 9.5 min here); COMPANION_TEST_WORKERS=0 runs in one process
+# processes keep both cores busy (about 18 -> 9 min here); COMPANION_TEST_WORKERS=0 runs in one process
 python -m pytest -q -n "${COMPANION_TEST_WORKERS:-2}" "$@"
