@@ -223,8 +223,9 @@ def use_reference_paths():
 def warm_up() -> float:
     """Compile (or load from the disk cache) every kernel now, on tiny data: the IMU kernels in
     both propagation forms (dense, by blocks), the satellite state's and LAMBDA's.  Returns the
-    seconds it took.  An install runs it (scripts/_venv.sh) so that a first flight does not stall ~3-10 s compiling at
-    its first IMU sample or RTK fix; a service may call it at start-up (~0.5 s from the cache)."""
+    seconds it took.  An install runs it (scripts/_venv.sh) so that a first flight does not stall
+    ~3-10 s compiling at its first IMU sample or RTK fix; a service may call it at start-up (~0.5 s
+    from the cache)."""
     import time
     t0 = time.perf_counter()
     if compiled() is None:
