@@ -98,6 +98,7 @@ class ImuPath:
         self._grad = None               # the gravity gradient (pure-Python path: its object identity)
         self._fused = False             # the compiled path is in use
         self._fused_out = np.zeros(2, dtype=np.int64)
+        self._P_checked = None          # the covariance array last seen contiguous float64 (checked once)
 
     # ------------------------------------------------------------------ path selection
     def _select_imu_path(self) -> None:
@@ -202,8 +203,10 @@ class ImuPath:
         if self._fused and self.smoother is None:
             kf = self.kf
             P = kf.P
-            if not P.flags.c_contiguous or P.dtype != np.float64:
-                P = kf.P = np.ascontiguousarray(P, dtype=float)
+            if P is not self._P_checked:        # a new array (an update replaced it): check it once
+                if not P.flags.c_contiguous or P.dtype != np.float64:
+                    P = kf.P = np.ascontiguousarray(P, dtype=float)
+                self._P_checked = P
             ws = self._ws
             ws[S.KTAU] = kf._last_tau
             f = F.kernels().imu_step(ws, self._hist.hist, P, kf._phi, kf._Qd, kf._kernel_tail_q, kf._kernel_work,
