@@ -130,7 +130,7 @@ def score(records, statustext, res: dict, *, flag_samples, console_lines, states
         t, ne, yaw = our_estimates(records, OUTPUT, ref, origin_e7)
         out.update(position_figures(t, ne, truth, ref, flight, ground_end))
         out.update(yaw_figures(t, yaw, truth, flight, ground_end))
-        first_estimate_s = float(t[0]) if len(t) else np.inf
+        first_estimate_s = float(t[0]) if len(t) else -np.inf      # none of ours: EKF2 over the whole ground
     out["gps_raw_best_lag_s"] = gps_raw_best_lag_s(records, truth, ref, airborne)
     att = records["ATTITUDE"]
     # EKF2's heading on the ground over the same span as ours (from our first estimate): SIH's
