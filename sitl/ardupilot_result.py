@@ -51,12 +51,11 @@ def position_figures(t, ne, truth, ref_e7, flight, ground_end) -> dict:
             "rms_h_m_ground": _r(S.rms(err[te <= ground_end]))}
 
 
-def yaw_figures(t, yaw, truth, flight, ground_end, ground_from=-np.inf) -> dict:
-    """Heading errors against truth; on the ground from ``ground_from`` (boot s) to ``ground_end``."""
+def yaw_figures(t, yaw, truth, flight, ground_end) -> dict:
     t = np.asarray(t, float)
     ty = t[truth.covers(t)]
     err = S.yaw_errors_deg(t, yaw, truth)
-    g = (ty <= ground_end) & (ty >= ground_from)
+    g = ty <= ground_end
     tg, eg = ty[g], err[g]
     return {"yaw_rms_deg_ground": _r(S.rms(eg), 2),
             # how the heading error develops at rest: RMS per minute

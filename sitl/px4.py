@@ -34,7 +34,6 @@ from .px4_result import score
 DEPLOY = REPO / "deploy"
 PARAM_FILE = DEPLOY / "px4-vision.params"
 AUTO_LAND = (4 << 16) | (6 << 24)
-GROUND_SETTLE_S = 10.0      # our estimates on the ground before arming (Px4Flight.settle_on_estimates)
 INT_PARAM_TYPES = {1: "<B", 2: "<b", 3: "<H", 4: "<h", 5: "<I", 6: "<i"}
 
 
@@ -186,17 +185,6 @@ class Px4Flight:
             self._check_companion()
         say(f"  EKF2 does not fuse our position after {timeout_s:.0f} s more; {self.status_line()}")
         return None
-
-    def settle_on_estimates(self, settle_s: float, rate_hz: float = 25.0, timeout_s: float = 30.0) -> None:
-        """Stay on the ground until our estimates have flowed for about ``settle_s`` (counted at
-        ``rate_hz``), as an operator arms a moment after "nav OK": PX4 SIH's late ATTITUDE can leave
-        a short ground phase with only the first seconds of our estimates, whose heading is still
-        converging on the compass's, and the ground figures would measure nothing but that."""
-        need = int(settle_s * rate_hz)
-        t0 = time.monotonic()
-        while len(self.gcs.records.get("VISION_POSITION_ESTIMATE", ())) < need and time.monotonic() - t0 < timeout_s:
-            self.gcs.pump(0.5)
-            self._check_companion()
 
     def status_line(self) -> str:
         g = self.gcs
@@ -372,7 +360,6 @@ def run(*, duration_s: float = 120.0, px4_dir: str | None = None, out_dir: str =
         cpu0, t_cpu0 = companion.cpu_s(), time.monotonic()
         flight.ground(duration_s)
         res["ground_wait_for_ev_pos_s"] = flight.wait_for_external_nav()
-        flight.settle_on_estimates(GROUND_SETTLE_S)
         gcs.request_message("GPS_GLOBAL_ORIGIN")
         res["armed"], res["box_completed"] = flight.mission(alt_m, side_m, speed_mps, legs)
         gcs.request_message("GPS_GLOBAL_ORIGIN")

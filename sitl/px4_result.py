@@ -125,18 +125,14 @@ def score(records, statustext, res: dict, *, flag_samples, console_lines, states
         # stamp (IMU sample time) to arrival here, both in PX4 boot time: our output latency
         lat = to_boot(np.array(recv)) - np.array([m.usec for _, m in est]) * 1e-6
         out["estimate_latency_ms"] = {"median": _r(1e3 * np.median(lat), 1), "p95": _r(1e3 * np.percentile(lat, 95), 1)}
-    first_estimate_s = -np.inf
     if recv and origin_e7 is not None:
         t, ne, yaw = our_estimates(records, OUTPUT, ref, origin_e7)
         out.update(position_figures(t, ne, truth, ref, flight, ground_end))
         out.update(yaw_figures(t, yaw, truth, flight, ground_end))
-        first_estimate_s = float(t[0]) if len(t) else -np.inf      # none of ours: EKF2 over the whole ground
     out["gps_raw_best_lag_s"] = gps_raw_best_lag_s(records, truth, ref, airborne)
     att = records["ATTITUDE"]
-    # EKF2's heading on the ground over the same span as ours (from our first estimate): SIH's
-    # compass heading wanders, so the spans must match for the comparison to mean anything
     ekf_yaw = yaw_figures(np.array([m.time_boot_ms for _, m in att]) * 1e-3, [m.yaw for _, m in att], truth,
-                          flight, ground_end, ground_from=first_estimate_s)
+                          flight, ground_end)
     out["ekf_yaw_rms_deg_ground"] = ekf_yaw["yaw_rms_deg_ground"]
     out["ekf_yaw_rms_deg_flight"] = ekf_yaw["yaw_rms_deg_flight"]
     out.update(ekf_position_figures(records, truth, ref, origin_e7, flight, ground_end))
