@@ -395,6 +395,13 @@ class FilterConfig:
                                     doc="carrier noise per receiver, part growing as 1/sin(elevation)")
     rtk_code_phase_ratio: float = _f(100.0, min=1.0, max=10000.0,
                                      doc="code sigma / carrier sigma of the double-differenced rows")
+    rtk_iono_states: bool = _f(True, doc="estimate the ionosphere's difference between rover and base, one "
+                               "state per satellite (dual-frequency RTK: without it a few millimetres of it "
+                               "bias the float ambiguities and delay the first fix)")
+    rtk_iono_sigma_zenith_m: float = _f(0.001, min=0.0, max=1.0,
+                                        doc="its zenith sigma at zero baseline (m)")
+    rtk_iono_sigma_ppm: float = _f(3.0, min=0.0, max=1000.0,
+                                   doc="... plus this per metre of baseline, x 1e-6 (RTKLIB: 0.03 m per 10 km)")
 
     def process_noise(self):
         from .nav.filter import ProcessNoise

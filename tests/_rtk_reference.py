@@ -152,6 +152,16 @@ class ReferenceRtkUpdate(RtkUpdate):
                     h[L.pos] = -du
                     h[L.att] = du @ H_att
                     h[L.toff] = du @ v_ant_e
+                    # the differential ionosphere: a delay on the code, an advance on the phase,
+                    # (f_L1 / f)^2 of the delay on L1
+                    sign = -1.0 if kind == "phase" else 1.0
+                    if key[0] in self.iono:
+                        mu = (self.amb[key].wavelength_m * 1575.42e6 / SPEED_OF_LIGHT_MPS) ** 2
+                        n_sat, n_ref = self.iono[sat], self.iono[ref]
+                        h[L.index(n_sat)] = sign * mu
+                        h[L.index(n_ref)] = -sign * mu
+                        dd_rho = dd_rho + sign * mu * (float(eng.block_states[n_sat][0])
+                                                       - float(eng.block_states[n_ref][0]))
                     if kind == "phase":
                         a, ar = self.amb[key], self.amb[kref]
                         lam = a.wavelength_m
@@ -181,7 +191,7 @@ class ReferenceRtkUpdate(RtkUpdate):
         for key, a in self.amb.items():
             if key[0] in model_r:
                 sd_resid[key] = (self._sd_residual(eng, key, sr, sb, model_r, model_b), model_r[key[0]][1],
-                                 float(eng.block_states[a.name][0]))
+                                 float(eng.block_states[a.name][0]), self._iono_m(eng, key[0]))
         order = [i for i, k in enumerate(kinds) if k == "phase"] + [i for i, k in enumerate(kinds) if k == "code"]
         R = dd_covariance(var_sd, groups)[np.ix_(order, order)]
         phase_pairs = pairs          # phase rows come first, in the order they were built

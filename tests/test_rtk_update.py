@@ -59,25 +59,62 @@ def test_dd_jacobians_match_finite_differences(short_run):
     col = rows.H[:, L.index(a.name)]
     assert np.count_nonzero(col) >= 1          # its phase row (a reference: every row of its signal)
     np.testing.assert_allclose(dz, -col, rtol=1e-9, atol=1e-9)
+    # one satellite's differential ionosphere (m on L1): -(f1/f)^2 on its phase rows, + on its code
+    sat, name = next(iter(eng.rtk.iono.items()))
+    eng.block_states[name] = eng.block_states[name] + 0.01
+    try:
+        dz = _rows_at(eng, epoch, ins).z - rows.z
+    finally:
+        eng.block_states[name] = eng.block_states[name] - 0.01
+    col = rows.H[:, L.index(name)]
+    np.testing.assert_allclose(dz, -col * 0.01, rtol=1e-9, atol=1e-12)
+    l2 = [i for i, lab in enumerate(rows.labels) if lab.startswith(sat + "-") and " L2W phase" in lab]
+    if l2:      # the L2 phase row: (154/120)^2 of the delay on L1, advanced
+        assert col[l2[0]] == pytest.approx(-(154.0 / 120.0) ** 2)
+    assert np.count_nonzero(col) >= 2
     assert checked == 6
     # the DD covariance: positive definite, the reference's share off the diagonal
     assert np.all(np.linalg.eigvalsh(rows.R) > 0)
     assert rows.R[0, 1] > 0
 
 
-@pytest.mark.xfail(reason="issue 12 targets not met yet on this realisation: seed 0, 175 s gives first fix "
-                          "61 s, 0 wrong fixes, RMS_h 0.15 m (0.008 m over fixed epochs); README, RTK inside the filter",
-                   strict=False)
-def test_rtk_scenario_meets_the_acceptance_targets():
-    """Fast version: the first 175 s (both early slips, the 30-s outage, 15 s after it)."""
-    r = run_rtk(seed=0, duration_s=175.0)
+@pytest.fixture(scope="module")
+def run_175():
+    """The first 175 s of seed 0 (both early slips, the 30-s outage, 15 s after it)."""
+    return run_rtk(seed=0, duration_s=175.0)
+
+
+def test_rtk_scenario_fixes_within_30_s_refixes_within_10_s_and_never_wrong(run_175):
+    r = run_175
     print({k: r[k] for k in ("first_fix_s", "rms_h_after_first_fix_m", "rms_h_fixed_epochs_m",
                              "refix_after_outage_s", "wrong_fixes", "fixed_epochs", "n_epochs")})
     assert r["first_fix_s"] <= 30.0
-    assert r["rms_h_after_first_fix_m"] <= 0.02
     assert r["refix_after_outage_s"] and max(r["refix_after_outage_s"]) <= 10.0
     assert r["wrong_fixes"] == 0
+    assert r["rms_h_fixed_epochs_m"] <= 0.02
     assert r["counters"]["rtk ambiguities reset: slip flag / lock time / gap"] >= 2    # the flagged slips
+
+
+@pytest.mark.xfail(reason="issue 12: the RMS_h after the first fix counts the two float epochs after the 30-s "
+                          "outage (1.0 m off with a 0.9-2.0 m 3-D sigma, code only) before the re-fix: 0.12 m "
+                          "offline; through the service (python -m sitl fly --scenario rtk) 0.0153 m",
+                   strict=False)
+def test_rtk_scenario_rms_after_the_first_fix(run_175):
+    assert run_175["rms_h_after_first_fix_m"] <= 0.02
+
+
+def test_without_the_ionosphere_states_the_float_fixes_later(run_175):
+    """The scenario's rover-only ionosphere (2 mm zenith, 900 s) biases a float that has no state
+    for it: measured 61 s to the first fix and 82 of 144 epochs fixed without, 13 s and 130 with."""
+    from sitl.rtk_score import rtk_config
+    from sitl.scenario import build_scenario
+    from sitl.tuning import tuning_for
+    scn = build_scenario("rtk")
+    cfg = dataclasses.replace(rtk_config(scn, tuning_for(scn)), rtk_iono_states=False)
+    off = run_rtk(seed=0, duration_s=175.0, cfg=cfg)
+    assert off["wrong_fixes"] == 0
+    assert off["first_fix_s"] > run_175["first_fix_s"] + 10.0
+    assert off["fixed_epochs"] < run_175["fixed_epochs"]
 
 
 def _strip_slip_flags(epochs):

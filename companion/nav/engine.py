@@ -193,6 +193,9 @@ class EngineConfig:
     rtk_ratio_threshold: float = 3.0
     rtk_min_fix_ambiguities: int = 4
     rtk_hold_sigma_cycles: float = 0.01
+    rtk_iono_states: bool = True
+    rtk_iono_sigma_zenith_m: float = 0.001
+    rtk_iono_sigma_ppm: float = 3.0
 
     def bias_systems(self) -> tuple[str, ...]:
         """Systems with an inter-system bias state: the configured ones, else every clock group
@@ -210,7 +213,9 @@ class EngineConfig:
                                code_phase_ratio=self.rtk_code_phase_ratio, max_base_age_s=self.rtk_max_base_age_s,
                                ratio_threshold=self.rtk_ratio_threshold,
                                min_fix_ambiguities=self.rtk_min_fix_ambiguities,
-                               hold_sigma_cycles=self.rtk_hold_sigma_cycles, gate_probability=self.gate_probability)
+                               hold_sigma_cycles=self.rtk_hold_sigma_cycles, gate_probability=self.gate_probability,
+                               iono_states=self.rtk_iono_states, iono_sigma_zenith_m=self.rtk_iono_sigma_zenith_m,
+                               iono_sigma_ppm=self.rtk_iono_sigma_ppm)
 
 
 @dataclass

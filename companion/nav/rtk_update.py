@@ -101,6 +101,15 @@ class RtkUpdateConfig:
     max_fixed_sigma_3d_m: float = 0.10
     wrong_fix_position_sigma_m: float = 0.3
     gate_probability: float = 0.999
+    # the differential ionosphere as states (RTKLIB's IONOOPT_EST): one SD slant delay per
+    # satellite at L1's frequency, -(lambda/lambda_L1)^2 of it on the phase, + on the code.  Its
+    # zenith sigma at acquisition: iono_sigma_zenith_m + iono_sigma_ppm x baseline (RTKLIB's
+    # default 0.03 m per 10 km), mapped to the slant by the single-layer model; a random walk whose
+    # PSD is that of a first-order Markov process of that sigma and iono_correlation_time_s
+    iono_states: bool = True
+    iono_sigma_zenith_m: float = 0.001
+    iono_sigma_ppm: float = 3.0
+    iono_correlation_time_s: float = 900.0
 
 
 @dataclass
@@ -153,6 +162,7 @@ class RtkUpdate:
         self._base_lock: dict = {}
         self._rover_lock: dict = {}
         self.amb: dict[tuple[str, str], _Amb] = {}
+        self.iono: dict[str, str] = {}               # sat -> its differential ionosphere's block
         self._resid: dict = {}                       # key -> (t_gps, post-update SD residual m)
         self.held: set = set()                       # keys in the last held fix
         self._reset_after: set = set()               # keys to re-initialise at the end of the epoch
@@ -169,6 +179,7 @@ class RtkUpdate:
     def reset(self) -> None:
         """After an engine (re-)initialisation: the layout was rebuilt without the blocks."""
         self.amb.clear()
+        self.iono.clear()
         self._resid.clear()
         self.held.clear()
         self._rover_lock.clear()
@@ -209,6 +220,29 @@ class RtkUpdate:
     def _drop_all(self, eng) -> None:
         for key in list(self.amb):
             self._drop_amb(eng, key)
+        self._prune_iono(eng)
+
+    # the differential ionosphere: a block per satellite while any of its ambiguities lives
+    def _ensure_iono(self, eng, sat: str, elevation_rad: float) -> None:
+        cfg = self.cfg
+        if not cfg.iono_states or sat in self.iono:
+            return
+        base_m = float(np.linalg.norm(eng.r_e - eng.base.r_e)) if eng.base is not None else 0.0
+        m = _iono_mapping(elevation_rad)
+        sigma_z = cfg.iono_sigma_zenith_m + cfg.iono_sigma_ppm * 1e-6 * base_m
+        name = f"iono {sat}"
+        psd = 2.0 * (sigma_z * m) ** 2 / cfg.iono_correlation_time_s
+        eng.add_state_block(name, 1, sigma_z * m, psd)
+        self.iono[sat] = name
+
+    def _prune_iono(self, eng) -> None:
+        live = {k[0] for k in self.amb}
+        for sat in [q for q in self.iono if q not in live]:
+            eng.remove_state_block(self.iono.pop(sat))
+
+    def _iono_m(self, eng, sat: str) -> float:
+        name = self.iono.get(sat)
+        return float(eng.block_states[name][0]) if name is not None else 0.0
 
     # ------------------------------------------------------------------ one epoch: float rows
     def rows(self, eng, ins, epoch: GnssEpoch, r_ant_e: np.ndarray, l_e: np.ndarray,
@@ -314,6 +348,8 @@ class RtkUpdate:
                         self._drop_amb(eng, key)
                         self.counters["rtk ambiguities reset: slip flag / lock time / gap"] += 1
                         a = None
+                if ok:
+                    self._ensure_iono(eng, sat, r.elevation_rad)
                 if ok and a is None:
                     lam = r.wavelength_m[s]
                     n0 = (r.phase_cyc[s] - q.phase_cyc[s]) - (r.code_m[s] - q.code_m[s]) / lam
@@ -325,13 +361,15 @@ class RtkUpdate:
         for key in [k for k, a in self.amb.items() if t - a.last_seen > cfg.max_gap_s]:
             self._drop_amb(eng, key)
             self.counters["rtk ambiguities dropped: satellite lost"] += 1
+        self._prune_iono(eng)
 
     def _sd_residual(self, eng, key, sr, sb, model_r, model_b) -> float:
         sat, s = key
         a = self.amb[key]
         lam = a.wavelength_m
         sd_phi = lam * (sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
-        return sd_phi - (model_r[sat][0] - model_b[sat][0]) - lam * float(eng.block_states[a.name][0])
+        return (sd_phi - (model_r[sat][0] - model_b[sat][0]) - lam * float(eng.block_states[a.name][0])
+                + _iono_factor(lam) * self._iono_m(eng, sat))
 
     def _slip_test(self, eng, t, common, sr, sb, model_r, model_b) -> None:
         """INS-predicted phase: per ambiguity, the change of its SD residual since the last epoch,
@@ -381,8 +419,9 @@ class RtkUpdate:
         amb = self.amb
         sa, sb_, ratio = cfg.sigma_phase_a_m, cfg.sigma_phase_b_m, cfg.code_phase_ratio
         var_ph = {q: sd_variance_m2(sr[q].elevation_rad, "phase", sa, sb_, ratio) for q in common}
-        refs, pairs, cols = {}, [], []
+        refs, pairs, cols, iono_cols = {}, [], [], []
         z_ph, z_co, lab_ph, lab_co, lam_ph, du = [], [], [], [], [], []
+        iono = self.iono
         runs = []               # per (system, signal): (own SD variances, reference's), phase
         for sys, s in self._groups:
             sats = [q for q in common if q[:1] == sys and (q, s) in amb]
@@ -399,6 +438,7 @@ class RtkUpdate:
             u_ref = model_r[ref][1]
             n_ref = float(bs[ar.name][0])
             col_ref = L.index(ar.name)
+            i_ref = self._iono_m(eng, ref)
             own = []
             for sat in sats:
                 if sat == ref:
@@ -408,9 +448,13 @@ class RtkUpdate:
                 lam = a.wavelength_m
                 q, qb = sr[sat], sb[sat]
                 dd_rho = (model_r[sat][0] - model_b[sat][0]) - rho_ref
+                # the ionosphere advances the phase and delays the code
+                dd_iono = _iono_factor(lam) * (self._iono_m(eng, sat) - i_ref) if iono else 0.0
                 z_ph.append(lam * ((q.phase_cyc[s] - qb.phase_cyc[s]) - sd_phi_ref) - dd_rho
-                            - lam * (float(bs[a.name][0]) - n_ref))
-                z_co.append(((q.code_m[s] - qb.code_m[s]) - sd_code_ref) - dd_rho)
+                            - lam * (float(bs[a.name][0]) - n_ref) + dd_iono)
+                z_co.append(((q.code_m[s] - qb.code_m[s]) - sd_code_ref) - dd_rho - dd_iono)
+                if iono:
+                    iono_cols.append((L.index(iono[sat]), L.index(iono[ref])))
                 du.append(model_r[sat][1] - u_ref)
                 lam_ph.append(lam)
                 cols.append((L.index(a.name), col_ref))
@@ -434,6 +478,13 @@ class RtkUpdate:
         rk = np.arange(k)
         H[rk, c[:, 0]] = lam
         H[rk, c[:, 1]] = -lam
+        if iono_cols:
+            ci = np.array(iono_cols)
+            mu = _iono_factor(lam)
+            H[rk, ci[:, 0]] = -mu
+            H[rk, ci[:, 1]] = mu
+            H[k + rk, ci[:, 0]] = mu
+            H[k + rk, ci[:, 1]] = -mu
         # the DD covariance: phase runs, then the same runs for the code (x ratio^2 x factor)
         R = np.zeros((2 * k, 2 * k))
         code_f = ratio ** 2
@@ -453,7 +504,7 @@ class RtkUpdate:
         for key, a in amb.items():
             if key[0] in model_r:
                 sd_resid[key] = (self._sd_residual(eng, key, sr, sb, model_r, model_b), model_r[key[0]][1],
-                                 float(bs[a.name][0]))
+                                 float(bs[a.name][0]), self._iono_m(eng, key[0]))
         return RtkEpochRows(t, np.array(z_ph + z_co), H, R, ["phase"] * k + ["code"] * k,
                             lab_ph + lab_co, refs, pairs, sd_resid, amb_cols=c)
 
@@ -660,16 +711,19 @@ class RtkUpdate:
         for key in self._reset_after:
             self._drop_amb(eng, key)
         self._reset_after.clear()
+        self._prune_iono(eng)
         if rows is None:
             return
         L = eng.layout
         dr = dx_total[L.pos]
-        for key, (e_pre, u, n_pre) in rows.sd_resid.items():
+        for key, (e_pre, u, n_pre, i_pre) in rows.sd_resid.items():
             a = self.amb.get(key)
             if a is None:
                 continue
             n_post = float(eng.block_states[a.name][0])
-            self._resid[key] = (rows.t_gps, e_pre + float(u @ dr) - a.wavelength_m * (n_post - n_pre))
+            i_post = self._iono_m(eng, key[0])
+            self._resid[key] = (rows.t_gps, e_pre + float(u @ dr) - a.wavelength_m * (n_post - n_pre)
+                                + _iono_factor(a.wavelength_m) * (i_post - i_pre))
 
 
 def _median(x: list) -> float:
@@ -707,3 +761,16 @@ def _model_ranges_m(r_rx_e: np.ndarray, sats: list):
 
 
 _ONE_DEG_RAD = math.radians(1.0)
+_L1_WAVELENGTH_M = SPEED_OF_LIGHT_MPS / 1575.42e6
+_EARTH_RADIUS_M, _IONO_SHELL_M = 6371e3, 350e3
+
+
+def _iono_factor(wavelength_m):
+    """The ionospheric delay on a carrier of ``wavelength_m`` per metre of it on L1's: (f_L1/f)^2."""
+    return (wavelength_m / _L1_WAVELENGTH_M) ** 2
+
+
+def _iono_mapping(elevation_rad: float) -> float:
+    """Slant over vertical delay of the single-layer ionosphere (shell at 350 km)."""
+    x = _EARTH_RADIUS_M / (_EARTH_RADIUS_M + _IONO_SHELL_M) * math.cos(elevation_rad)
+    return 1.0 / math.sqrt(1.0 - x * x)
