@@ -193,6 +193,10 @@ class GnssAttitude:
     sigma_pitch_rad: float = math.radians(0.2)
     sigma_roll_rad: float = math.radians(0.4)
     autopilot_clock: bool = False     # t_gps from the autopilot's boot time (ATTITUDE, GPS_RAW_INT yaw)
+    # the heading follows this reading rather than averaging it with earlier ones: the source's error
+    # is the same from one reading to the next and already in the heading (the autopilot's compass
+    # at rest); see NavEngine.release_heading
+    follow_heading: bool = False
 
 
 @dataclass(frozen=True, slots=True, eq=False)

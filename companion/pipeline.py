@@ -884,14 +884,15 @@ class NavPipeline:
             return False
         return True
 
-    AP_HEADING_PERIOD_S = 1.0
+    AP_HEADING_PERIOD_S = 0.1
     AP_HEADING_SIGMA_RAD = math.radians(5.0)
 
     def _ground_heading(self, msg) -> None:
         """At rest with one antenna our heading is unobservable (ZARU holds it, nothing corrects
-        it): keep it on the autopilot's compass heading once a second instead of the copy taken at
-        initialisation, which can predate the autopilot's own convergence (ArduCopter SITL: 10 deg
-        off).  Off with ``mavlink.autopilot_heading_on_ground`` or a dual-antenna heading."""
+        it): keep it on the autopilot's compass heading, ten readings a second, instead of the copy
+        taken at initialisation, which can predate the autopilot's own convergence (ArduCopter
+        SITL: 10 deg off; PX4 SIH: a 13-deg yaw reset a few seconds after ours starts).  Off with
+        ``mavlink.autopilot_heading_on_ground`` or a dual-antenna heading."""
         eng = self.engine
         if not (eng.initialized and self.on_ground and self.cfg.mavlink.autopilot_heading_on_ground) \
                 or self.cfg.gnss.moving_baseline_b_m is not None or not self.attitude_yaw_trusted:
@@ -903,8 +904,11 @@ class NavPipeline:
         if t_gps is None:
             return
         self._last_ap_heading_boot_s = t_boot
+        # follow_heading: the compass error is the same from one reading to the next (a wandering
+        # or reset autopilot yaw): averaging the readings would claim a certainty they do not have
+        # and lag the autopilot by seconds (PX4 SIH: yaw resets of 2-13 deg)
         eng.process(GnssAttitude(t_gps, heading_rad=float(msg.yaw), sigma_heading_rad=self.AP_HEADING_SIGMA_RAD,
-                                 autopilot_clock=True))
+                                 autopilot_clock=True, follow_heading=True))
         self.counters["autopilot heading fused (on the ground)"] += 1
 
     def _announce_hold(self, integrity: str | None) -> None:

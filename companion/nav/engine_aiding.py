@@ -18,6 +18,10 @@ from .measurements import (antenna_state, attitude_batch, attitude_rate_e, basel
 
 log = logging.getLogger("companion.nav.engine")
 
+#: a followed heading reading (GnssAttitude.follow_heading) finds the heading released to this many
+#: times its sigma: a gain of ~0.99, the heading then as certain as the reading, no more
+HEADING_RELEASE = 10.0
+
 
 class ReceiverAiding:
     """Loose fixes, GNSS attitude and baselines, NHC and zero-motion updates of the NavEngine."""
@@ -111,6 +115,8 @@ class ReceiverAiding:
         if not len(b):
             self.counters["attitude without angles"] += 1
             return None
+        if att.follow_heading and math.isfinite(att.heading_rad):
+            self.release_heading(HEADING_RELEASE * att.sigma_heading_rad)
         return self._update_with(b, "attitude", "attitude used")
 
     def process_baseline(self, bl: GnssBaseline):

@@ -93,6 +93,17 @@ class HeadingAlignment:
         if self.smoother is not None:
             self.smoother.start(self)     # a jump of the nominal state: the smoothing restarts here
 
+    def release_heading(self, sigma_heading_rad: float) -> None:
+        """Raise the heading variance to at least ``sigma_heading_rad**2`` (tilt, cross-covariances
+        and the state kept): before a reading of a heading source whose error is correlated in time
+        and already in the heading (the autopilot's compass at rest), so that its readings are not
+        averaged as if independent and the heading is never more certain than the source."""
+        L = self.layout
+        u = down_axis_e(self.r_e)
+        var = heading_variance(self.kf.P[L.att, L.att], u)
+        if var < sigma_heading_rad ** 2:
+            self.kf.P[L.att, L.att] += (sigma_heading_rad ** 2 - var) * np.outer(u, u)
+
     def heading_and_sigma(self) -> tuple[float, float]:
         """The filter's heading (rad, clockwise from true north) and its 1-sigma (rad)."""
         u = down_axis_e(self.r_e)
