@@ -169,3 +169,25 @@ def test_a_wrong_fix_is_dropped_at_once():
     assert fixed_after and all(e[4] < 0.1 for e in fixed_after)
     wrong = [e for e in r["epochs"] if e[1] == "fixed" and e[4] > 0.1]
     assert not wrong
+
+
+def test_ionosphere_blocks_live_and_die_with_their_satellites_ambiguities():
+    """Through slips and the 30-s outage (every ambiguity started again at the first epoch after
+    it, the ionosphere kept, its variance grown): after every epoch exactly the satellites with an
+    ambiguity have an ionosphere block, each in the layout."""
+    seen = {"epochs": 0, "bad": [], "max_iono": 0}
+
+    def hook(eng, t_s):
+        n = eng.counters["gnss epochs"]
+        if n == seen["epochs"] or eng.rtk is None:
+            return
+        seen["epochs"] = n
+        sats = {k[0] for k in eng.rtk.amb}
+        if set(eng.rtk.iono) != sats or not all(name in eng.block_states for name in eng.rtk.iono.values()):
+            seen["bad"].append((round(t_s, 1), sorted(sats ^ set(eng.rtk.iono))))
+        seen["max_iono"] = max(seen["max_iono"], len(eng.rtk.iono))
+
+    r = run_rtk(seed=0, duration_s=175.0, hook=hook)
+    assert seen["bad"] == []
+    assert seen["max_iono"] >= 6
+    assert r["counters"]["rtk ambiguities reset: slip flag / lock time / gap"] >= 10     # the outage

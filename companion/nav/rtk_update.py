@@ -13,6 +13,12 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   data-link outage while the receiver kept tracking: the ambiguity is unchanged and a held fix
   resumes at the first epoch after it).  Their common part is unobservable and never matters: only
   between-satellite differences enter the rows.
+* **Differential ionosphere** (``iono_states``): one single-difference slant delay per satellite
+  (m at L1's frequency), a block ``"iono G05"`` added with the satellite's first ambiguity (zero,
+  zenith sigma ``iono_sigma_zenith_m`` + ``iono_sigma_ppm`` x baseline through the single-layer
+  mapping) and dropped with its last; ``-(f_L1/f)^2`` of it on a phase row, ``+`` on a code row.
+  Without it a few millimetres of rover-only ionosphere bias the float ambiguities of a
+  dual-frequency rover, whose covariance keeps shrinking, and the ratio test fails for a minute.
 * **Systems**: the satellites of ``systems`` (the engine's ``[filter] systems``: GPS, Galileo,
   BeiDou, QZSS), each on its own signals (:data:`companion.rtk_signals.RTK_SIGNALS_BY_SYSTEM`
   among ``signals``) and differenced **within its system only**: a reference per (system,
