@@ -52,3 +52,50 @@ def test_readings_not_followed_are_averaged():
     h, s = out[-1]
     assert h == pytest.approx((8.0 + 3.0 - 2.0) / 4.0, abs=0.3)      # prior (0) and three readings
     assert s == pytest.approx(5.0 / 2.0, abs=0.1)
+
+
+class _Engine:
+    initialized = True
+
+    def __init__(self):
+        self.got = []
+
+    def process(self, msg):
+        self.got.append(msg)
+
+
+class _TimeMap:
+    @staticmethod
+    def to_gps(t_boot_s):
+        return 1.4e9 + t_boot_s
+
+
+def test_the_pipeline_follows_the_autopilot_heading_on_the_ground_only():
+    from types import SimpleNamespace
+
+    from companion.config import config_from_dict
+    from companion.pipeline import NavPipeline
+    pipe = NavPipeline(config_from_dict({"mavlink": {"autopilot_heading_on_ground": True}}))
+    pipe.engine, pipe.time_map = _Engine(), _TimeMap()
+    t_ms = [0]
+
+    def reading(yaw=0.3):
+        t_ms[0] += 100                             # ten readings a second pass the rate limit
+        before = len(pipe.engine.got)
+        pipe._ground_heading(SimpleNamespace(time_boot_ms=t_ms[0], yaw=yaw))
+        return len(pipe.engine.got) > before
+
+    pipe.on_ground = True
+    assert reading()
+    att = pipe.engine.got[-1]
+    assert att.follow_heading and att.autopilot_clock and att.heading_rad == 0.3
+    assert att.sigma_heading_rad == pytest.approx(SIGMA)
+    t_ms[0] -= 50
+    assert not reading()                           # 50 ms after the last: not yet
+    assert reading()
+    pipe.on_ground = False                         # in the air our own heading (see the README)
+    assert not reading()
+    pipe.on_ground = True
+    pipe.attitude_yaw_trusted = False              # the yaw from motion contradicted the compass
+    assert not reading()
+    assert pipe.counters["autopilot heading fused (on the ground)"] == 2
