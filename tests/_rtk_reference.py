@@ -102,7 +102,7 @@ class ReferenceRtkUpdate(RtkUpdate):
                 prev = self._resid.get(key)
                 if key not in self.amb or prev is None or not 0.0 < t - prev[0] <= cfg.slip_max_interval_s:
                     continue
-                e = self._sd_residual(eng, key, sr, sb, model_r, model_b)
+                e = self._sd_residual(eng, key, sr, sb, model_r, model_b, self._iono_values(eng))
                 keys.append(key)
                 d.append(e - prev[1])
                 v = sd_variance_m2(sr[sat].elevation_rad, "phase", cfg.sigma_phase_a_m, cfg.sigma_phase_b_m, 1.0)
@@ -190,8 +190,9 @@ class ReferenceRtkUpdate(RtkUpdate):
         sd_resid = {}
         for key, a in self.amb.items():
             if key[0] in model_r:
-                sd_resid[key] = (self._sd_residual(eng, key, sr, sb, model_r, model_b), model_r[key[0]][1],
-                                 float(eng.block_states[a.name][0]), self._iono_m(eng, key[0]))
+                ion = self._iono_values(eng)
+                sd_resid[key] = (self._sd_residual(eng, key, sr, sb, model_r, model_b, ion), model_r[key[0]][1],
+                                 float(eng.block_states[a.name][0]), ion.get(key[0], 0.0))
         order = [i for i, k in enumerate(kinds) if k == "phase"] + [i for i, k in enumerate(kinds) if k == "code"]
         R = dd_covariance(var_sd, groups)[np.ix_(order, order)]
         phase_pairs = pairs          # phase rows come first, in the order they were built

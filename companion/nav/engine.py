@@ -731,8 +731,12 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.clock_bias_m += dx[L.clk]
         self.clock_drift_mps += dx[L.drift]
         self.imu_time_offset_s += dx[L.toff]
-        for name in self.block_states:
-            self.block_states[name] = self.block_states[name] + dx[L.slice(name)]
+        bs = self.block_states
+        if bs:                     # by the layout's blocks: no look-up by name per block (RTK: 60 of them)
+            for blk in L.extra_blocks():
+                v = bs.get(blk.name)
+                if v is not None:
+                    bs[blk.name] = v + dx[blk.start:blk.start + blk.size]
         # the newest history sample is "now": keep it consistent with the corrected state; the
         # older ones get the same correction, for an epoch that arrives right behind this one (a
         # burst after a data gap: 1.2 s late, the next 0.2 s) is predicted from them

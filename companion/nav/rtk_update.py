@@ -246,9 +246,10 @@ class RtkUpdate:
         for sat in [q for q in self.iono if q not in live]:
             eng.remove_state_block(self.iono.pop(sat))
 
-    def _iono_m(self, eng, sat: str) -> float:
-        name = self.iono.get(sat)
-        return float(eng.block_states[name][0]) if name is not None else 0.0
+    def _iono_values(self, eng) -> dict:
+        """sat -> its differential ionosphere now (m on L1), the satellites with a block."""
+        bs = eng.block_states
+        return {sat: float(bs[name][0]) for sat, name in self.iono.items()}
 
     # ------------------------------------------------------------------ one epoch: float rows
     def rows(self, eng, ins, epoch: GnssEpoch, r_ant_e: np.ndarray, l_e: np.ndarray,
@@ -369,13 +370,14 @@ class RtkUpdate:
             self.counters["rtk ambiguities dropped: satellite lost"] += 1
         self._prune_iono(eng)
 
-    def _sd_residual(self, eng, key, sr, sb, model_r, model_b) -> float:
+    def _sd_residual(self, eng, key, sr, sb, model_r, model_b, ion: dict) -> float:
+        """The SD phase residual (m) at the INS point; ``ion``: :meth:`_iono_values`."""
         sat, s = key
         a = self.amb[key]
         lam = a.wavelength_m
         sd_phi = lam * (sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
         return (sd_phi - (model_r[sat][0] - model_b[sat][0]) - lam * float(eng.block_states[a.name][0])
-                + _iono_factor(lam) * self._iono_m(eng, sat))
+                + _iono_factor(lam) * ion.get(sat, 0.0))
 
     def _slip_test(self, eng, t, common, sr, sb, model_r, model_b) -> None:
         """INS-predicted phase: per ambiguity, the change of its SD residual since the last epoch,
@@ -384,6 +386,7 @@ class RtkUpdate:
         L = eng.layout
         P = eng.kf.P
         sig_v2 = float(np.trace(P[L.vel, L.vel])) / 3.0
+        ion = self._iono_values(eng)
         for sys, s in self._groups:
             keys, d, var = [], [], []
             for sat in common:
@@ -393,7 +396,7 @@ class RtkUpdate:
                 prev = self._resid.get(key)
                 if key not in self.amb or prev is None or not 0.0 < t - prev[0] <= cfg.slip_max_interval_s:
                     continue
-                e = self._sd_residual(eng, key, sr, sb, model_r, model_b)
+                e = self._sd_residual(eng, key, sr, sb, model_r, model_b, ion)
                 keys.append(key)
                 d.append(e - prev[1])
                 v = sd_variance_m2(sr[sat].elevation_rad, "phase", cfg.sigma_phase_a_m, cfg.sigma_phase_b_m, 1.0)
@@ -428,6 +431,8 @@ class RtkUpdate:
         refs, pairs, cols, iono_cols = {}, [], [], []
         z_ph, z_co, lab_ph, lab_co, lam_ph, du = [], [], [], [], [], []
         iono = self.iono
+        ion = self._iono_values(eng)
+        col = {b.name: b.start for b in L.extra_blocks()}     # the one-state blocks' columns
         runs = []               # per (system, signal): (own SD variances, reference's), phase
         for sys, s in self._groups:
             sats = [q for q in common if q[:1] == sys and (q, s) in amb]
@@ -443,8 +448,8 @@ class RtkUpdate:
             rho_ref = model_r[ref][0] - model_b[ref][0]
             u_ref = model_r[ref][1]
             n_ref = float(bs[ar.name][0])
-            col_ref = L.index(ar.name)
-            i_ref = self._iono_m(eng, ref)
+            col_ref = col[ar.name]
+            i_ref = ion.get(ref, 0.0)
             own = []
             for sat in sats:
                 if sat == ref:
@@ -455,15 +460,15 @@ class RtkUpdate:
                 q, qb = sr[sat], sb[sat]
                 dd_rho = (model_r[sat][0] - model_b[sat][0]) - rho_ref
                 # the ionosphere advances the phase and delays the code
-                dd_iono = _iono_factor(lam) * (self._iono_m(eng, sat) - i_ref) if iono else 0.0
+                dd_iono = _iono_factor(lam) * (ion.get(sat, 0.0) - i_ref) if iono else 0.0
                 z_ph.append(lam * ((q.phase_cyc[s] - qb.phase_cyc[s]) - sd_phi_ref) - dd_rho
                             - lam * (float(bs[a.name][0]) - n_ref) + dd_iono)
                 z_co.append(((q.code_m[s] - qb.code_m[s]) - sd_code_ref) - dd_rho - dd_iono)
                 if iono:
-                    iono_cols.append((L.index(iono[sat]), L.index(iono[ref])))
+                    iono_cols.append((col[iono[sat]], col[iono[ref]]))
                 du.append(model_r[sat][1] - u_ref)
                 lam_ph.append(lam)
-                cols.append((L.index(a.name), col_ref))
+                cols.append((col[a.name], col_ref))
                 pairs.append((key, kref))
                 lab_ph.append(f"{sat}-{ref} {s} phase")
                 lab_co.append(f"{sat}-{ref} {s} code")
@@ -509,8 +514,8 @@ class RtkUpdate:
         sd_resid = {}
         for key, a in amb.items():
             if key[0] in model_r:
-                sd_resid[key] = (self._sd_residual(eng, key, sr, sb, model_r, model_b), model_r[key[0]][1],
-                                 float(bs[a.name][0]), self._iono_m(eng, key[0]))
+                sd_resid[key] = (self._sd_residual(eng, key, sr, sb, model_r, model_b, ion), model_r[key[0]][1],
+                                 float(bs[a.name][0]), ion.get(key[0], 0.0))
         return RtkEpochRows(t, np.array(z_ph + z_co), H, R, ["phase"] * k + ["code"] * k,
                             lab_ph + lab_co, refs, pairs, sd_resid, amb_cols=c)
 
@@ -722,12 +727,13 @@ class RtkUpdate:
             return
         L = eng.layout
         dr = dx_total[L.pos]
+        ion = self._iono_values(eng)
         for key, (e_pre, u, n_pre, i_pre) in rows.sd_resid.items():
             a = self.amb.get(key)
             if a is None:
                 continue
             n_post = float(eng.block_states[a.name][0])
-            i_post = self._iono_m(eng, key[0])
+            i_post = ion.get(key[0], 0.0)
             self._resid[key] = (rows.t_gps, e_pre + float(u @ dr) - a.wavelength_m * (n_post - n_pre)
                                 + _iono_factor(a.wavelength_m) * (i_post - i_pre))
 
