@@ -122,6 +122,15 @@ def test_relativistic_clock_term_equals_minus_2_r_dot_v_over_c2(ephs):
 
 
 @needs_data
+def test_satellite_clock_alone_is_satellite_states_clock_to_the_bit(ephs):
+    """The DD front end takes its first light-time iteration's clock from satellite_clock alone."""
+    for e in ephs[::3]:
+        for dt in (-7000.0, -1.5e-3, 0.0, 0.07, 3600.0):
+            t = e.t_oe_gps + dt
+            assert satellite_clock(e, t)[0] == satellite_state(e, t)[2]
+
+
+@needs_data
 def test_week_crossover_is_continuous(ephs):
     """An ephemeris with toe 2 h before the end of the week, evaluated across the week boundary."""
     e0 = ephs[0]

@@ -24,7 +24,7 @@ import numpy as np
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from ..nav.earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic
 from .atmosphere import tropo_delay_m
-from .ephemeris import satellite_state
+from .ephemeris import satellite_clock, satellite_state
 from .ephemeris_store import EphemerisStore
 
 
@@ -114,7 +114,7 @@ def transmit_states(epoch: GnssEpoch, store: EphemerisStore, signals,
             v_s = o_st.v_s
             clk = o_st.clock_s + drift * dt
         else:
-            _, _, clk1, _ = satellite_state(eph, t_tx)
+            clk1 = satellite_clock(eph, t_tx)[0]        # satellite_state's clock, without the orbit
             r_s, v_s, clk, drift = satellite_state(eph, t_tx - clk1)
         fields = ({s: o.pseudorange_m for s, o in obs.items() if math.isfinite(o.pseudorange_m)},
                   {s: o.carrier_cycles for s, o in obs.items() if math.isfinite(o.carrier_cycles)},
