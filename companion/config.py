@@ -85,7 +85,7 @@ class MavlinkConfig:
                                           doc="gyro full scale for clip detection; 0 = per message type "
                                           "(2000 deg/s HIGHRES_IMU, 32.767 rad/s int16 mrad/s fields)")
     autopilot_heading_on_ground: bool = _f(False, doc="on the ground, keep the heading on the autopilot's "
-                                           "ATTITUDE yaw (5 deg, 1 Hz): only where that yaw is its compass "
+                                           "ATTITUDE yaw (5 deg, followed ten times a second): only where that yaw is its compass "
                                            "(EK3_SRC1_YAW 1), never when it is ours (ExternalNav); a wrong "
                                            "compass is then trusted too (deploy/ turns it on for ArduPilot)")
     # a compass heading on a drone is good to a few degrees when it is right (calibrated, away from
