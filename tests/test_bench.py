@@ -2,6 +2,8 @@
 suite's: a loaded machine must not fail a test)."""
 import math
 
+import pytest
+
 from sitl.bench import format_bench, run_bench
 
 
@@ -23,3 +25,21 @@ def test_bench_reports_cpu_time_rates_latency_rtk_and_startup():
     assert r["rtk_epoch_latency_ms_p50"] * 1e3 >= r["latency_us_p50_with_rtk"]   # an epoch costs more than a sample
     text = format_bench(r)
     assert "samples/CPU-s" in text and "IMU + RTK" in text
+
+
+def test_the_harness_runs_numpy_with_one_blas_thread():
+    """``python -m sitl`` imports numpy through its modules: companion must set
+    OPENBLAS_NUM_THREADS=1 first, or a second BLAS thread spins through every RTK epoch (the bench's
+    RTK load read 24.8k samples per CPU-second at 35.8k per wall-second)."""
+    import os
+    import subprocess
+    import sys
+    if not os.path.isdir("/proc/self/task"):
+        pytest.skip("counts the process's threads in /proc")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    code = ("import sitl.faults, numpy as np, os; np.ones((300, 300)) @ np.ones((300, 300)); "
+            "print(len(os.listdir('/proc/self/task')))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout.split()[-1]) == 1
