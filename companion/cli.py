@@ -28,8 +28,8 @@ def _add_gnss(sub) -> None:
                    help="rtk: L1+L2 carrier phase, integer ambiguities (LAMBDA), fix-and-hold")
     p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
     p.add_argument("--sys", default="auto",
-                   help="constellations for spp/dgps, e.g. G,E,C,J (GPS, Galileo, BeiDou, QZSS) or 'all'; "
-                        "default: every one with observations and ephemerides in the files")
+                   help="constellations, e.g. G,E,C,J (GPS, Galileo, BeiDou, QZSS) or 'all'; default: every one "
+                        "with observations and ephemerides in the files (GLONASS is not used)")
     p.add_argument("--freq", choices=["l1", "if"], default="l1",
                    help="spp/dgps: l1 = each system's single-frequency code (GPS/QZSS L1 C/A, Galileo E1, "
                         "BeiDou B1I) with Klobuchar; if = dual-frequency iono-free per system")

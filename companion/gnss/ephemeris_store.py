@@ -3,7 +3,7 @@
 Selection rule (deterministic): among the satellite's ephemerides whose fit interval covers
 ``t_gps`` (|t - toe| <= fit_interval/2, at least :data:`MIN_FIT_INTERVAL_H` of its system: Galileo
 and BeiDou ephemerides decoded from a stream carry no fit interval), take the one with the nearest toe; ties go to the later
-toe, then the higher IODE.  Unhealthy ephemerides (health != 0) are never returned.
+toe, then the higher IODE.  Unhealthy ephemerides (:func:`reports_unhealthy`) are never returned.
 
 Selections are remembered per (satellite, time, IODE) until the next ephemeris is added: the rover
 and the base epoch of the same second ask the same questions (and re-preparing an epoch asks them
@@ -23,6 +23,15 @@ FIT_MARGIN_S = 0.0
 #: GPS and QZSS use their broadcast fit interval (4 h standard)
 MIN_FIT_INTERVAL_H = {"E": 8.0, "C": 12.0}
 MAX_REMEMBERED_SELECTIONS = 1024
+
+
+def reports_unhealthy(sat: str, health: int) -> bool:
+    """Whether a broadcast health word takes the satellite out.  QZSS's LNAV health LSB flags L1C/B
+    (formerly LEX), not the signals we use: every QZSS satellite broadcast 1 in 2024 while
+    receivers tracked it normally (RTKLIB masks the bit too)."""
+    if sat.startswith("J"):
+        return (health & ~1) != 0
+    return health != 0
 
 
 class EphemerisStore:
@@ -82,7 +91,7 @@ class EphemerisStore:
             dt = abs(t_gps - t_oe)
             if dt > half_s:
                 continue
-            if e.health != 0:
+            if reports_unhealthy(sat, e.health):
                 unhealthy = True
                 continue
             k = (dt, -t_oe, -e.iode)

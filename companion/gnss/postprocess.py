@@ -25,6 +25,7 @@ default ones (:data:`KLOBUCHAR_DEFAULT`) rather than no model (tests/test_spp_mu
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -254,6 +255,18 @@ def satellites_by_system(solutions) -> dict[str, dict[str, float]]:
     return out
 
 
+def epoch_progress(label: str, min_epochs: int):
+    """``progress(i, n)`` printing "label: i/n epochs (p %)" to stderr every 5 % of a run of at least
+    ``min_epochs`` epochs (one updating line on a terminal, one line per step in a log)."""
+    tty = sys.stderr.isatty()
+
+    def progress(i, n):
+        if n >= min_epochs and (i % max(1, n // 20) == 0 or i == n):
+            print(f"\r{label}: {i}/{n} epochs ({100 * i // n} %)", end="\n" if (i == n or not tty) else "",
+                  file=sys.stderr, flush=True)
+    return progress
+
+
 def run(args) -> int:
     """Entry point of `companion gnss`; returns the process exit code."""
     try:
@@ -274,14 +287,8 @@ def _run(args) -> int:
     if klob is None and signal != "IF" and args.mode == "spp":
         klob, iono = KLOBUCHAR_DEFAULT, "Klobuchar (RTKLIB's default coefficients: none broadcast)"
     truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
-    tty = sys.stderr.isatty()
-
-    def progress(i, n):
-        if n >= 500 and (i % max(1, n // 20) == 0 or i == n):
-            print(f"\r{args.mode}: {i}/{n} epochs ({100 * i // n} %)", end="\n" if (i == n or not tty) else "",
-                  file=sys.stderr, flush=True)
-
-    sols = process(rover, store, opts, klobuchar=klob, base_epochs=base_epochs, base=base, progress=progress)
+    sols = process(rover, store, opts, klobuchar=klob, base_epochs=base_epochs, base=base,
+                   progress=epoch_progress(args.mode, min_epochs=500))
     for s in sols:                          # antenna -> marker
         if s is not None:
             s.r_e = s.r_e - antenna_delta_e(s.r_e, hdr.get("antenna_delta_hen_m"))
@@ -357,17 +364,24 @@ def _run_rtk(args) -> int:
     base_xyz = _xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
     truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
     cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg)
+    wanted = parse_systems(getattr(args, "sys", None))
+    if wanted:
+        cfg = dataclasses.replace(cfg, systems="".join(c for c in cfg.systems if c in wanted))
     try:
-        sols, info = solve_rtk_rinex(args.rover, args.base, args.nav, base_xyz=base_xyz, config=cfg)
+        # an RTK epoch costs milliseconds (tens with four systems): a minute of 1-Hz data is worth a progress line
+        sols, info = solve_rtk_rinex(args.rover, args.base, args.nav, base_xyz=base_xyz, config=cfg,
+                                     progress=epoch_progress("rtk", min_epochs=60))
     except (ValueError, IndexError) as exc:
         raise GnssProcessingError(str(exc)) from exc
     if not sols:
         raise GnssProcessingError(f"no epoch could be solved ({info['paired_epochs']} rover/base epoch pairs; "
                                   f"{info['counters']})")
     n_fix = sum(1 for s in sols if s.quality == 1)
+    by_sys = satellites_by_system(sols)
     summary = {"mode": "rtk", "signals": list(cfg.signals), "epochs": info["rover_epochs"],
                "paired_epochs": info["paired_epochs"], "solved": len(sols), "fixed": n_fix,
-               "elevation_mask_deg": args.elevation_mask_deg, "counters": info["counters"]}
+               "elevation_mask_deg": args.elevation_mask_deg, "systems": cfg.systems,
+               "satellites_by_system": by_sys, "counters": info["counters"]}
     if truth is not None:
         summary.update(statistics(sols, truth))
         fixed = [s for s in sols if s.quality == 1]
@@ -376,9 +390,12 @@ def _run_rtk(args) -> int:
     print(f"companion gnss rtk: {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
           + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
              f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
+    print("satellites per epoch (common to rover and base, above the mask): "
+          + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
     if args.json:
         rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
                  "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,
+                 "n_sats_by_system": s.n_sats_by_system,
                  **({"err_ned_m": [float(x) for x in ecef_to_ned(s.r_e, truth)]} if truth is not None else {})}
                 for s in sols]
         with open(args.json, "w") as fh:
@@ -389,5 +406,6 @@ def _run_rtk(args) -> int:
         write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
                   inputs=[args.rover, args.base, *args.nav],
                   options={"pos mode": "kinematic", "freqs": "L1+L2", "elev mask": f"{args.elevation_mask_deg:.1f} deg",
+                           "navi sys": ",".join(cfg.systems),
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"})
     return 0

@@ -40,6 +40,7 @@ Solution quality as RTKLIB's Q: 1 fixed, 2 float.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -89,6 +90,7 @@ class RtkSolution:
     n_ambiguities: int = 0          # DD ambiguities formed
     success_rate: float = float("nan")
     counters: dict = field(default_factory=dict)
+    n_sats_by_system: dict = field(default_factory=dict)   # system letter -> satellites above the mask
 
 
 _Sat = ReceiverSat
@@ -354,6 +356,7 @@ class RtkFilter:
 
     def _resolve(self, t: float, common, sr, sb) -> RtkSolution:
         n_dd = len(self._dd_ambiguities(common, sr)[1])
+        by_sys = dict(Counter(q[:1] for q in common))
         by_el = sorted(common, key=lambda q: sr[q].elevation_rad)
         exclude: list[str] = []
         out = None
@@ -365,7 +368,7 @@ class RtkFilter:
         if out is None:
             self._count("epochs float")
             return RtkSolution(t, self.x[:3].copy(), self.P[:3, :3].copy(), Q_FLOAT, len(common),
-                               0.0, 0, n_dd, counters=dict(self.counters))
+                               0.0, 0, n_dd, counters=dict(self.counters), n_sats_by_system=by_sys)
         r_fix, cov_fix, res, T, afix, labels = out
         if exclude:
             self._count("epochs fixed partially")
@@ -373,7 +376,7 @@ class RtkFilter:
         if self.cfg.fix_and_hold:
             self._hold(T, afix)
         return RtkSolution(t, r_fix, cov_fix, Q_FIX, len(common), res.ratio, len(labels), n_dd,
-                           res.success_rate, counters=dict(self.counters))
+                           res.success_rate, counters=dict(self.counters), n_sats_by_system=by_sys)
 
     def _hold(self, T: np.ndarray, afix: np.ndarray) -> None:
         """Fix-and-hold: the fixed DD ambiguities as measurements of the float filter."""

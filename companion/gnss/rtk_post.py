@@ -31,8 +31,8 @@ def antenna_delta_e(marker_r_e, delta_hen_m) -> np.ndarray:
 def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
                     progress=None) -> tuple[list[RtkSolution], dict]:
     """(solutions at the rover marker, info) for every paired epoch that could be solved."""
-    hr, rover = read_rinex_obs(rover_obs)
-    hb, base = read_rinex_obs(base_obs)
+    hr, rover = read_rinex_obs(rover_obs, config.systems)
+    hb, base = read_rinex_obs(base_obs, config.systems)
     # each system's tracking families to one code on both sides (a rover's L2L pairs a base's L2X)
     rover, base = [rtk_epoch(e) for e in rover], [rtk_epoch(e) for e in base]
     ephs = []
@@ -51,8 +51,9 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
     for k, (r_ep, b_ep) in enumerate(pairs):
         prior = None
         if not filt.initialized:
-            spp = spp_epoch(r_ep, store, r_init_e=r_prior)
+            spp = spp_epoch(r_ep, store, r_init_e=r_prior, systems=config.systems)
             if spp is None:
+                filt.counters["epochs without an SPP start"] = filt.counters.get("epochs without an SPP start", 0) + 1
                 continue
             prior = spp.r_e
         sol = filt.process(r_ep, b_ep, prior)

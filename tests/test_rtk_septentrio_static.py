@@ -1,0 +1,119 @@
+"""Post-processed multi-GNSS RTK (``companion gnss --mode rtk``) on a real RINEX 3 pair: two
+Septentrio mosaic-X5 receivers about 1 m apart, 120 s at 1 Hz, GPS + Galileo + BeiDou + QZSS on
+two or three frequencies (tests/data/matrtklib-septentrio-static-2024).  Against the upstream
+reference position of the rover and against RTKLIB's rnx2rtkp on the same files in the same run.
+
+A short baseline: the atmosphere cancels, so this is about reading every system of a RINEX 3 file,
+the receivers' real noise and multipath, and QZSS's health word; GEONET (test_rtk_geonet.py) has the
+3-km baseline."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from companion.gnss.ephemeris_store import EphemerisStore, reports_unhealthy
+from companion.gnss.rinex import read_rinex_nav
+from companion.gnss.rtk import RtkConfig
+from companion.gnss.rtk_post import solve_rtk_rinex
+from tests._data import data_path
+
+pytestmark = pytest.mark.real_data
+
+D = data_path("matrtklib-septentrio-static-2024")
+ROVER, BASE, NAV = D / "rover.crx.gz", D / "base.crx.gz", D / "base.nav.gz"
+#: upstream base_position.txt and rover_position.txt (PROVENANCE.md), WGS84 -> ECEF
+BASE_XYZ = (-3817681.121326613, 3562839.431140291, 3650159.1593410783)
+REF_ROVER = np.array([-3817681.380653759, 3562839.978457426, 3650158.375961049])
+
+
+def _rms(points) -> float:
+    d = np.asarray(points) - REF_ROVER
+    return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1))))
+
+
+@pytest.fixture(scope="module")
+def every_system():
+    return solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ)
+
+
+def test_every_system_of_the_rinex3_files_is_used_and_fixes_from_the_first_epoch(every_system):
+    sols, info = every_system
+    assert len(sols) == 120 and all(s.quality == 1 for s in sols)
+    for s in sols:
+        assert set(s.n_sats_by_system) == set("GECJ"), s.n_sats_by_system
+        assert s.n_sats >= 35 and s.n_fixed >= 70
+    # measured 0.0019 m (RTKLIB with GLONASS too: 0.0018 m); the reference's digits resolve ~1 mm
+    assert _rms([s.r_e for s in sols]) < 0.004
+
+
+def test_four_systems_beat_gps_alone(every_system):
+    """With GPS only (what the post-processor read of a RINEX 3 file before) the same epochs are
+    noisier: 9 satellites against 37."""
+    gps, _ = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ, config=RtkConfig(systems="G"))
+    assert all(set(s.n_sats_by_system) == {"G"} for s in gps)
+    rms_all, rms_gps = _rms([s.r_e for s in every_system[0]]), _rms([s.r_e for s in gps])
+    print(f"RMS 3-D: G,E,C,J {rms_all:.4f} m, GPS alone {rms_gps:.4f} m")
+    assert rms_all < 0.5 * rms_gps                     # measured 0.0019 against 0.0072 m
+
+
+def test_qzss_health_lsb_does_not_take_the_satellite_out():
+    """Every QZSS ephemeris of the file says health 1 (the L1C/B bit) while both receivers track the
+    satellites; any other bit, and any nonzero GPS health, still does."""
+    assert not reports_unhealthy("J02", 1)
+    assert reports_unhealthy("J02", 0b100000) and reports_unhealthy("J02", 3)
+    assert reports_unhealthy("G05", 1) and not reports_unhealthy("G05", 0)
+    ephs = [e for e in read_rinex_nav(NAV) if e.sat.startswith("J")]
+    assert ephs and all(e.health == 1 for e in ephs)
+    store = EphemerisStore(ephs)
+    t = 1403252400.0 + 60.0
+    assert any(store.select(sat, t) is not None for sat in {e.sat for e in ephs})
+
+
+@pytest.mark.skipif(shutil.which("rnx2rtkp") is None, reason="RTKLIB's rnx2rtkp not installed (apt install rtklib)")
+def test_as_good_as_rtklib_on_the_same_files(every_system, tmp_path):
+    """rnx2rtkp 2.4.3 kinematic L1+L2, fix-and-hold, 10-degree mask, G,E,C,J (it adds GLONASS to
+    any -sys list: about 44 satellites against our 37)."""
+    import hatanaka
+    files = []
+    for src in (ROVER, BASE):                      # RTKLIB 2.4.3 reads neither .crx nor .gz
+        plain = tmp_path / src.name.replace(".crx.gz", ".obs")
+        plain.write_bytes(hatanaka.decompress(src.read_bytes()))
+        files.append(plain)
+    nav = tmp_path / "base.nav"
+    nav.write_bytes(hatanaka.decompress(NAV.read_bytes()))
+    out = tmp_path / "rtklib.pos"
+    subprocess.run(["rnx2rtkp", "-p", "2", "-f", "2", "-m", "10", "-h", "-e", "-sys", "G,E,C,J",
+                    "-r", *(f"{v}" for v in BASE_XYZ), "-o", str(out), *map(str, files), str(nav)],
+                   check=True, capture_output=True, timeout=300)
+    theirs = [np.array([float(v) for v in ln.split()[2:5]]) for ln in out.read_text().splitlines()
+              if not ln.startswith("%") and ln.split()[5] == "1"]
+    ours = [s.r_e for s in every_system[0] if s.quality == 1]
+    a, b = _rms(ours), _rms(theirs)
+    print(f"fixed: ours {len(ours)}, RTKLIB {len(theirs)}; RMS 3-D ours {a:.4f} m, RTKLIB {b:.4f} m")
+    assert len(ours) >= len(theirs)
+    assert a <= b + 0.0005                              # measured 0.0019 against 0.0018 m
+
+
+def test_cli_takes_sys_and_reports_satellites_per_system(tmp_path, capsys):
+    from companion.cli import main
+    out = tmp_path / "rtk.json"
+    pos = tmp_path / "rtk.pos"
+    code = main(["gnss", "--rover", str(ROVER), "--base", str(BASE), "--nav", str(NAV), "--mode", "rtk",
+                 "--base-xyz=" + ",".join(map(str, BASE_XYZ)), "--sys", "G,C",
+                 "--truth-xyz=" + ",".join(map(str, REF_ROVER)), "--json", str(out), "--pos", str(pos)])
+    assert code == 0
+    printed = capsys.readouterr()
+    assert "satellites per epoch" in printed.out and " C " in printed.out and " E " not in printed.out
+    assert "rtk: 120/120 epochs (100 %)" in printed.err            # progress on stderr
+    summary = json.loads(out.read_text())
+    assert summary["systems"] == "GC" and set(summary["satellites_by_system"]) == {"G", "C"}
+    assert summary["fixed"] == 120 and summary["rms_3d_m"] < 0.005
+    assert "% navi sys  : G,C" in pos.read_text()
+    # a system that cannot start alone (QZSS: 2 satellites for SPP) is a clear error, not a crash
+    code = main(["gnss", "--rover", str(ROVER), "--base", str(BASE), "--nav", str(NAV), "--mode", "rtk",
+                 "--base-xyz=" + ",".join(map(str, BASE_XYZ)), "--sys", "J"])
+    assert code != 0 and "epochs without an SPP start" in capsys.readouterr().err
