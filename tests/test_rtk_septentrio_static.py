@@ -171,3 +171,34 @@ def test_engine_rtk_on_the_real_pair():
     assert first <= 3 and states[first:].count("fixed") >= len(states[first:]) - 1
     assert systems == set("GECJ") and reps[-1].n_fixed >= 60
     assert np.sqrt(np.mean(after ** 2)) < 0.006 and after.max() < 0.015
+
+
+def test_a_phase_with_an_unresolved_half_cycle_waits_until_it_is_resolved(monkeypatch):
+    """As a u-blox receiver through RTKLIB's convbin reports it: one satellite's L1 phase flagged
+    half-cycle-ambiguous (RINEX 3 LLI bit 1) for 20 s, half a cycle off meanwhile, then resolved
+    (the receiver takes the half cycle out).  The flagged phase forms no ambiguity; after it a new
+    one starts; every epoch stays fixed and right."""
+    from companion.gnss import rtk_post
+    from companion.gnss.rinex import read_rinex_obs
+    real = read_rinex_obs
+
+    def flagged(path, systems="G"):
+        h, eps = real(path, systems)
+        if path != ROVER:
+            return h, eps
+        out = []
+        for k, e in enumerate(eps):
+            obs = []
+            for o in e.observations:
+                if o.sat == "G05" and o.signal == "L1C" and k >= 10:
+                    o = dataclasses.replace(o, half_cycle_ambiguous=k < 30,
+                                            carrier_cycles=o.carrier_cycles + (0.5 if k < 30 else 0.0))
+                obs.append(o)
+            out.append(dataclasses.replace(e, observations=tuple(obs)))
+        return h, out
+
+    monkeypatch.setattr(rtk_post, "read_rinex_obs", flagged)
+    sols, info = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ)
+    assert info["counters"]["phases with an unresolved half cycle"] == 20
+    assert len(sols) == 120 and all(s.quality == 1 for s in sols)
+    assert max(np.linalg.norm(s.r_e - REF_ROVER) for s in sols) < 0.01

@@ -99,6 +99,10 @@ _elevation = elevation_rad
 _model_m = model_range_m
 
 
+def _half_cycle(q: ReceiverSat, signal: str) -> bool:
+    return bool(q.half_cycle and q.half_cycle.get(signal, False))
+
+
 class RtkFilter:
     """Feed epoch pairs with :meth:`process` (rover epoch, base epoch at the same time)."""
 
@@ -209,8 +213,13 @@ class RtkFilter:
         for sat in common:
             for s in self.sig[sat[:1]]:
                 key = (sat, s)
+                # a phase whose half cycle the receiver has not resolved (RINEX 3 LLI bit 1) is left
+                # out until it has: the receiver then adds half a cycle, so a new ambiguity starts
+                half = _half_cycle(sr[sat], s) or _half_cycle(sb[sat], s)
+                if half:
+                    self._count("phases with an unresolved half cycle")
                 ok = s in sr[sat].phase_cyc and s in sb[sat].phase_cyc and s in sr[sat].code_m \
-                    and s in sb[sat].code_m
+                    and s in sb[sat].code_m and not half
                 stale = key in self.last_seen and t - self.last_seen[key] > cfg.max_gap_s
                 if key in self.amb and (sat in slipped or stale or not ok):
                     self._drop_amb([key])
