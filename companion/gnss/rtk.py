@@ -28,12 +28,18 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
   ``lambda_1 phi_1 - lambda_2 phi_2`` (the satellite's first two signals) of either receiver by more than ``slip_gf_m`` between
   epochs, resets that satellite's ambiguities; a gap longer than ``max_gap_s`` too.
 * **Integer resolution**: the float DD ambiguities ``a = T x`` with covariance ``T P T^T`` go to
-  LAMBDA; accepted when the ratio test passes (``ratio_threshold``) and the fixed phase residuals
-  stay within ``fixed_residual_sigma`` of their noise (a wrong fix shows there).  Otherwise partial
-  fixing: the lowest satellite's ambiguities are left float and the rest tried again, down to
-  ``min_fix_ambiguities``.  The fixed position is ``r - Q_ra Q_a^-1 (a - a_fix)``.
-* **Fix-and-hold**: after a validated fix the fixed DD ambiguities are fed back to the float
-  filter as measurements (``hold_sigma_cycles``), so the next epochs start from them.
+  LAMBDA; accepted when the ratio test passes (``ratio_threshold``), the fix pins the position
+  (3-D sigma at most ``max_fixed_sigma_3d_m``) and the fixed phase residuals stay within
+  ``fixed_residual_sigma`` of their noise (a wrong fix shows there).  Otherwise partial fixing: the
+  lowest satellite's ambiguities are left float and the rest tried again, down to
+  ``min_fix_ambiguities`` and to ``min_fix_fraction`` of the epoch's DD ambiguities.  The fixed
+  position is ``r - Q_ra Q_a^-1 (a - a_fix)``.
+* **Fix-and-hold**: after ``hold_after_fixes`` consecutive fixed epochs the fixed DD ambiguities
+  are fed back to the float filter as measurements (``hold_sigma_cycles``), so the next epochs
+  start from them.
+* **Why these limits** (tests/test_rtk_car_15km.py, a real car 15 km from its base): without the
+  pinning, the fraction and the hold delay, 69 of 139 epochs that two independent systems both
+  fixed were 0.1-11 m apart; with them 0 of 50.
 
 Solution quality as RTKLIB's Q: 1 fixed, 2 float.
 """
@@ -72,9 +78,23 @@ class RtkConfig:
     max_gap_s: float = 150.0
     max_phase_innovation_m: float = 5.0            # a DD phase row further than this off is rejected
     ratio_threshold: float = 3.0
+    # bootstrapped success rate of the (partial) set (a lower bound of LAMBDA's): 0 = not tested.
+    # The engine asks 0.999; here GEONET's first epoch, fixed right at ratio 25, has 0.976, and on
+    # a car 15 km from its base the test took out 1 of 4 fixes that disagree between systems
+    min_success_rate: float = 0.0
+    # a fix must pin the position (3-D sigma at most this): integers that leave it at decimetres are
+    # not tied to the geometry (as the engine's RtkUpdateConfig.max_fixed_sigma_3d_m)
+    max_fixed_sigma_3d_m: float = 0.10
     min_fix_ambiguities: int = 4
+    # partial fixing keeps at least this share of the epoch's DD ambiguities: a small subset passes
+    # the ratio test easily and can be wrong together (a car 15 km from its base: 6 of 35 fixed at
+    # ratio 18, 0.1-4 m off its GPS-only solution)
+    min_fix_fraction: float = 0.5
     fixed_residual_sigma: float = 4.0
     fix_and_hold: bool = True
+    # hold only after this many consecutive fixed epochs (RTKLIB's minfix, 10): a single wrong fix
+    # held would pull the float filter onto its integers, and the next epochs would confirm it
+    hold_after_fixes: int = 10
     hold_sigma_cycles: float = 0.03
 
 
@@ -116,6 +136,7 @@ class RtkFilter:
         self.last_seen: dict[tuple[str, str], float] = {}
         self.last_gf: dict[tuple, float] = {}    # (sat, 'rover'|'base', second signal) -> GF phase (m)
         self.t_last: float | None = None
+        self.consecutive_fixes = 0
         self.initialized = False
         self.counters: dict[str, int] = {}
         self.sig: dict[str, tuple[str, ...]] = {}       # system -> its signals, positioning code first
@@ -330,9 +351,9 @@ class RtkFilter:
                 labels.append((q, s, ref))
         return np.array(rows).reshape(len(rows), len(self.x)), labels
 
-    def _try_fix(self, common, sr, sb, exclude):
+    def _try_fix(self, common, sr, sb, exclude, n_dd: int = 0):
         T, labels = self._dd_ambiguities(common, sr, exclude)
-        if len(labels) < self.cfg.min_fix_ambiguities:
+        if len(labels) < max(self.cfg.min_fix_ambiguities, self.cfg.min_fix_fraction * n_dd):
             return None
         a = T @ self.x
         Qa = T @ self.P @ T.T
@@ -344,10 +365,16 @@ class RtkFilter:
             return None
         if not res.ratio >= self.cfg.ratio_threshold:
             return None
+        if not res.success_rate >= self.cfg.min_success_rate:
+            self._count("fixes rejected: success rate")
+            return None
         afix = res.fixed[:, 0]
         gain = np.linalg.solve(Qa, a - afix)
         r_fix = self.x[:3] - Qra @ gain
         cov_fix = self.P[:3, :3] - Qra @ np.linalg.solve(Qa, Qra.T)
+        if not float(np.trace(cov_fix)) <= self.cfg.max_fixed_sigma_3d_m ** 2:
+            self._count("fixes rejected: position not pinned")
+            return None
         # wrong-fix check: the fixed DD phase residuals against their own noise
         x_fix = self.x.copy()
         x_fix[:3] = r_fix
@@ -370,19 +397,21 @@ class RtkFilter:
         exclude: list[str] = []
         out = None
         while True:
-            out = self._try_fix(common, sr, sb, exclude)
+            out = self._try_fix(common, sr, sb, exclude, n_dd)
             if out is not None or len(common) - len(exclude) <= 3:
                 break
             exclude.append(by_el[len(exclude)])      # partial fixing: leave the lowest satellite float
         if out is None:
             self._count("epochs float")
+            self.consecutive_fixes = 0
             return RtkSolution(t, self.x[:3].copy(), self.P[:3, :3].copy(), Q_FLOAT, len(common),
                                0.0, 0, n_dd, counters=dict(self.counters), n_sats_by_system=by_sys)
         r_fix, cov_fix, res, T, afix, labels = out
         if exclude:
             self._count("epochs fixed partially")
         self._count("epochs fixed")
-        if self.cfg.fix_and_hold:
+        self.consecutive_fixes += 1
+        if self.cfg.fix_and_hold and self.consecutive_fixes >= self.cfg.hold_after_fixes:
             self._hold(T, afix)
         return RtkSolution(t, r_fix, cov_fix, Q_FIX, len(common), res.ratio, len(labels), n_dd,
                            res.success_rate, counters=dict(self.counters), n_sats_by_system=by_sys)
