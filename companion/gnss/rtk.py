@@ -56,7 +56,7 @@ from ..rtk_signals import RTK_SIGNALS, signals_for_system
 from .double_difference import (ReceiverSat, dd_covariance, elevation_rad, model_range_m, receiver_sats,
                                 sd_variance_m2)
 from .ephemeris_store import EphemerisStore
-from .lambda_ils import lambda_ils
+from .lambda_kernel import lambda_ils      # compiled when numba is there, the same results
 
 Q_FIX, Q_FLOAT = 1, 2
 
