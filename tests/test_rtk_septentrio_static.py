@@ -202,3 +202,28 @@ def test_a_phase_with_an_unresolved_half_cycle_waits_until_it_is_resolved(monkey
     assert info["counters"]["phases with an unresolved half cycle"] == 20
     assert len(sols) == 120 and all(s.quality == 1 for s in sols)
     assert max(np.linalg.norm(s.r_e - REF_ROVER) for s in sols) < 0.01
+
+
+def test_a_slower_base_is_used_at_every_rover_epoch(monkeypatch):
+    """The base decimated to 10 s (as a CORS file may be): every 1-Hz rover epoch is solved against
+    the nearest base epoch (RTKLIB's maxtdiff), its age in the solution; the satellite clocks'
+    drift over the age is in the variances.  Measured: 120 of 120 fixed, 0.0056 m against 0.0019 m
+    at 1 s, 9 s the largest age (the file ends 9 s after its last base epoch at 10 s)."""
+    from companion.gnss import rtk_post
+    from companion.gnss.rinex import read_rinex_obs
+    real = read_rinex_obs
+
+    def every_10_s(path, systems="G"):
+        h, eps = real(path, systems)
+        return (h, [e for e in eps if round(e.t_gps) % 10 == 0]) if path == BASE else (h, eps)
+
+    monkeypatch.setattr(rtk_post, "read_rinex_obs", every_10_s)
+    sols, info = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ)
+    assert info["base_epochs"] == 12 and len(sols) == 120 and all(s.quality == 1 for s in sols)
+    assert max(abs(s.age_s) for s in sols) == info["max_base_age_s"] == 9.0
+    assert {abs(s.age_s) for s in sols} >= {0.0, 5.0}
+    assert _rms([s.r_e for s in sols]) < 0.01
+    # beyond max_base_age_s no pair is formed
+    sols, info = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ, config=RtkConfig(max_base_age_s=2.0))
+    within_2_s = sum(1 for k in range(120) if min(abs(k - b) for b in range(0, 120, 10)) <= 2)    # 58
+    assert len(sols) == info["paired_epochs"] == within_2_s

@@ -381,7 +381,8 @@ def _run_rtk(args) -> int:
     summary = {"mode": "rtk", "signals": list(cfg.signals), "epochs": info["rover_epochs"],
                "paired_epochs": info["paired_epochs"], "solved": len(sols), "fixed": n_fix,
                "elevation_mask_deg": args.elevation_mask_deg, "systems": cfg.systems,
-               "satellites_by_system": by_sys, "counters": info["counters"]}
+               "satellites_by_system": by_sys, "base_epochs": info["base_epochs"],
+               "max_base_age_s": info["max_base_age_s"], "counters": info["counters"]}
     if truth is not None:
         summary.update(statistics(sols, truth))
         fixed = [s for s in sols if s.quality == 1]
@@ -390,12 +391,15 @@ def _run_rtk(args) -> int:
     print(f"companion gnss rtk: {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
           + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
              f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
+    if info["max_base_age_s"] > 0:
+        print(f"base: {info['base_epochs']} epochs, each rover epoch solved against the nearest one, up to "
+              f"{info['max_base_age_s']:.1f} s apart (at most {cfg.max_base_age_s:g} s)")
     print("satellites per epoch (common to rover and base, above the mask): "
           + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
     if args.json:
         rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
                  "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,
-                 "n_sats_by_system": s.n_sats_by_system,
+                 "n_sats_by_system": s.n_sats_by_system, "age_s": s.age_s,
                  **({"err_ned_m": [float(x) for x in ecef_to_ned(s.r_e, truth)]} if truth is not None else {})}
                 for s in sols]
         with open(args.json, "w") as fh:

@@ -24,6 +24,11 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
 * **Kinematic**: every epoch the position prior is the previous solution with ``position_sigma_m``
   (30 m: no dynamics are assumed); **static**: the position is a constant.  Iterated update
   (``iterations``), so the 30-m prior does not bias the linearisation.
+* **Base epochs**: each rover epoch is solved against the nearest base epoch within
+  ``max_base_age_s`` (a slower base, e.g. a 30-s CORS file, serves every rover epoch); each
+  receiver is modelled at its own epoch, and the satellite clocks' drift over the age
+  (``sat_clock_stability``) is added to the variances, as RTKLIB does.  A base epoch used again
+  brings no new slip.
 * **Slips**: the receiver's loss-of-lock flag, or a jump of the geometry-free phase
   ``lambda_1 phi_1 - lambda_2 phi_2`` (the satellite's first two signals) of either receiver by more than ``slip_gf_m`` between
   epochs, resets that satellite's ambiguities; a gap longer than ``max_gap_s`` too.
@@ -51,7 +56,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..messages import GnssEpoch
+from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from ..rtk_signals import RTK_SIGNALS, signals_for_system
 from .double_difference import (ReceiverSat, dd_covariance, elevation_rad, model_range_m, receiver_sats,
                                 sd_variance_m2)
@@ -76,6 +81,15 @@ class RtkConfig:
     ambiguity_psd_cycles2ps: float = 1e-8
     slip_gf_m: float = 0.05
     max_gap_s: float = 150.0
+    # a rover epoch is solved against the nearest base epoch this close in time (RTKLIB's maxtdiff):
+    # a 1-Hz rover against a 30-s CORS file.  Each receiver is modelled at its own epoch, so what the
+    # age leaves in the double differences is the change of the atmosphere and of the broadcast
+    # orbit and clock errors over it (millimetres over seconds)
+    max_base_age_s: float = 30.0
+    # the satellite clocks' stability (RTKLIB's sclkstab, 5e-12 s/s): the part of a clock the
+    # broadcast polynomial misses drifts over the base's age, so each SD gets (c x this x age)^2 more
+    # variance (1.5 cm at 10 s)
+    sat_clock_stability: float = 5e-12
     max_phase_innovation_m: float = 5.0            # a DD phase row further than this off is rejected
     ratio_threshold: float = 3.0
     # bootstrapped success rate of the (partial) set (a lower bound of LAMBDA's): 0 = not tested.
@@ -111,6 +125,7 @@ class RtkSolution:
     success_rate: float = float("nan")
     counters: dict = field(default_factory=dict)
     n_sats_by_system: dict = field(default_factory=dict)   # system letter -> satellites above the mask
+    age_s: float = 0.0              # rover epoch minus the base epoch it was solved against
 
 
 _Sat = ReceiverSat
@@ -137,6 +152,8 @@ class RtkFilter:
         self.last_gf: dict[tuple, float] = {}    # (sat, 'rover'|'base', second signal) -> GF phase (m)
         self.t_last: float | None = None
         self.consecutive_fixes = 0
+        self._base_t: float | None = None       # the base epoch of the last solution (reused: no new slips)
+        self._age_s = 0.0
         self.initialized = False
         self.counters: dict[str, int] = {}
         self.sig: dict[str, tuple[str, ...]] = {}       # system -> its signals, positioning code first
@@ -191,8 +208,10 @@ class RtkFilter:
             return None
         t = rover.t_gps
         dt = 0.0 if self.t_last is None else t - self.t_last
+        new_base = base.t_gps != self._base_t
+        self._base_t, self._age_s = base.t_gps, t - base.t_gps
         self._predict(r_guess, dt)
-        self._manage_ambiguities(t, common, sr, sb)
+        self._manage_ambiguities(t, common, sr, sb, new_base)
         used = self._update(common, sr, sb)
         self.t_last = t
         self.initialized = True
@@ -212,12 +231,14 @@ class RtkFilter:
             for i in self.amb.values():
                 self.P[i, i] += cfg.ambiguity_psd_cycles2ps * dt
 
-    def _manage_ambiguities(self, t: float, common, sr, sb) -> None:
+    def _manage_ambiguities(self, t: float, common, sr, sb, new_base: bool = True) -> None:
         cfg = self.cfg
         slipped = set()
+        # a base epoch used again (a slower base) brings no new slip: its flags were seen
+        receivers = (("rover", sr), ("base", sb)) if new_base else (("rover", sr),)
         for sat in common:
             sigs = self.sig[sat[:1]]
-            for who, sats in (("rover", sr), ("base", sb)):
+            for who, sats in receivers:
                 ph, lam = sats[sat].phase_cyc, sats[sat].wavelength_m
                 have = [q for q in sigs if q in ph]
                 if len(have) > 1 and have[0] == sigs[0]:
@@ -305,7 +326,8 @@ class RtkFilter:
 
     def _sd_var(self, el: float, kind: str) -> float:
         cfg = self.cfg
-        return sd_variance_m2(el, kind, cfg.phase_sigma_a_m, cfg.phase_sigma_b_m, cfg.code_phase_ratio)
+        return (sd_variance_m2(el, kind, cfg.phase_sigma_a_m, cfg.phase_sigma_b_m, cfg.code_phase_ratio)
+                + (SPEED_OF_LIGHT_MPS * cfg.sat_clock_stability * self._age_s) ** 2)
 
     def _update(self, common, sr, sb) -> int:
         """Iterated EKF update with all DD rows; DD phase rows far off are dropped (counted)."""
@@ -405,7 +427,8 @@ class RtkFilter:
             self._count("epochs float")
             self.consecutive_fixes = 0
             return RtkSolution(t, self.x[:3].copy(), self.P[:3, :3].copy(), Q_FLOAT, len(common),
-                               0.0, 0, n_dd, counters=dict(self.counters), n_sats_by_system=by_sys)
+                               0.0, 0, n_dd, counters=dict(self.counters), n_sats_by_system=by_sys,
+                               age_s=self._age_s)
         r_fix, cov_fix, res, T, afix, labels = out
         if exclude:
             self._count("epochs fixed partially")
@@ -414,7 +437,8 @@ class RtkFilter:
         if self.cfg.fix_and_hold and self.consecutive_fixes >= self.cfg.hold_after_fixes:
             self._hold(T, afix)
         return RtkSolution(t, r_fix, cov_fix, Q_FIX, len(common), res.ratio, len(labels), n_dd,
-                           res.success_rate, counters=dict(self.counters), n_sats_by_system=by_sys)
+                           res.success_rate, counters=dict(self.counters), n_sats_by_system=by_sys,
+                           age_s=self._age_s)
 
     def _hold(self, T: np.ndarray, afix: np.ndarray) -> None:
         """Fix-and-hold: the fixed DD ambiguities as measurements of the float filter."""
@@ -427,7 +451,7 @@ class RtkFilter:
 
 
 def pair_epochs(rover_epochs, base_epochs, tol_s: float = 0.5):
-    """(rover, base) pairs whose time tags agree within ``tol_s``."""
+    """(rover, nearest base) pairs whose time tags agree within ``tol_s``."""
     base = sorted(base_epochs, key=lambda e: e.t_gps)
     ts = np.array([e.t_gps for e in base])
     out = []

@@ -45,7 +45,7 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
     base_ant = base_marker + antenna_delta_e(base_marker, hb.get("antenna_delta_hen_m"))
     filt = RtkFilter(base_ant, store, config)
     rover_delta = hr.get("antenna_delta_hen_m")
-    pairs = pair_epochs(rover, base)
+    pairs = pair_epochs(rover, base, tol_s=config.max_base_age_s)
     sols: list[RtkSolution] = []
     r_prior = hr.get("approx_position_e")
     for k, (r_ep, b_ep) in enumerate(pairs):
@@ -63,13 +63,14 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
         if progress is not None:
             progress(k + 1, len(pairs))
     info = {"rover_epochs": len(rover), "base_epochs": len(base), "paired_epochs": len(pairs),
+            "max_base_age_s": max((abs(r.t_gps - b.t_gps) for r, b in pairs), default=0.0),
             "solutions": len(sols), "fixed": sum(1 for s in sols if s.quality == 1),
             "base_antenna_e": base_ant.tolist(), "counters": dict(filt.counters)}
     return sols, info
 
 
 def pos_records(sols: list[RtkSolution]) -> list[PosRecord]:
-    return [PosRecord(s.t_gps, s.r_e, s.cov_e, s.quality, s.n_sats, 0.0, s.ratio) for s in sols]
+    return [PosRecord(s.t_gps, s.r_e, s.cov_e, s.quality, s.n_sats, s.age_s, s.ratio) for s in sols]
 
 
 __all__ = ["solve_rtk_rinex", "pos_records", "antenna_delta_e"]
