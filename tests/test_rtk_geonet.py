@@ -172,3 +172,13 @@ def test_cli_rtk_writes_rtklib_pos_with_fix_flags(tmp_path):
     assert len(rows) == 120 and sum(r[5] == "1" for r in rows) >= 115
     assert all(float(r[-1]) >= 3.0 for r in rows if r[5] == "1")        # ratio column of fixed epochs
     assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--mode", "rtk"]) == 2   # no base
+
+
+def test_a_success_rate_floor_leaves_the_first_epoch_float():
+    """RtkConfig.min_success_rate (off by default): GEONET's first epoch fixes right at ratio 25 with
+    a bootstrapped success rate of 0.976, so a 0.999 floor (the engine's) leaves it float."""
+    sols, info = solve_rtk_rinex(ROVER, BASE, [NAV])
+    assert sols[0].quality == 1 and 0.95 < sols[0].success_rate < 0.999
+    sols, info = solve_rtk_rinex(ROVER, BASE, [NAV], config=RtkConfig(min_success_rate=0.999))
+    assert sols[0].quality == 2 and info["counters"]["fixes rejected: success rate"] >= 1
+    assert sum(s.quality == 1 for s in sols) >= 115

@@ -139,7 +139,7 @@ def _half_cycle(q: ReceiverSat, signal: str) -> bool:
 
 
 class RtkFilter:
-    """Feed epoch pairs with :meth:`process` (rover epoch, base epoch at the same time)."""
+    """Feed epoch pairs with :meth:`process` (a rover epoch, the base epoch nearest to it)."""
 
     def __init__(self, base_r_e, store: EphemerisStore, config: RtkConfig = RtkConfig()):
         self.cfg = config
