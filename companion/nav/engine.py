@@ -195,7 +195,7 @@ class EngineConfig:
     rtk_hold_sigma_cycles: float = 0.01
     rtk_iono_states: bool = True
     rtk_iono_sigma_zenith_m: float = 0.001
-    rtk_iono_sigma_ppm: float = 3.0
+    rtk_iono_sigma_ppm: float = 1.0
 
     def bias_systems(self) -> tuple[str, ...]:
         """Systems with an inter-system bias state: the configured ones, else every clock group
