@@ -225,39 +225,13 @@ def test_a_wrong_fix_of_one_system_drops_that_system_only():
 def test_engine_rtk_on_real_multignss_carriers(stream):
     """The engine's RTK update (an IMU at rest, synthetic, at the moved rover) on the same real
     base/rover pair: every system's DD rows, a fix within the first epochs, mm position."""
-    from companion.gnss.spp import spp_epoch
-    from companion.messages import BaseStationPosition, ImuSample
-    from companion.nav.earth import OMEGA_IE_RADPS, gravity_ecef
-    from companion.nav.engine import EngineConfig, NavEngine
-    from companion.nav.filter import ProcessNoise
+    from tests._engine_at_rest import engine_at_rest
     ephs, base = stream
     store = EphemerisStore(ephs)
     lat, lon, _ = ecef_to_geodetic(ARP_E)
     r_rov = ARP_E + C_n_e(lat, lon) @ BASELINE_NED_M
     rover, _ = _moved_rover(base, store, r_rov)
-    eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), systems="GECJ", rtk_enabled=True,
-                                 rtk_signals=RTK_SIGNALS, elevation_mask_deg=10.0))
-    for e in ephs:
-        eng.process(e)
-    eng.process(BaseStationPosition(0, ARP_E.copy(), 0.0))
-    sol = spp_epoch(rover[1], eng.ephemerides, systems="GECJ")
-    C_b_e = C_n_e(*ecef_to_geodetic(r_rov)[:2])
-    t = rover[1].t_gps - 0.5
-    eng.initialize(t, sol.r_e, np.zeros(3), C_b_e, dict(pos_m=5.0, vel_mps=0.1, tilt_rad=0.01, heading_rad=0.05,
-                                                        ba_mps2=0.05, bg_radps=1e-3))
-    w_ie_b = C_b_e.T @ np.array([0.0, 0.0, OMEGA_IE_RADPS])
-    f_b = C_b_e.T @ -gravity_ecef(r_rov)
-    rng = np.random.default_rng(1)
-    dt = 0.005
-    reps, err = [], []
-    for b, r in zip(base[1:], rover[1:]):
-        while t < r.t_gps + 0.1:
-            t += dt
-            eng.process(ImuSample(t, dt, w_ie_b * dt + rng.normal(0, 1e-4 * math.sqrt(dt), 3),
-                                  f_b * dt + rng.normal(0, 1e-3 * math.sqrt(dt), 3)))
-        eng.process(b)
-        reps.append(eng.process(r))
-        err.append(float(np.linalg.norm(eng.r_e - r_rov)))          # no lever arm: IMU = antenna
+    reps, err = engine_at_rest(ephs, ARP_E, base[1:], rover[1:], r_rov)
     states = [rp.fix_state for rp in reps]
     first = states.index("fixed")
     rows = [lab for rp in reps for rr in rp.reports if rr.kind == "rtk_phase" for lab in rr.labels]

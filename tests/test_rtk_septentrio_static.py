@@ -125,41 +125,12 @@ def test_engine_rtk_on_the_real_pair():
     rest at the reference (synthetic: no IMU was recorded): every system's DD rows, fixed from the
     first epochs, millimetres, and the float-to-fixed flow of a real receiver's noise and multipath."""
     from companion.gnss.rinex import read_rinex_obs
-    from companion.gnss.spp import spp_epoch
-    from companion.messages import BaseStationPosition, ImuSample
-    from companion.nav.earth import C_n_e, OMEGA_IE_RADPS, ecef_to_geodetic, gravity_ecef
-    from companion.nav.engine import EngineConfig, NavEngine
-    from companion.nav.filter import ProcessNoise
-    from companion.rtk_signals import RTK_SIGNALS, rtk_epoch
-    ephs = read_rinex_nav(NAV)
-    _, rover = read_rinex_obs(ROVER, "GECJ")
-    _, base = read_rinex_obs(BASE, "GECJ")
-    rover = [rtk_epoch(e) for e in rover]
-    base = [dataclasses.replace(rtk_epoch(e), source="base") for e in base]
-    eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), systems="GECJ", rtk_enabled=True,
-                                 rtk_signals=RTK_SIGNALS, elevation_mask_deg=10.0))
-    for e in ephs:
-        eng.process(e)
-    eng.process(BaseStationPosition(0, np.array(BASE_XYZ), 0.0))
-    sol = spp_epoch(rover[0], eng.ephemerides, systems="GECJ")
-    C_b_e = C_n_e(*ecef_to_geodetic(REF_ROVER)[:2])
-    t = rover[0].t_gps - 0.5
-    eng.initialize(t, sol.r_e, np.zeros(3), C_b_e, dict(pos_m=5.0, vel_mps=0.1, tilt_rad=0.01, heading_rad=0.05,
-                                                        ba_mps2=0.05, bg_radps=1e-3))
-    w_ie_b = C_b_e.T @ np.array([0.0, 0.0, OMEGA_IE_RADPS])
-    f_b = C_b_e.T @ -gravity_ecef(REF_ROVER)
-    rng = np.random.default_rng(1)
-    dt = 0.005
-    reps, err = [], []
-    for b, r in zip(base, rover):
-        assert b.t_gps == r.t_gps
-        while t < r.t_gps + 0.1:
-            t += dt
-            eng.process(ImuSample(t, dt, w_ie_b * dt + rng.normal(0, 1e-4 * np.sqrt(dt), 3),
-                                  f_b * dt + rng.normal(0, 1e-3 * np.sqrt(dt), 3)))
-        eng.process(b)
-        reps.append(eng.process(r))
-        err.append(float(np.linalg.norm(eng.r_e - REF_ROVER)))          # no lever arm: IMU = antenna
+    from companion.rtk_signals import rtk_epoch
+    from tests._engine_at_rest import engine_at_rest
+    rover = [rtk_epoch(e) for e in read_rinex_obs(ROVER, "GECJ")[1]]
+    base = [dataclasses.replace(rtk_epoch(e), source="base") for e in read_rinex_obs(BASE, "GECJ")[1]]
+    assert [b.t_gps for b in base] == [r.t_gps for r in rover]
+    reps, err = engine_at_rest(read_rinex_nav(NAV), BASE_XYZ, base, rover, REF_ROVER)
     states = [rp.fix_state for rp in reps]
     first = states.index("fixed")
     rows = [lab for rp in reps for rr in rp.reports if rr.kind == "rtk_phase" for lab in rr.labels]

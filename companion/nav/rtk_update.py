@@ -63,7 +63,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -75,7 +75,6 @@ from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from .chi2 import chi2_ppf
 from .earth import C_n_e, ecef_to_geodetic, skew
 from .filter import MeasurementBatch, UpdateReport, cholesky_lower, solve_lower
-from .measurements import antenna_state
 
 FIX_NONE, FIX_FLOAT, FIX_FIXED = "none", "float", "fixed"
 
