@@ -38,6 +38,8 @@ def _add_gnss(sub) -> None:
     p.add_argument("--pos", help="write per-epoch solutions in RTKLIB's .pos format here (rtkplot, pos2kml)")
     p.add_argument("--kml", help="write the solutions as a Google Earth KML track (points coloured by quality)")
     p.add_argument("--gpx", help="write the solutions as a GPX 1.1 track")
+    p.add_argument("--plot", help="write a PNG here: the track by solution quality, the offsets over time "
+                                  "with their 3-sigma, satellites and RTK ratio (needs the [plot] extra)")
     p.set_defaults(func=lambda a: _run_gnss(p, a))
     from .io import ubx_configure
     ubx_configure.register(p.add_subparsers(dest="gnss_command", metavar="{configure}"))

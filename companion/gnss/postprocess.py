@@ -269,6 +269,9 @@ def epoch_progress(label: str, min_epochs: int):
 
 def run(args) -> int:
     """Entry point of `companion gnss`; returns the process exit code."""
+    if getattr(args, "plot", None):
+        from ..extras import pyplot
+        pyplot("companion gnss --plot")          # a missing [plot] extra fails now, not after the processing
     try:
         return _run(args)
     except GnssProcessingError as exc:
@@ -324,6 +327,7 @@ def _run(args) -> int:
     q = Q_DGPS if args.mode == "dgps" else Q_SINGLE
     records = [PosRecord(s.t_gps, s.r_e, s.cov_r_e, q, s.n_sats) for s in solved]
     write_tracks(args, records, f"companion gnss {args.mode}: {Path(args.rover).name}")
+    write_plot(args, records, f"companion gnss {args.mode} ({opts.signal}): {Path(args.rover).name}", truth)
     if args.pos:
         write_pos(args.pos, records,
                   program=f"companion gnss {args.mode} ({opts.signal})",
@@ -332,6 +336,13 @@ def _run(args) -> int:
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg", "navi sys": ",".join(systems),
                            "ionos opt": iono})
     return 0
+
+
+def write_plot(args, records, name: str, truth) -> None:
+    """``--plot``: the run as one PNG (companion.gnss.solution_plot)."""
+    if getattr(args, "plot", None) and records:
+        from .solution_plot import plot_solutions
+        plot_solutions(args.plot, records, name, truth_e=truth)
 
 
 def write_tracks(args, records, name: str) -> None:
@@ -406,6 +417,8 @@ def _run_rtk(args) -> int:
             json.dump({**summary, "solutions": rows}, fh, indent=1)
     records = pos_records(sols)
     write_tracks(args, records, f"companion gnss rtk: {Path(args.rover).name}")
+    write_plot(args, records, f"companion gnss rtk ({','.join(cfg.systems)}): {Path(args.rover).name}, "
+                              f"{n_fix} of {len(sols)} fixed", truth)
     if args.pos:
         write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
                   inputs=[args.rover, args.base, *args.nav],
