@@ -182,3 +182,8 @@ def test_a_success_rate_floor_leaves_the_first_epoch_float():
     sols, info = solve_rtk_rinex(ROVER, BASE, [NAV], config=RtkConfig(min_success_rate=0.999))
     assert sols[0].quality == 2 and info["counters"]["fixes rejected: success rate"] >= 1
     assert sum(s.quality == 1 for s in sols) >= 115
+
+
+def test_systems_absent_from_the_files_are_a_clear_error():
+    with pytest.raises(ValueError, match=r"rover file has no observations of the selected systems \(C\); it has G"):
+        solve_rtk_rinex(ROVER, BASE, [NAV], config=RtkConfig(systems="C"))

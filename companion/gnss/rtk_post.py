@@ -35,9 +35,15 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
     hb, base = read_rinex_obs(base_obs, config.systems)
     # each system's tracking families to one code on both sides (a rover's L2L pairs a base's L2X)
     rover, base = [rtk_epoch(e) for e in rover], [rtk_epoch(e) for e in base]
+    for who, hdr, epochs in (("rover", hr, rover), ("base", hb, base)):
+        if not any(o.sat[0] in config.systems for e in epochs for o in e.observations):
+            raise ValueError(f"the {who} file has no observations of the selected systems ({config.systems}); "
+                             f"it has {''.join(sorted(hdr.get('obs_types', {}))) or 'none'}")
     ephs = []
     for n in navs:
         ephs += read_rinex_nav(n)
+    if not any(e.sat[0] in config.systems for e in ephs):
+        raise ValueError(f"the navigation file(s) hold no ephemeris of the selected systems ({config.systems})")
     store = EphemerisStore(ephs)
     base_marker = np.asarray(base_xyz if base_xyz is not None else hb["approx_position_e"], dtype=float)
     if base_marker is None or not np.any(base_marker):
