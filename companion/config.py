@@ -402,7 +402,7 @@ class FilterConfig:
                                         doc="its zenith sigma at zero baseline (m)")
     rtk_iono_sigma_ppm: float = _f(1.0, min=0.0, max=1000.0,
                                    doc="... plus this per metre of baseline, x 1e-6 (RTKLIB: 3 ppm; on a real "
-                                       "5.3-km car 3 ppm delayed the first fix by 80 s, 1 ppm fixed at once)")
+                                       "5.3-km car 3 ppm delayed the first fix by 82 s, 1 ppm fixed at once)")
 
     def process_noise(self):
         from .nav.filter import ProcessNoise

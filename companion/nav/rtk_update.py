@@ -109,7 +109,7 @@ class RtkUpdateConfig:
     # the differential ionosphere as states (RTKLIB's IONOOPT_EST): one SD slant delay per
     # satellite at L1's frequency, -(lambda/lambda_L1)^2 of it on the phase, + on the code.  Its
     # zenith sigma at acquisition: iono_sigma_zenith_m + iono_sigma_ppm x baseline (RTKLIB's
-    # default is 3 ppm: on a real car 5.3 km from its base it kept the float loose for 80 s, 1 ppm
+    # default is 3 ppm: on a real car 5.3 km from its base it kept the float loose for 82 s, 1 ppm
     # fixed from the first epoch; tests/test_rtk_engine_real_car.py), mapped to the slant by the
     # single-layer model; a random walk whose PSD is that of a first-order Markov process of that
     # sigma and iono_correlation_time_s
