@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from .instance_lock import release, reserve_instance
+
 REPO = Path(__file__).resolve().parent.parent
 DEFAULT_BIN = REPO.parent / "shared" / "ardupilot" / "arducopter"
 BIN_ENV = "COMPANION_ARDUPILOT_BIN"
@@ -57,12 +59,11 @@ def _port_free(port: int) -> bool:
             return False
 
 
-def free_instance(max_instance: int = 20) -> int:
-    """The first SITL instance whose four TCP ports (5760+10*I .. +3) are free."""
-    for i in range(max_instance):
-        if all(_port_free(5760 + 10 * i + k) for k in range(4)):
-            return i
-    raise RuntimeError("no free SITL instance ports between 5760 and 5960")
+def free_instance(max_instance: int = 20) -> tuple[int, object]:
+    """(the first SITL instance whose four TCP ports (5760+10*I .. +3) are free, its reservation:
+    hold it until SITL stops; sitl.instance_lock)."""
+    return reserve_instance("arducopter", max_instance,
+                            lambda i: all(_port_free(5760 + 10 * i + k) for k in range(4)))
 
 
 def stop_process(proc: subprocess.Popen | None, name: str, grace_s: float = 10.0) -> int | None:
@@ -98,7 +99,10 @@ class ArduCopterSitl:
         self.binary = Path(binary)
         self.parm_files = [Path(p).resolve() for p in parm_files]
         self.run_dir = Path(run_dir)
-        self.instance = free_instance() if instance is None else instance
+        self._reservation = None
+        if instance is None:
+            instance, self._reservation = free_instance()
+        self.instance = instance
         self.proc: subprocess.Popen | None = None
         self._log = None
 
@@ -137,6 +141,8 @@ class ArduCopterSitl:
         if self._log is not None:
             self._log.close()
             self._log = None
+        release(self._reservation)
+        self._reservation = None
         return code
 
 

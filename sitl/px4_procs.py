@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from .ardupilot_procs import REPO, stop_process
+from .instance_lock import release, reserve_instance
 
 DEFAULT_DIST = REPO.parent / "shared" / "px4"
 DIST_ENV = "COMPANION_PX4_DIR"
@@ -77,13 +78,15 @@ def _lock_held(path: Path) -> bool:
         return False
 
 
-def free_instance(max_instance: int = 10) -> int:
-    """The first PX4 instance whose lock file is not held and whose UDP ports are free."""
-    for i in range(max_instance):
-        ports = (ONBOARD_REMOTE_PORT + i, ONBOARD_LOCAL_PORT + i, GCS_LOCAL_PORT + i, DISPLAY_REMOTE_PORT + i)
-        if not _lock_held(Path(f"/tmp/px4_lock-{i}")) and all(_udp_free(p) for p in ports):
-            return i
-    raise RuntimeError(f"no free PX4 instance among 0..{max_instance - 1} (/tmp/px4_lock-N or ports in use)")
+def instance_free(i: int) -> bool:
+    """Whether PX4 instance ``i``'s lock file is not held and its UDP ports are free."""
+    ports = (ONBOARD_REMOTE_PORT + i, ONBOARD_LOCAL_PORT + i, GCS_LOCAL_PORT + i, DISPLAY_REMOTE_PORT + i)
+    return not _lock_held(Path(f"/tmp/px4_lock-{i}")) and all(_udp_free(p) for p in ports)
+
+
+def free_instance(max_instance: int = 10) -> tuple[int, object]:
+    """(the first free PX4 instance, its reservation: hold it until PX4 stops; sitl.instance_lock)."""
+    return reserve_instance("px4", max_instance, instance_free)
 
 
 def read_params(path: Path) -> dict[str, float]:
@@ -116,7 +119,10 @@ class Px4Sitl:
         # None = no ULog (a full one is about 15 MB a minute)
         self.ulog_topics = dict(ulog_topics) if ulog_topics else None
         self.run_dir = Path(run_dir)
-        self.instance = free_instance() if instance is None else instance
+        self._reservation = None
+        if instance is None:
+            instance, self._reservation = free_instance()
+        self.instance = instance
         self.proc: subprocess.Popen | None = None
         self._log = None
 
@@ -195,6 +201,8 @@ class Px4Sitl:
         if self._log is not None:
             self._log.close()
             self._log = None
+        release(self._reservation)
+        self._reservation = None
         return code
 
 
