@@ -134,6 +134,10 @@ _elevation = elevation_rad
 _model_m = model_range_m
 
 
+#: _try_fix's answer when the set is below the partial-fixing floor
+_TOO_FEW = object()
+
+
 def _half_cycle(q: ReceiverSat, signal: str) -> bool:
     return bool(q.half_cycle and q.half_cycle.get(signal, False))
 
@@ -374,9 +378,11 @@ class RtkFilter:
         return np.array(rows).reshape(len(rows), len(self.x)), labels
 
     def _try_fix(self, common, sr, sb, exclude, n_dd: int = 0):
+        """The validated fix with the satellites ``exclude`` left float, None, or :data:`_TOO_FEW`
+        (fewer DD ambiguities than the floor: leaving more satellites out cannot help)."""
         T, labels = self._dd_ambiguities(common, sr, exclude)
         if len(labels) < max(self.cfg.min_fix_ambiguities, self.cfg.min_fix_fraction * n_dd):
-            return None
+            return _TOO_FEW
         a = T @ self.x
         Qa = T @ self.P @ T.T
         Qra = self.P[:3, :] @ T.T
@@ -423,7 +429,7 @@ class RtkFilter:
             if out is not None or len(common) - len(exclude) <= 3:
                 break
             exclude.append(by_el[len(exclude)])      # partial fixing: leave the lowest satellite float
-        if out is None:
+        if out is None or out is _TOO_FEW:
             self._count("epochs float")
             self.consecutive_fixes = 0
             return RtkSolution(t, self.x[:3].copy(), self.P[:3, :3].copy(), Q_FLOAT, len(common),
