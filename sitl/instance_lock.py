@@ -12,9 +12,11 @@ from pathlib import Path
 from typing import BinaryIO, Callable
 
 
-def reserve_instance(kind: str, max_instance: int, usable: Callable[[int], bool]) -> tuple[int, BinaryIO]:
-    """(the first instance no other process has reserved and ``usable`` accepts, its held lock)."""
-    for i in range(max_instance):
+def reserve_instance(kind: str, max_instance: int, usable: Callable[[int], bool],
+                     first: int = 0) -> tuple[int, BinaryIO]:
+    """(the first instance from ``first`` on that no other process has reserved and ``usable``
+    accepts, its held lock)."""
+    for i in range(first, max_instance):
         fh = open(Path(tempfile.gettempdir()) / f"companion-{kind}-instance-{i}.lock", "ab")
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -24,7 +26,7 @@ def reserve_instance(kind: str, max_instance: int, usable: Callable[[int], bool]
         if usable(i):
             return i, fh
         release(fh)
-    raise RuntimeError(f"no free {kind} instance among 0..{max_instance - 1}")
+    raise RuntimeError(f"no free {kind} instance among {first}..{max_instance - 1}")
 
 
 def release(fh: BinaryIO | None) -> None:

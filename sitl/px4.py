@@ -338,7 +338,7 @@ def run(*, duration_s: float = 120.0, px4_dir: str | None = None, out_dir: str =
     try:
         say(f"starting PX4 SIH from {dist} with {PARAM_FILE.name} (instance {sitl.instance})")
         sitl.start()
-        gcs = Px4Gcs(sitl.port("gcs_local"), sitl.port("display_remote"), target_system=sitl.instance + 1,
+        gcs = Px4Gcs(sitl.port("gcs_local"), sitl.port("display_remote"), target_system=sitl.system_id,
                      on_statustext=lambda t: say(f"  PX4: {t}"))
         gcs.wait_heartbeat()
         res["param_problems"], res["params_absent_on_sitl"] = check_params(gcs, params)
@@ -351,7 +351,7 @@ def run(*, duration_s: float = 120.0, px4_dir: str | None = None, out_dir: str =
         res["imu_noise_measured"] = measure_imu_noise(gcs, imu_rate_hz)
         overrides = {**imu_noise_overrides(deploy_toml, res["imu_noise_measured"]), **dict(overrides or {})}
         say(f"  SIH IMU noise at rest: {res['imu_noise_measured']}")
-        companion = _start_companion(out, sitl.port("onboard_remote"), sitl.instance + 1, overrides)
+        companion = _start_companion(out, sitl.port("onboard_remote"), sitl.system_id, overrides)
         res["config_overrides"] = companion.overrides
         flags = FlagPoller(sitl)
         flags.start()

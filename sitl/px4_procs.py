@@ -84,9 +84,10 @@ def instance_free(i: int) -> bool:
     return not _lock_held(Path(f"/tmp/px4_lock-{i}")) and all(_udp_free(p) for p in ports)
 
 
-def free_instance(max_instance: int = 10) -> tuple[int, object]:
-    """(the first free PX4 instance, its reservation: hold it until PX4 stops; sitl.instance_lock)."""
-    return reserve_instance("px4", max_instance, instance_free)
+def free_instance(max_instance: int = 10, first: int = 0) -> tuple[int, object]:
+    """(the first free PX4 instance from ``first`` on, its reservation: hold it until PX4 stops;
+    sitl.instance_lock)."""
+    return reserve_instance("px4", max_instance, instance_free, first)
 
 
 def read_params(path: Path) -> dict[str, float]:
@@ -111,7 +112,7 @@ class Px4Sitl:
     (and PX4's own /tmp/px4_lock-N, /tmp/px4-sock-N)."""
 
     def __init__(self, dist: Path, params: dict[str, float], run_dir: Path, instance: int | None = None,
-                 ulog_topics: dict[str, int] | None = None):
+                 ulog_topics: dict[str, int] | None = None, first_instance: int = 0):
         self.dist = Path(dist)
         self.params = dict(params)
         # topic -> interval ms (0 = every sample): a ULog of just these, from boot to shutdown
@@ -121,7 +122,7 @@ class Px4Sitl:
         self.run_dir = Path(run_dir)
         self._reservation = None
         if instance is None:
-            instance, self._reservation = free_instance()
+            instance, self._reservation = free_instance(first=first_instance)
         self.instance = instance
         self.proc: subprocess.Popen | None = None
         self._log = None
@@ -133,6 +134,12 @@ class Px4Sitl:
     @property
     def log_path(self) -> Path:
         return self.run_dir / "px4.log"
+
+    @property
+    def system_id(self) -> int:
+        """MAV_SYS_ID: start_sih.sh gives instance N system id N + 1 (so a link to instance 1
+        must target system 2, not the default 1)."""
+        return self.instance + 1
 
     def port(self, name: str) -> int:
         return {"onboard_remote": ONBOARD_REMOTE_PORT, "gcs_local": GCS_LOCAL_PORT,
