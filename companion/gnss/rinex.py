@@ -187,9 +187,10 @@ def _prefer_inav(recs: list[tuple[GpsEphemeris, bool]]) -> list[GpsEphemeris]:
 
 
 def read_rinex_nav(path, systems: str = "GECJ") -> list[GpsEphemeris]:
-    """Keplerian ephemerides of ``systems`` (GPS, Galileo, BeiDou, QZSS) from a RINEX 2.x GPS ('N')
-    or 3.x navigation file, in file order (Galileo F/NAV records with an I/NAV twin dropped).
-    GLONASS, SBAS and NavIC records are skipped."""
+    """Keplerian ephemerides of ``systems`` (GPS, Galileo, BeiDou, QZSS) from a RINEX 2.x GPS ('N'),
+    3.x or 4.x navigation file, in file order (Galileo F/NAV records with an I/NAV twin dropped).
+    GLONASS, SBAS and NavIC records, and RINEX 4's CNAV ephemerides and ION / STO / EOP records,
+    are skipped."""
     lines = _open_text(path)
     head = _header_end(lines)
     version = _f(lines[0][:9])
@@ -224,23 +225,47 @@ def read_rinex_nav(path, systems: str = "GECJ") -> list[GpsEphemeris]:
         if not ln.strip():
             i += 1
             continue
-        sys_ = ln[0] if ln[0] != " " else file_sys
-        nlines = _NAV_LINES.get(sys_, 8)
-        if sys_ not in systems or sys_ not in FIT_INTERVAL_H:
-            i += nlines
+        if ln.startswith(">"):
+            # RINEX 4: each record under a '> EPH G01 LNAV' line (also ION, STO, EOP records and
+            # CNAV / CNV2 ephemerides, of other lengths), running to the next '>' line; the
+            # Keplerian messages read here keep RINEX 3's eight lines
+            j = i + 1
+            while j < n and not lines[j].startswith(">"):
+                j += 1
+            f = ln[1:].split()
+            sys_ = f[1][:1] if len(f) >= 3 else ""
+            if f[:1] == ["EPH"] and (sys_, f[2]) in _V4_KEPLER_MESSAGES and sys_ in systems and j - i > 8:
+                recs.append(_v3_nav_record(lines, i + 1, sys_))
+            i = j
             continue
-        prn = int(ln[1:3])
-        yy, mo, dd, hh, mi, ss = (int(ln[4:8]), int(ln[9:11]), int(ln[12:14]), int(ln[15:17]),
-                                  int(ln[18:20]), _f(ln[21:23]))
-        vals = [_f(ln[23:42]), _f(ln[42:61]), _f(ln[61:80])]
-        for k in range(1, 8):
-            row = lines[i + k] if i + k < n else ""
-            for c in range(4):
-                vals.append(_f(row[4 + 19 * c:23 + 19 * c]))
+        sys_ = ln[0] if ln[0] != " " else file_sys
+        if sys_ not in systems or sys_ not in FIT_INTERVAL_H:
+            i += _NAV_LINES.get(sys_, 8)
+            continue
+        recs.append(_v3_nav_record(lines, i, sys_))
         i += 8
-        sat = f"{sys_}{prn:02d}"
-        recs.append((_eph_from_fields(sat, _calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals), _is_fnav(sat, vals)))
     return _prefer_inav(recs)
+
+
+#: RINEX 4's Keplerian ephemeris messages, the ones read (the legacy navigation messages; CNAV,
+#: CNV1-3 of the modernised signals are skipped)
+_V4_KEPLER_MESSAGES = {("G", "LNAV"), ("J", "LNAV"), ("E", "INAV"), ("E", "FNAV"), ("C", "D1"), ("C", "D2")}
+
+
+def _v3_nav_record(lines: list[str], i: int, sys_: str) -> tuple[GpsEphemeris, bool]:
+    """(ephemeris, is Galileo F/NAV only) of the eight-line RINEX 3 record starting at line ``i``."""
+    ln = lines[i]
+    n = len(lines)
+    prn = int(ln[1:3])
+    yy, mo, dd, hh, mi, ss = (int(ln[4:8]), int(ln[9:11]), int(ln[12:14]), int(ln[15:17]),
+                              int(ln[18:20]), _f(ln[21:23]))
+    vals = [_f(ln[23:42]), _f(ln[42:61]), _f(ln[61:80])]
+    for k in range(1, 8):
+        row = lines[i + k] if i + k < n else ""
+        for c in range(4):
+            vals.append(_f(row[4 + 19 * c:23 + 19 * c]))
+    sat = f"{sys_}{prn:02d}"
+    return _eph_from_fields(sat, _calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals), _is_fnav(sat, vals)
 
 
 # ---------------------------------------------------------------------------------------------
