@@ -10,14 +10,24 @@ satellites within that code only.  Real receivers name the same carrier differen
   ``2W`` (P(Y) semi-codeless) from most geodetic / CORS receivers, ``2P``/``2D`` from older ones;
   legacy 1004 says only "C/A" or "P(Y)" (``L2X`` / ``L2P``/``L2D``/``L2W`` by its DF016 code).
 
-**Like with like**: the L2C carrier and the L2 P(Y) carrier are in phase quadrature (the
+**Like with like first**: the L2C carrier and the L2 P(Y) carrier are in phase quadrature (the
 quarter-cycle issue: RINEX 3 and RTCM MSM ask for the alignment to be applied, not every receiver
-does, and a quarter cycle in a DD row is 5 cm of phase the integers cannot absorb).  So L2C is
-only ever paired with L2C and P(Y) with P(Y).  Within one tracking family the carrier is the same
-(L2C M and L codes are time-multiplexed on one carrier; the P(Y) modes are different ways of
-tracking one code), so the pipeline renames each family to one **canonical code** on both sides
-(:data:`RTK_FAMILIES`) before the engine sees the epochs; a rover L2L then pairs with a base 2X,
-and a base sending only 2W has no L2 partner for an L2C rover (L1 carries the fix alone).
+does, and a quarter cycle in a DD row is 5 cm of phase the integers cannot absorb).  So a
+satellite's L2C is paired with the other receiver's L2C and P(Y) with P(Y) whenever both have it.
+Within one tracking family the carrier is the same (L2C M and L codes are time-multiplexed on one
+carrier; the P(Y) modes are different ways of tracking one code), so the pipeline renames each
+family to one **canonical code** on both sides (:data:`RTK_FAMILIES`) before the engine sees the
+epochs; a rover L2L then pairs with a base 2X.
+
+**Across families, in a group of its own** (:data:`RTK_CROSS_PAIRS_BY_SYSTEM`): a satellite whose
+L2 the rover tracks only as L2C and the base only as P(Y) (an F9P rover against a CORS file or
+RINEX 2 base with P2/L2 only) is paired L2C - P(Y) under a code of the pair's own.  The
+quadrature is fixed on the satellites (L2C lags P(Y) by a quarter cycle on every IIR-M and IIF),
+so an unaligned receiver adds the same quarter cycle to the single difference of every satellite
+of the group, and it cancels between them: it is only mixing L2C - L2C and L2C - P(Y) single
+differences in one double difference that would leave it (what a group per pair prevents).  The
+rest of the two signals' offsets is millimetres (satellite and receiver delays of L2C against
+P(Y), Wanninger 2018).  RTKLIB pairs by frequency slot, whatever the codes.
 
 Every system is renamed and RTK-paired **within itself** (keys carry the system: Galileo E1 and
 GPS L1 C/A are both ``L1C`` in RINEX 3, and a ``(sat, signal)`` key keeps them apart); the RTK
@@ -65,6 +75,12 @@ RTK_FAMILIES_BY_SYSTEM: dict[str, dict[str, tuple[str, ...]]] = {
     },
 }
 
+#: per system, (rover family, base family) -> the code of that cross pair: a satellite the two
+#: receivers track on one carrier under these two families only (neither has the other's)
+RTK_CROSS_PAIRS_BY_SYSTEM: dict[str, dict[tuple[str, str], str]] = {
+    "G": {("L2X", "L2W"): "L2X~W", ("L2W", "L2X"): "L2W~X"},
+}
+
 #: GPS's families (kept under their old name)
 RTK_FAMILIES: dict[str, tuple[str, ...]] = RTK_FAMILIES_BY_SYSTEM["G"]
 
@@ -74,11 +90,14 @@ RTK_SYSTEMS = "GECJ"
 
 #: per system, the engine's RTK signal list: the first one is the code whose pseudorange places the
 #: satellite (receiver_sats), the rest in order of preference
-RTK_SIGNALS_BY_SYSTEM: dict[str, tuple[str, ...]] = {sys: tuple(f) for sys, f in RTK_FAMILIES_BY_SYSTEM.items()}
+RTK_SIGNALS_BY_SYSTEM: dict[str, tuple[str, ...]] = {
+    sys: (*f, *RTK_CROSS_PAIRS_BY_SYSTEM.get(sys, {}).values()) for sys, f in RTK_FAMILIES_BY_SYSTEM.items()}
 
-#: the engine's RTK signal list (every system's canonical codes, GPS's first: L1 C/A, L2C, L2 P(Y), L5)
+#: the engine's RTK signal list (every system's canonical codes, GPS's first: L1 C/A, L2C, L2 P(Y),
+#: L5, then its cross pairs)
 RTK_SIGNALS: tuple[str, ...] = tuple(dict.fromkeys(c for f in RTK_SIGNALS_BY_SYSTEM.values() for c in f))
 
+_CROSS_BASE = {code: fam_b for pairs in RTK_CROSS_PAIRS_BY_SYSTEM.values() for (_, fam_b), code in pairs.items()}
 _CANONICAL = {(sys, code): canon for sys, fam in RTK_FAMILIES_BY_SYSTEM.items()
               for canon, codes in fam.items() for code in codes}
 _RANK = {(sys, code): i for sys, fam in RTK_FAMILIES_BY_SYSTEM.items()
@@ -92,6 +111,11 @@ def signals_for_system(system: str, signals) -> tuple[str, ...]:
     own = RTK_SIGNALS_BY_SYSTEM.get(system, ())
     out = tuple(s for s in own if s in signals)
     return out if out and out[0] == own[0] else ()
+
+
+def base_signal(signal: str) -> str:
+    """The base's own code of an RTK signal: the base family of a cross pair, else the signal."""
+    return _CROSS_BASE.get(signal, signal)
 
 
 def canonical_signal(sat: str, signal: str) -> str | None:
@@ -127,5 +151,5 @@ def rtk_epoch(epoch: GnssEpoch) -> GnssEpoch:
     return dataclasses.replace(epoch, observations=tuple(out)) if changed else epoch
 
 
-__all__ = ["RTK_FAMILIES", "RTK_FAMILIES_BY_SYSTEM", "RTK_SIGNALS", "RTK_SIGNALS_BY_SYSTEM", "RTK_SYSTEMS",
-           "canonical_signal", "rtk_epoch", "signals_for_system"]
+__all__ = ["RTK_CROSS_PAIRS_BY_SYSTEM", "RTK_FAMILIES", "RTK_FAMILIES_BY_SYSTEM", "RTK_SIGNALS", "RTK_SIGNALS_BY_SYSTEM", "RTK_SYSTEMS",
+           "base_signal", "canonical_signal", "rtk_epoch", "signals_for_system"]

@@ -7,6 +7,8 @@ filter (:mod:`.rtk`) and the engine's RTK update (:mod:`companion.nav.rtk_update
   tagged x.987 s and a base tagged x.000 s each give their own observed-minus-computed, and what
   the DD of the two keeps from the 13-ms offset is the change of the per-satellite errors
   (atmosphere, orbit and clock errors: mm/s) over it; receiver clocks cancel between satellites.
+* :func:`cross_pair`: a carrier the rover tracks only as L2C and the base only as L2 P(Y) (or the
+  reverse) renamed on both sides to the pair's own code (:mod:`companion.rtk_signals`).
 * :func:`model_range_m`: geometric range + Saastamoinen troposphere at the receiver's height -
   satellite clock, and the unit line of sight.
 * :func:`sd_variance_m2`: between-receiver single-difference variance, ``2 (a^2 + b^2/sin^2 el)``
@@ -16,6 +18,7 @@ filter (:mod:`.rtk`) and the engine's RTK update (:mod:`companion.nav.rtk_update
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -23,6 +26,7 @@ import numpy as np
 
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from ..nav.earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic
+from ..rtk_signals import RTK_CROSS_PAIRS_BY_SYSTEM
 from .atmosphere import tropo_delay_m
 from .ephemeris import satellite_clock, satellite_state
 from .ephemeris_store import EphemerisStore
@@ -147,6 +151,42 @@ def place_at(states: dict[str, TransmitState], r_rx_e: np.ndarray) -> dict[str, 
     return out
 
 
+def _tracks(q: ReceiverSat, signal: str) -> bool:
+    return signal in q.phase_cyc or signal in q.code_m
+
+
+def _renamed(q: ReceiverSat, names: dict[str, str]) -> ReceiverSat:
+    """``q`` with its observables' signals renamed by ``names`` (new dicts: the originals may be
+    shared with a cached epoch)."""
+    def re(d):
+        return None if d is None else {names.get(k, k): v for k, v in d.items()}
+    return dataclasses.replace(q, code_m=re(q.code_m), phase_cyc=re(q.phase_cyc), wavelength_m=re(q.wavelength_m),
+                               slip=re(q.slip), half_cycle=re(q.half_cycle), lock_time_s=re(q.lock_time_s))
+
+
+def cross_pair(sr: dict[str, ReceiverSat], sb: dict[str, ReceiverSat],
+               pairs_by_system=RTK_CROSS_PAIRS_BY_SYSTEM) -> tuple[dict[str, ReceiverSat], dict[str, ReceiverSat]]:
+    """(rover, base) satellites with every carrier the rover tracks only under one family and the
+    base only under another (:data:`companion.rtk_signals.RTK_CROSS_PAIRS_BY_SYSTEM`) renamed to
+    that pair's code on both sides, so that it forms double differences in a group of its own;
+    the inputs are not changed (satellites without such a carrier are the same objects)."""
+    out_r = out_b = None
+    for sat in sr.keys() & sb.keys():
+        pairs = pairs_by_system.get(sat[:1])
+        if not pairs:
+            continue
+        q_r, q_b = sr[sat], sb[sat]
+        names_r, names_b = {}, {}
+        for (fam_r, fam_b), code in pairs.items():
+            if _tracks(q_r, fam_r) and not _tracks(q_r, fam_b) and _tracks(q_b, fam_b) and not _tracks(q_b, fam_r):
+                names_r[fam_r] = names_b[fam_b] = code
+        if names_r:
+            out_r = dict(sr) if out_r is None else out_r
+            out_b = dict(sb) if out_b is None else out_b
+            out_r[sat], out_b[sat] = _renamed(q_r, names_r), _renamed(q_b, names_b)
+    return (sr, sb) if out_r is None else (out_r, out_b)
+
+
 def elevation_rad(r_rx_e: np.ndarray, r_sat_e: np.ndarray) -> float:
     lat, lon, _ = ecef_to_geodetic(r_rx_e)
     up = C_n_e(lat, lon)[:, 2] * -1.0
@@ -186,4 +226,4 @@ def dd_covariance(var_sd: list[tuple[float, float]], groups: list[list[int]]) ->
     return R
 
 
-__all__ = ["ReceiverSat", "TransmitState", "receiver_sats", "transmit_states", "place_at", "SHARE_MAX_DT_S", "signals_of", "elevation_rad", "model_range_m", "sd_variance_m2", "dd_covariance"]
+__all__ = ["ReceiverSat", "TransmitState", "receiver_sats", "transmit_states", "place_at", "cross_pair", "SHARE_MAX_DT_S", "signals_of", "elevation_rad", "model_range_m", "sd_variance_m2", "dd_covariance"]

@@ -11,7 +11,9 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
   (:data:`companion.rtk_signals.RTK_SIGNALS_BY_SYSTEM` among ``signals``; the epochs renamed to
   their tracking families first, :func:`companion.rtk_signals.rtk_epoch`) and differenced within
   the system only (a reference per system and signal: no inter-system bias, as RTKLIB's ``ddres``
-  per system, except that QZSS has its own reference here).
+  per system, except that QZSS has its own reference here).  A GPS L2 that the rover tracks only
+  as L2C and the base only as P(Y) is paired across the families in a group of its own
+  (:func:`~.double_difference.cross_pair`).
 * **Measurements** per system and frequency, against the highest-elevation satellite ``j``:
   ``DD phase  = lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j) + e``,
   ``DD code   = dP_i - dP_j = DD rho + e`` with ``d = rover - base`` and ``rho`` the geometric
@@ -58,8 +60,8 @@ import numpy as np
 
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from ..rtk_signals import RTK_SIGNALS, signals_for_system
-from .double_difference import (ReceiverSat, dd_covariance, elevation_rad, model_range_m, receiver_sats,
-                                sd_variance_m2)
+from .double_difference import (ReceiverSat, cross_pair, dd_covariance, elevation_rad, model_range_m,
+                                receiver_sats, sd_variance_m2)
 from .ephemeris_store import EphemerisStore
 from .lambda_kernel import lambda_ils      # compiled when numba is there, the same results
 
@@ -198,6 +200,7 @@ class RtkFilter:
         r_guess = self.x[:3].copy() if self.initialized else np.asarray(r_prior_e, dtype=float)
         sb = _receiver_sats(base, self.store, self.base_r_e, sig)
         sr = _receiver_sats(rover, self.store, r_guess, sig)
+        sr, sb = cross_pair(sr, sb)
         mask = math.radians(cfg.elevation_mask_deg)
         common = []
         for sat in sorted(set(sb) & set(sr)):

@@ -33,15 +33,22 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
     """(solutions at the rover marker, info) for every paired epoch that could be solved."""
     hr, rover = read_rinex_obs(rover_obs, config.systems)
     hb, base = read_rinex_obs(base_obs, config.systems)
+    ephs = []
+    for n in navs:
+        ephs += read_rinex_nav(n)
+    return solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=config, progress=progress)
+
+
+def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
+                     progress=None) -> tuple[list[RtkSolution], dict]:
+    """:func:`solve_rtk_rinex` on observations already read (``read_rinex_obs``'s headers and
+    epochs of rover and base) and the ephemerides."""
     # each system's tracking families to one code on both sides (a rover's L2L pairs a base's L2X)
     rover, base = [rtk_epoch(e) for e in rover], [rtk_epoch(e) for e in base]
     for who, hdr, epochs in (("rover", hr, rover), ("base", hb, base)):
         if not any(o.sat[0] in config.systems for e in epochs for o in e.observations):
             raise ValueError(f"the {who} file has no observations of the selected systems ({config.systems}); "
                              f"it has {''.join(sorted(hdr.get('obs_types', {}))) or 'none'}")
-    ephs = []
-    for n in navs:
-        ephs += read_rinex_nav(n)
     if not any(e.sat[0] in config.systems for e in ephs):
         raise ValueError(f"the navigation file(s) hold no ephemeris of the selected systems ({config.systems})")
     store = EphemerisStore(ephs)
@@ -79,4 +86,4 @@ def pos_records(sols: list[RtkSolution]) -> list[PosRecord]:
     return [PosRecord(s.t_gps, s.r_e, s.cov_e, s.quality, s.n_sats, s.age_s, s.ratio) for s in sols]
 
 
-__all__ = ["solve_rtk_rinex", "pos_records", "antenna_delta_e"]
+__all__ = ["solve_rtk_rinex", "solve_rtk_epochs", "pos_records", "antenna_delta_e"]

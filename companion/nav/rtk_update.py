@@ -25,7 +25,9 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   signal), so no inter-system phase or code bias enters (receiver-make dependent, and between
   different frequencies not even defined).  QZSS has its own reference too (RTKLIB differences
   it against GPS's, which saves one satellite but assumes a zero GPS-QZSS receiver bias).
-  Block names carry the satellite, hence the system: ``"amb E11 L7Q"``.
+  Block names carry the satellite, hence the system: ``"amb E11 L7Q"``.  A GPS L2 the rover tracks
+  only as L2C and the base only as P(Y) forms its own group (``"amb G05 L2X~W"``,
+  :func:`~companion.gnss.double_difference.cross_pair`).
 * **Rows** per (system, signal) against its highest satellite ``j`` (``d`` = rover - base):
   ``lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j)`` and ``dP_i - dP_j = DD rho``,
   rho modelled at the **INS-predicted antenna position** (the linearisation point) for the rover
@@ -68,8 +70,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..gnss.atmosphere import saastamoinen_zenith_m
-from ..gnss.double_difference import place_at, receiver_sats, sd_variance_m2, transmit_states
-from ..rtk_signals import signals_for_system
+from ..gnss.double_difference import cross_pair, place_at, receiver_sats, sd_variance_m2, transmit_states
+from ..rtk_signals import base_signal, signals_for_system
 from ..gnss.lambda_kernel import lambda_ils      # compiled when numba is there, same results
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from .chi2 import chi2_ppf
@@ -210,11 +212,15 @@ class RtkUpdate:
             return None
         return best
 
+    def _base_slips_of(self, key) -> int:
+        """The base slips seen on the base's own signal of an ambiguity (a cross pair's base family)."""
+        return self._base_slips.get((key[0], base_signal(key[1])), 0)
+
     def _add_amb(self, eng, key, value_cycles: float, wavelength_m: float, t: float) -> None:
         name = f"amb {key[0]} {key[1]}"
         eng.add_state_block(name, 1, self.cfg.ambiguity_init_sigma_cycles, self.cfg.ambiguity_psd_cycles2ps,
                             value=value_cycles)
-        self.amb[key] = _Amb(name, wavelength_m, t, self._base_slips.get(key, 0), t)
+        self.amb[key] = _Amb(name, wavelength_m, t, self._base_slips_of(key), t)
         self.counters["rtk ambiguities added"] += 1
 
     def _drop_amb(self, eng, key) -> None:
@@ -308,6 +314,7 @@ class RtkUpdate:
         if sr is None:
             sr = (place_at(states, r_ant_e) if states is not None
                   else receiver_sats(epoch, eng.ephemerides, r_ant_e, self.sig))
+        sr, sb = cross_pair(sr, sb)          # rover L2C only against base P(Y) only: a group of its own
         cand = []
         for sat in sorted(set(sr) & set(sb)):
             if sr[sat].eph is not sb[sat].eph:
@@ -346,7 +353,7 @@ class RtkUpdate:
                 if a is not None:
                     slipped = r.slip.get(s, False) or (prev_lock is not None and math.isfinite(lock)
                                                        and math.isfinite(prev_lock) and lock < prev_lock)
-                    base_slipped = self._base_slips.get(key, 0) != a.base_slips
+                    base_slipped = self._base_slips_of(key) != a.base_slips
                     gap = t - a.last_seen
                     # a gap in the rover's data (a link outage: nothing arrived) is bridged only when
                     # the receiver's lock time says it tracked the carrier all through it (its lock
