@@ -360,7 +360,7 @@ class ErrorStateKalmanFilter:
         while len(active) >= 3:
             Ha = batch.H[active]
             Sa = Ha @ self.P @ Ha.T
-            Sa[np.diag_indices_from(Sa)] += batch.r_var[active]
+            Sa.flat[::len(Sa) + 1] += batch.r_var[active]
             lam = np.linalg.inv(Sa)
             lz = lam @ batch.z[active]
             r = lz * lz / (np.diag(lam) * self.gate_chi2_1dof)
@@ -392,7 +392,7 @@ class ErrorStateKalmanFilter:
         Hc = H[:, cols]
         PHt = P[:, cols] @ Hc.T                       # (n, m)
         S = Hc @ PHt[cols]
-        S[np.diag_indices_from(S)] += r
+        S.flat[::len(S) + 1] += r
         C = cholesky_lower(S)
         # one triangular solve for C^-1 [H P | z] (LAPACK directly: scipy's wrapper costs more
         # than the solve at these sizes)
@@ -425,7 +425,7 @@ class ErrorStateKalmanFilter:
         P = self.P
         PHt = P @ H.T
         S = H @ PHt
-        S[np.diag_indices_from(S)] += r
+        S.flat[::len(S) + 1] += r
         # K = P H^T S^-1 via a Cholesky solve (S is symmetric positive definite)
         c, low = _cho_factor(S)
         K = _cho_solve((c, low), PHt.T).T

@@ -107,7 +107,7 @@ def solution_separation(H: np.ndarray, z: np.ndarray, r_var: np.ndarray, P: np.n
     m = len(z)
     PHt = P @ H.T
     S = H @ PHt
-    S[np.diag_indices_from(S)] += np.asarray(r_var, float)
+    S.flat[::len(S) + 1] += np.asarray(r_var, float)
     L = np.linalg.inv(S)
     L = 0.5 * (L + L.T)
     M = C_h @ PHt                          # (2, m)
