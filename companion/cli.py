@@ -26,6 +26,10 @@ def _add_gnss(sub) -> None:
     p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header)")
     p.add_argument("--mode", choices=["spp", "dgps", "rtk"], default="spp",
                    help="rtk: L1+L2 carrier phase, integer ambiguities (LAMBDA), fix-and-hold")
+    p.add_argument("--direction", choices=["forward", "backward", "combined"], default="forward",
+                   help="rtk: forward (each epoch from the ones before it), backward, or combined (both passes "
+                        "compared per epoch: a fix the other pass contradicts is reported float; RTKLIB's "
+                        "solution types)")
     p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
     p.add_argument("--sys", default="auto",
                    help="constellations, e.g. G,E,C,J (GPS, Galileo, BeiDou, QZSS) or 'all'; default: every one "

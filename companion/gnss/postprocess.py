@@ -282,6 +282,9 @@ def run(args) -> int:
 def _run(args) -> int:
     if args.mode == "rtk":
         return _run_rtk(args)
+    if getattr(args, "direction", "forward") != "forward":
+        raise GnssProcessingError(f"--direction {args.direction} applies to --mode rtk (spp and dgps solve each "
+                                  f"epoch on its own)")
     store, klob, hdr, rover, base_epochs, base, systems = _load(args)
     signal = FREQ_SIGNALS[getattr(args, "freq", None) or "l1"]
     opts = ProcessOptions(mode=args.mode, elevation_mask_rad=math.radians(args.elevation_mask_deg),
@@ -375,13 +378,14 @@ def _run_rtk(args) -> int:
     base_xyz = _xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
     truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
     cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg)
+    direction = getattr(args, "direction", "forward")
     wanted = parse_systems(getattr(args, "sys", None))
     if wanted:
         cfg = dataclasses.replace(cfg, systems="".join(c for c in cfg.systems if c in wanted))
     try:
         # an RTK epoch costs milliseconds (tens with four systems): a minute of 1-Hz data is worth a progress line
         sols, info = solve_rtk_rinex(args.rover, args.base, args.nav, base_xyz=base_xyz, config=cfg,
-                                     progress=epoch_progress("rtk", min_epochs=60))
+                                     progress=epoch_progress("rtk", min_epochs=60), direction=direction)
     except (ValueError, IndexError) as exc:
         raise GnssProcessingError(str(exc)) from exc
     if not sols:
@@ -389,7 +393,7 @@ def _run_rtk(args) -> int:
                                   f"{info['counters']})")
     n_fix = sum(1 for s in sols if s.quality == 1)
     by_sys = satellites_by_system(sols)
-    summary = {"mode": "rtk", "signals": list(cfg.signals), "epochs": info["rover_epochs"],
+    summary = {"mode": "rtk", "direction": direction, "signals": list(cfg.signals), "epochs": info["rover_epochs"],
                "paired_epochs": info["paired_epochs"], "solved": len(sols), "fixed": n_fix,
                "elevation_mask_deg": args.elevation_mask_deg, "systems": cfg.systems,
                "satellites_by_system": by_sys, "base_epochs": info["base_epochs"],
@@ -399,7 +403,7 @@ def _run_rtk(args) -> int:
         fixed = [s for s in sols if s.quality == 1]
         if fixed:
             summary["fixed_stats"] = statistics(fixed, truth)
-    print(f"companion gnss rtk: {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
+    print(f"companion gnss rtk ({direction}): {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
           + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
              f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
     if info["max_base_age_s"] > 0:
@@ -422,7 +426,8 @@ def _run_rtk(args) -> int:
     if args.pos:
         write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
                   inputs=[args.rover, args.base, *args.nav],
-                  options={"pos mode": "kinematic", "freqs": "L1+L2", "elev mask": f"{args.elevation_mask_deg:.1f} deg",
+                  options={"pos mode": "kinematic", "freqs": "L1+L2", "solution": direction,
+                           "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "navi sys": ",".join(cfg.systems),
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"})
     return 0

@@ -147,8 +147,14 @@ def _half_cycle(q: ReceiverSat, signal: str) -> bool:
 class RtkFilter:
     """Feed epoch pairs with :meth:`process` (a rover epoch, the base epoch nearest to it)."""
 
-    def __init__(self, base_r_e, store: EphemerisStore, config: RtkConfig = RtkConfig()):
+    def __init__(self, base_r_e, store: EphemerisStore, config: RtkConfig = RtkConfig(), backward: bool = False):
         self.cfg = config
+        # epochs fed newest first (the backward pass of a combined solution): a receiver's
+        # loss-of-lock flag at epoch k means a slip between k - 1 and k, so it resets the
+        # ambiguities at the next epoch fed (k - 1), not at k; a base flag at the next base epoch
+        self.backward = backward
+        self._rover_flags_ahead: set[str] = set()
+        self._base_flags_ahead: set[str] = set()
         self.base_r_e = np.asarray(base_r_e, dtype=float)
         self.store = store
         self.x = np.zeros(3)
@@ -214,7 +220,7 @@ class RtkFilter:
             self._count("epochs with fewer than 2 common satellites")
             return None
         t = rover.t_gps
-        dt = 0.0 if self.t_last is None else t - self.t_last
+        dt = 0.0 if self.t_last is None else abs(t - self.t_last)
         new_base = base.t_gps != self._base_t
         self._base_t, self._age_s = base.t_gps, t - base.t_gps
         self._predict(r_guess, dt)
@@ -238,11 +244,22 @@ class RtkFilter:
             for i in self.amb.values():
                 self.P[i, i] += cfg.ambiguity_psd_cycles2ps * dt
 
+    def _flagged(self, sats: dict) -> set[str]:
+        """Satellites whose receiver flags a loss of lock on any of their signals at this epoch."""
+        return {sat for sat, q in sats.items() if sat[:1] in self.sig
+                and any(q.slip.get(s, False) for s in self.sig[sat[:1]])}
+
     def _manage_ambiguities(self, t: float, common, sr, sb, new_base: bool = True) -> None:
         cfg = self.cfg
         slipped = set()
         # a base epoch used again (a slower base) brings no new slip: its flags were seen
         receivers = (("rover", sr), ("base", sb)) if new_base else (("rover", sr),)
+        rover_flags = self._flagged(sr)
+        base_flags = self._flagged(sb) if new_base else set()
+        if self.backward:
+            rover_flags, self._rover_flags_ahead = self._rover_flags_ahead, rover_flags
+            if new_base:
+                base_flags, self._base_flags_ahead = self._base_flags_ahead, base_flags
         for sat in common:
             sigs = self.sig[sat[:1]]
             for who, sats in receivers:
@@ -256,9 +273,9 @@ class RtkFilter:
                         slipped.add(sat)
                         self._count("slips: geometry-free")
                     self.last_gf[(sat, who, s2)] = gf
-                if any(sats[sat].slip.get(s, False) for s in sigs):
-                    slipped.add(sat)
-                    self._count("slips: loss of lock flag")
+            if sat in rover_flags or sat in base_flags:
+                slipped.add(sat)
+                self._count("slips: loss of lock flag")
         for sat in common:
             for s in self.sig[sat[:1]]:
                 key = (sat, s)
@@ -269,7 +286,7 @@ class RtkFilter:
                     self._count("phases with an unresolved half cycle")
                 ok = s in sr[sat].phase_cyc and s in sb[sat].phase_cyc and s in sr[sat].code_m \
                     and s in sb[sat].code_m and not half
-                stale = key in self.last_seen and t - self.last_seen[key] > cfg.max_gap_s
+                stale = key in self.last_seen and abs(t - self.last_seen[key]) > cfg.max_gap_s
                 if key in self.amb and (sat in slipped or stale or not ok):
                     self._drop_amb([key])
                     self._count("ambiguities reset")
@@ -280,7 +297,7 @@ class RtkFilter:
                     self._count("ambiguities added")
                 if ok:
                     self.last_seen[key] = t
-        lost = [k for k, ts in self.last_seen.items() if t - ts > self.cfg.max_gap_s and k in self.amb]
+        lost = [k for k, ts in self.last_seen.items() if abs(t - ts) > self.cfg.max_gap_s and k in self.amb]
         self._drop_amb(lost)
 
     # ------------------------------------------------------------------ double differences

@@ -5,6 +5,8 @@ and a base observation file and their navigation files): GPS, Galileo, BeiDou an
 The base antenna is the base header position (or ``base_xyz``) plus its ``ANTENNA: DELTA H/E/N``;
 solutions are reported at the rover's marker (antenna minus the rover's delta), as RTKLIB does.
 The first rover epoch is positioned by SPP (the kinematic prior of the first RTK epoch).
+Solution types as RTKLIB's: forward, backward (the epochs newest first, :class:`RtkFilter`'s
+``backward``) or both passes combined per epoch (:mod:`.rtk_combine`).
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from .pos_format import PosRecord
 from .rinex import read_rinex_nav, read_rinex_obs
 from ..rtk_signals import rtk_epoch
 from .rtk import RtkConfig, RtkFilter, RtkSolution, pair_epochs
+from .rtk_combine import combine
 from .spp import spp_epoch
 
 
@@ -28,21 +31,30 @@ def antenna_delta_e(marker_r_e, delta_hen_m) -> np.ndarray:
     return C_n_e(lat, lon) @ np.array([n, e, -h])
 
 
+#: the passes of each solution type (RTKLIB's forward / backward / combined)
+DIRECTIONS = ("forward", "backward", "combined")
+
+
 def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
-                    progress=None) -> tuple[list[RtkSolution], dict]:
-    """(solutions at the rover marker, info) for every paired epoch that could be solved."""
+                    progress=None, direction: str = "forward") -> tuple[list[RtkSolution], dict]:
+    """(solutions at the rover marker, info) for every paired epoch that could be solved.
+    ``direction``: 'forward' (each epoch from the ones before it), 'backward' (from the ones
+    after it) or 'combined' (both passes, :func:`companion.gnss.rtk_combine.combine`)."""
     hr, rover = read_rinex_obs(rover_obs, config.systems)
     hb, base = read_rinex_obs(base_obs, config.systems)
     ephs = []
     for n in navs:
         ephs += read_rinex_nav(n)
-    return solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=config, progress=progress)
+    return solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=config, progress=progress,
+                            direction=direction)
 
 
 def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
-                     progress=None) -> tuple[list[RtkSolution], dict]:
+                     progress=None, direction: str = "forward") -> tuple[list[RtkSolution], dict]:
     """:func:`solve_rtk_rinex` on observations already read (``read_rinex_obs``'s headers and
     epochs of rover and base) and the ephemerides."""
+    if direction not in DIRECTIONS:
+        raise ValueError(f"direction must be one of {', '.join(DIRECTIONS)}, not {direction!r}")
     # each system's tracking families to one code on both sides (a rover's L2L pairs a base's L2X)
     rover, base = [rtk_epoch(e) for e in rover], [rtk_epoch(e) for e in base]
     for who, hdr, epochs in (("rover", hr, rover), ("base", hb, base)):
@@ -56,9 +68,41 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     if base_marker is None or not np.any(base_marker):
         raise ValueError("the base position is neither given (--base-xyz) nor in the base file's header")
     base_ant = base_marker + antenna_delta_e(base_marker, hb.get("antenna_delta_hen_m"))
-    filt = RtkFilter(base_ant, store, config)
-    rover_delta = hr.get("antenna_delta_hen_m")
     pairs = pair_epochs(rover, base, tol_s=config.max_base_age_s)
+    passes = ("forward", "backward") if direction == "combined" else (direction,)
+    done = 0
+
+    def step(_k, _n):
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, len(pairs) * len(passes))
+
+    out, counters = {}, {}
+    for name in passes:
+        backward = name == "backward"
+        filt = RtkFilter(base_ant, store, config, backward=backward)
+        out[name] = _solve_pass(filt, pairs[::-1] if backward else pairs, store, hr, config, step)
+        if backward:
+            out[name].reverse()
+        counters.update(filt.counters if len(passes) == 1 else {f"{name}: {k}": v for k, v in filt.counters.items()})
+    if direction == "combined":
+        sols = combine(out["forward"], out["backward"], counters)
+        for name in passes:
+            counters[f"{name}: fixed epochs"] = sum(1 for s in out[name] if s.quality == 1)
+    else:
+        sols = out[direction]
+    info = {"rover_epochs": len(rover), "base_epochs": len(base), "paired_epochs": len(pairs),
+            "max_base_age_s": max((abs(r.t_gps - b.t_gps) for r, b in pairs), default=0.0),
+            "solutions": len(sols), "fixed": sum(1 for s in sols if s.quality == 1), "direction": direction,
+            "base_antenna_e": base_ant.tolist(), "counters": counters}
+    return sols, info
+
+
+def _solve_pass(filt: RtkFilter, pairs, store, hr: dict, config: RtkConfig, step) -> list[RtkSolution]:
+    """One pass of ``filt`` over the (rover, base) epoch pairs in the order given; the first epoch
+    positioned by SPP."""
+    rover_delta = hr.get("antenna_delta_hen_m")
     sols: list[RtkSolution] = []
     r_prior = hr.get("approx_position_e")
     for k, (r_ep, b_ep) in enumerate(pairs):
@@ -67,23 +111,19 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
             spp = spp_epoch(r_ep, store, r_init_e=r_prior, systems=config.systems)
             if spp is None:
                 filt.counters["epochs without an SPP start"] = filt.counters.get("epochs without an SPP start", 0) + 1
+                step(k, len(pairs))
                 continue
             prior = spp.r_e
         sol = filt.process(r_ep, b_ep, prior)
         if sol is not None:
             sol.r_e = sol.r_e - antenna_delta_e(sol.r_e, rover_delta)
             sols.append(sol)
-        if progress is not None:
-            progress(k + 1, len(pairs))
-    info = {"rover_epochs": len(rover), "base_epochs": len(base), "paired_epochs": len(pairs),
-            "max_base_age_s": max((abs(r.t_gps - b.t_gps) for r, b in pairs), default=0.0),
-            "solutions": len(sols), "fixed": sum(1 for s in sols if s.quality == 1),
-            "base_antenna_e": base_ant.tolist(), "counters": dict(filt.counters)}
-    return sols, info
+        step(k, len(pairs))
+    return sols
 
 
 def pos_records(sols: list[RtkSolution]) -> list[PosRecord]:
     return [PosRecord(s.t_gps, s.r_e, s.cov_e, s.quality, s.n_sats, s.age_s, s.ratio) for s in sols]
 
 
-__all__ = ["solve_rtk_rinex", "solve_rtk_epochs", "pos_records", "antenna_delta_e"]
+__all__ = ["DIRECTIONS", "solve_rtk_rinex", "solve_rtk_epochs", "pos_records", "antenna_delta_e"]
