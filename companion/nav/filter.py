@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
-from scipy.linalg.lapack import dpotrf as _potrf, dtrtrs as _trtrs
+from scipy.linalg.lapack import dpotrf as _potrf, dtrtri as _trtri, dtrtrs as _trtrs
 from .chi2 import chi2_ppf
 
 from . import imu_kernel
@@ -339,7 +339,7 @@ class ErrorStateKalmanFilter:
         (seed 004 eq 16 applied after the common mode is explained by the other satellites).
         """
         P, H = self.P, batch.H
-        S = np.einsum("ij,jk,ik->i", H, P, H) + batch.r_var
+        S = ((H @ P) * H).sum(axis=1) + batch.r_var        # diag(H P H^T) (einsum costs 3x more here)
         finite = np.isfinite(batch.z) & np.isfinite(S) & (S > 0)
         ratio = np.full(len(batch), np.inf)
         ratio[finite] = batch.z[finite] ** 2 / (S[finite] * self.gate_chi2_1dof)
@@ -361,7 +361,7 @@ class ErrorStateKalmanFilter:
             Ha = batch.H[active]
             Sa = Ha @ self.P @ Ha.T
             Sa.flat[::len(Sa) + 1] += batch.r_var[active]
-            lam = np.linalg.inv(Sa)
+            lam = spd_inverse(Sa)
             lz = lam @ batch.z[active]
             r = lz * lz / (np.diag(lam) * self.gate_chi2_1dof)
             ratio[active] = r
@@ -465,6 +465,18 @@ def cholesky_lower(S: np.ndarray) -> np.ndarray:
     if info != 0:
         raise np.linalg.LinAlgError("matrix not positive definite")
     return C
+
+
+def spd_inverse(S: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite S from its Cholesky factor C (S^-1 = C^-T C^-1;
+    LAPACK potrf + trtri, about half of np.linalg.inv's cost at these sizes); np.linalg.inv when
+    S is not positive definite in floating point."""
+    C, info = _potrf(S, lower=1, clean=1)
+    if info == 0:
+        Ci, info = _trtri(C, lower=1)
+        if info == 0:
+            return Ci.T @ Ci
+    return np.linalg.inv(S)
 
 
 def solve_lower(C: np.ndarray, B: np.ndarray) -> np.ndarray:

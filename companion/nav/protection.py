@@ -50,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .chi2 import chi2_ppf
+from .filter import spd_inverse
 
 
 def k_factor_h(probability: float) -> float:
@@ -108,7 +109,7 @@ def solution_separation(H: np.ndarray, z: np.ndarray, r_var: np.ndarray, P: np.n
     PHt = P @ H.T
     S = H @ PHt
     S.flat[::len(S) + 1] += np.asarray(r_var, float)
-    L = np.linalg.inv(S)
+    L = spd_inverse(S)
     L = 0.5 * (L + L.T)
     M = C_h @ PHt                          # (2, m)
     U = M @ L                              # column i: u_i = M l_i
