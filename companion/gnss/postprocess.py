@@ -361,18 +361,29 @@ def write_tracks(args, records, name: str) -> None:
         write_gpx(gpx, points, name)
 
 
+def _rtk_rover(path: str, systems: str):
+    """(header, epochs, ephemerides) of an RTK rover: a RINEX observation file, or a u-blox capture
+    (RXM-RAWX observations as the service decodes them, RXM-SFRBX ephemerides)."""
+    if not is_ubx_file(path):
+        hdr, epochs = read_rinex_obs(path, systems)
+        return hdr, epochs, []
+    store = EphemerisStore()
+    hdr, epochs, _ = _load_ubx_rover(path, systems, store)
+    if not epochs:
+        raise GnssProcessingError(f"no RXM-RAWX epoch of the selected systems ({systems}) in {path}")
+    return hdr, epochs, [e for sat in store.sats for e in store.all(sat)]
+
+
 def _run_rtk(args) -> int:
     """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
     from .rtk import RtkConfig
-    from .rtk_post import pos_records, solve_rtk_rinex
+    from .rtk_post import pos_records, solve_rtk_epochs
     for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
-    if is_ubx_file(args.rover):
-        raise GnssProcessingError("--mode rtk reads RINEX observations; convert the u-blox capture first "
-                                  "(RTKLIB: convbin -r ubx -od -os CAPTURE.ubx)")
-    if not args.nav:
-        raise GnssProcessingError("--mode rtk needs --nav")
+    ubx = is_ubx_file(args.rover)
+    if not args.nav and not ubx:
+        raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx rover brings its own ephemerides)")
     if not args.base:
         raise GnssProcessingError("--mode rtk needs --base")
     base_xyz = _xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
@@ -383,9 +394,16 @@ def _run_rtk(args) -> int:
     if wanted:
         cfg = dataclasses.replace(cfg, systems="".join(c for c in cfg.systems if c in wanted))
     try:
+        hr, rover, ephs = _rtk_rover(args.rover, cfg.systems)
+        hb, base = read_rinex_obs(args.base, cfg.systems)
+        for p in args.nav or []:
+            ephs += read_rinex_nav(p, cfg.systems)
+        if not ephs and ubx:
+            raise GnssProcessingError(f"no ephemeris of the selected systems ({cfg.systems}): the capture has no "
+                                      f"usable RXM-SFRBX of them; give --nav")
         # an RTK epoch costs milliseconds (tens with four systems): a minute of 1-Hz data is worth a progress line
-        sols, info = solve_rtk_rinex(args.rover, args.base, args.nav, base_xyz=base_xyz, config=cfg,
-                                     progress=epoch_progress("rtk", min_epochs=60), direction=direction)
+        sols, info = solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=cfg,
+                                      progress=epoch_progress("rtk", min_epochs=60), direction=direction)
     except (ValueError, IndexError) as exc:
         raise GnssProcessingError(str(exc)) from exc
     if not sols:
@@ -425,7 +443,7 @@ def _run_rtk(args) -> int:
                               f"{n_fix} of {len(sols)} fixed", truth)
     if args.pos:
         write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
-                  inputs=[args.rover, args.base, *args.nav],
+                  inputs=[args.rover, args.base, *(args.nav or [])],
                   options={"pos mode": "kinematic", "freqs": "L1+L2", "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "navi sys": ",".join(cfg.systems),
