@@ -112,7 +112,8 @@ def lock_indicator_df407(lock_s: float) -> int:
 
 
 #: RTCM GPS MSM signal ids (RTCM 10403.3 table 3.5-91) of the codes the simulator's signals go out as
-GPS_MSM_SIGNAL_ID = {"1C": 2, "1P": 3, "1W": 4, "2C": 8, "2P": 9, "2W": 10, "2S": 15, "2L": 16, "2X": 17}
+GPS_MSM_SIGNAL_ID = {"1C": 2, "1P": 3, "1W": 4, "2C": 8, "2P": 9, "2W": 10, "2S": 15, "2L": 16, "2X": 17,
+                     "5I": 22, "5Q": 23, "5X": 24}
 #: Galileo (table 3.5-99) and BeiDou (3.5-108) MSM signal ids of the codes used here
 GALILEO_MSM_SIGNAL_ID = {"1C": 2, "1B": 4, "1X": 5, "7I": 14, "7Q": 15, "7X": 16, "5I": 22, "5Q": 23, "5X": 24}
 BEIDOU_MSM_SIGNAL_ID = {"2I": 2, "2X": 4, "6I": 8, "6X": 10, "7I": 14, "7X": 16}

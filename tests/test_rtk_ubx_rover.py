@@ -102,4 +102,4 @@ def test_one_system_of_a_capture_and_a_capture_without_ephemerides(tmp_path, cap
     assert "120/120 epochs solved, 120 fixed" in out and "G 9.0 (9-9)" in out and "E " not in out.split("satellites")[-1]
     # no --nav and no RXM-SFRBX in this capture: said so
     assert main(["gnss", "--rover", str(ubx), "--base", str(BASE), "--mode", "rtk", xyz]) == 2
-    assert "the capture has no usable RXM-SFRBX of them; give --nav" in capsys.readouterr().err
+    assert "neither capture brings them" in capsys.readouterr().err

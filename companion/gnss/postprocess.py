@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..messages import BaseStationPosition
+from ..messages import SECONDS_PER_WEEK, BaseStationPosition
 from ..nav.earth import ecef_to_geodetic, ecef_to_ned
 from .dgps import DgpsCorrector
 from .ephemeris_store import EphemerisStore
@@ -361,6 +361,41 @@ def write_tracks(args, records, name: str) -> None:
         write_gpx(gpx, points, name)
 
 
+def is_rtcm_file(path) -> bool:
+    """An RTCM 3 capture (a frame preamble at the first byte), not a RINEX file."""
+    with open(path, "rb") as fh:
+        return fh.read(1) == b"\xd3"
+
+
+def _rtk_base(path: str, systems: str, week: int):
+    """(header, epochs, ephemerides) of an RTK base: a RINEX observation file, or an RTCM 3
+    capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its
+    position, broadcast ephemerides) decoded as the service decodes its NTRIP stream; ``week``:
+    the GPS week of the rover's first epoch (MSM carries the time of week only)."""
+    if not is_rtcm_file(path):
+        hdr, epochs = read_rinex_obs(path, systems)
+        return hdr, epochs, []
+    from ..io.rtcm import decode_rtcm_file
+    from ..messages import GnssEpoch, GpsEphemeris
+    try:
+        msgs, _ = decode_rtcm_file(str(path), week_hint=week)
+    except (ValueError, IndexError) as exc:
+        raise GnssProcessingError(f"cannot decode the RTCM capture {path}: {exc}") from exc
+    epochs = []
+    for m in msgs:
+        if isinstance(m, GnssEpoch):
+            obs = tuple(o for o in m.observations if o.sat[0] in systems)
+            if obs:
+                epochs.append(GnssEpoch(m.t_gps, obs, source="base"))
+    arp = [m.r_e for m in msgs if isinstance(m, BaseStationPosition)]
+    if not epochs:
+        raise GnssProcessingError(f"no base observations of the selected systems ({systems}) in {path} "
+                                  f"(MSM4-7 or 1004/1012 expected)")
+    hdr = {"approx_position_e": np.asarray(arp[-1], float) if arp else None, "antenna_delta_hen_m": None,
+           "obs_types": {}}
+    return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems]
+
+
 def _rtk_rover(path: str, systems: str):
     """(header, epochs, ephemerides) of an RTK rover: a RINEX observation file, or a u-blox capture
     (RXM-RAWX observations as the service decodes them, RXM-SFRBX ephemerides)."""
@@ -381,9 +416,9 @@ def _run_rtk(args) -> int:
     for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
-    ubx = is_ubx_file(args.rover)
-    if not args.nav and not ubx:
-        raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx rover brings its own ephemerides)")
+    if not args.nav and not is_ubx_file(args.rover) and not (args.base and is_rtcm_file(args.base)):
+        raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx rover or an RTCM 3 base can bring the "
+                                  "ephemerides)")
     if not args.base:
         raise GnssProcessingError("--mode rtk needs --base")
     base_xyz = _xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
@@ -395,12 +430,15 @@ def _run_rtk(args) -> int:
         cfg = dataclasses.replace(cfg, systems="".join(c for c in cfg.systems if c in wanted))
     try:
         hr, rover, ephs = _rtk_rover(args.rover, cfg.systems)
-        hb, base = read_rinex_obs(args.base, cfg.systems)
+        if not rover:
+            raise GnssProcessingError(f"no observation epochs in {args.rover}")
+        hb, base, base_ephs = _rtk_base(args.base, cfg.systems, int(rover[0].t_gps // SECONDS_PER_WEEK))
+        ephs += base_ephs
         for p in args.nav or []:
             ephs += read_rinex_nav(p, cfg.systems)
-        if not ephs and ubx:
-            raise GnssProcessingError(f"no ephemeris of the selected systems ({cfg.systems}): the capture has no "
-                                      f"usable RXM-SFRBX of them; give --nav")
+        if not ephs and not args.nav:
+            raise GnssProcessingError(f"no ephemeris of the selected systems ({cfg.systems}): neither capture "
+                                      f"brings them (RXM-SFRBX, RTCM 1019/1042/1044/1045/1046); give --nav")
         # an RTK epoch costs milliseconds (tens with four systems): a minute of 1-Hz data is worth a progress line
         sols, info = solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=cfg,
                                       progress=epoch_progress("rtk", min_epochs=60), direction=direction)
