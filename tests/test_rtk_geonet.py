@@ -170,6 +170,7 @@ def test_cli_rtk_writes_rtklib_pos_with_fix_flags(tmp_path):
                  "--truth-xyz=" + ",".join(f"{v}" for v in REF_0759), "--pos", str(pos)]) == 0
     rows = [ln.split() for ln in pos.read_text().splitlines() if not ln.startswith("%")]
     assert len(rows) == 120 and sum(r[5] == "1" for r in rows) >= 115
+    assert "% navi sys  : G\n" in pos.read_text()          # the systems solved with (GPS-only files)
     assert all(float(r[-1]) >= 3.0 for r in rows if r[5] == "1")        # ratio column of fixed epochs
     assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--mode", "rtk"]) == 2   # no base
 

@@ -484,6 +484,6 @@ def _run_rtk(args) -> int:
                   inputs=[args.rover, args.base, *(args.nav or [])],
                   options={"pos mode": "kinematic", "freqs": "L1+L2", "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
-                           "navi sys": ",".join(cfg.systems),
+                           "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"})
     return 0
