@@ -4,8 +4,6 @@ is a slip between k - 1 and k: going backward it resets at k - 1), and the per-e
 of the two passes (companion.gnss.rtk_combine)."""
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -14,7 +12,7 @@ from companion.gnss.rinex import read_rinex_obs
 from companion.gnss.rtk import Q_FIX, Q_FLOAT, RtkSolution
 from companion.gnss.rtk_combine import combine
 from companion.gnss.rtk_post import solve_rtk_rinex
-from tests.test_rtk_geonet import BASE, NAV, REF_0759, ROVER, _rms
+from tests.test_rtk_geonet import BASE, NAV, REF_0759, ROVER, _rms, slipped_reader
 
 
 def _sol(t, r, sigma, q):
@@ -69,23 +67,8 @@ def test_a_flagged_slip_resets_the_epoch_before_it_going_backward(monkeypatch):
     off; with the flag applied at the epoch that carries it (going backward, one epoch after the
     slip) the backward pass carries the slip into epochs 0-59 and fixes none of them."""
     t_slip = read_rinex_obs(ROVER)[1][60].t_gps
-    orig = rtk_post.read_rinex_obs
-
-    def slipped(path, systems="G"):
-        h, eps = orig(path, systems)
-        if path != ROVER:
-            return h, eps
-        out = []
-        for e in eps:
-            if e.t_gps >= t_slip:
-                obs = tuple(dataclasses.replace(o, carrier_cycles=o.carrier_cycles + {"L1C": 9.0, "L2W": 7.0}[o.signal],
-                                                loss_of_lock=o.loss_of_lock or e.t_gps == t_slip)
-                            if o.sat == "G20" and o.signal in ("L1C", "L2W") else o for o in e.observations)
-                e = dataclasses.replace(e, observations=obs)
-            out.append(e)
-        return h, out
-
-    monkeypatch.setattr(rtk_post, "read_rinex_obs", slipped)
+    monkeypatch.setattr(rtk_post, "read_rinex_obs",
+                        slipped_reader(read_rinex_obs, t_slip, "G20", {"L1C": 9.0, "L2W": 7.0}, flag=True))
     for direction in ("forward", "backward"):
         sols, info = solve_rtk_rinex(ROVER, BASE, [NAV], direction=direction)
         fixed = [s for s in sols if s.quality == 1]

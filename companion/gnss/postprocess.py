@@ -150,12 +150,24 @@ def is_ubx_file(path) -> bool:
         return fh.read(2) == b"\xb5\x62"
 
 
+def _epochs_of(msgs, systems: str, source: str) -> list:
+    """The decoded GnssEpochs among ``msgs``, cut to ``systems`` (epochs left empty dropped), as ``source``."""
+    from ..messages import GnssEpoch
+    out = []
+    for m in msgs:
+        if isinstance(m, GnssEpoch):
+            obs = tuple(o for o in m.observations if o.sat[0] in systems)
+            if obs:
+                out.append(GnssEpoch(m.t_gps, obs, source=source))
+    return out
+
+
 def _load_ubx_rover(path: str, wanted: str | None, store: EphemerisStore):
     """Observations (RXM-RAWX) and broadcast ephemerides (RXM-SFRBX: GPS/QZSS LNAV, Galileo I/NAV,
     BeiDou D1/D2) of a u-blox capture, decoded as the service decodes its receiver's stream.
     Returns (header-like dict without a marker position or antenna delta, epochs, Klobuchar)."""
     from ..io.ubx import decode_ubx_file
-    from ..messages import GnssEpoch, GpsEphemeris
+    from ..messages import GpsEphemeris
     try:
         msgs, dec = decode_ubx_file(str(path))
     except (ValueError, IndexError, struct_error) as exc:
@@ -166,12 +178,7 @@ def _load_ubx_rover(path: str, wanted: str | None, store: EphemerisStore):
         if isinstance(m, GpsEphemeris) and m.sat[0] in keep:
             store.add(m)
             n_eph += 1
-    epochs = []
-    for m in msgs:
-        if isinstance(m, GnssEpoch):
-            obs = tuple(o for o in m.observations if o.sat[0] in keep)
-            if obs:
-                epochs.append(GnssEpoch(m.t_gps, obs, source="rover"))
+    epochs = _epochs_of(msgs, keep, "rover")
     log.info("%s: %d RXM-RAWX epochs, %d ephemerides from RXM-SFRBX", path, len(epochs), n_eph)
     klob = getattr(getattr(dec, "ephemerides", None), "klobuchar", None)
     return {"approx_position_e": None, "antenna_delta_hen_m": None}, epochs, klob
@@ -376,17 +383,12 @@ def _rtk_base(path: str, systems: str, week: int):
         hdr, epochs = read_rinex_obs(path, systems)
         return hdr, epochs, []
     from ..io.rtcm import decode_rtcm_file
-    from ..messages import GnssEpoch, GpsEphemeris
+    from ..messages import GpsEphemeris
     try:
         msgs, _ = decode_rtcm_file(str(path), week_hint=week)
     except (ValueError, IndexError) as exc:
         raise GnssProcessingError(f"cannot decode the RTCM capture {path}: {exc}") from exc
-    epochs = []
-    for m in msgs:
-        if isinstance(m, GnssEpoch):
-            obs = tuple(o for o in m.observations if o.sat[0] in systems)
-            if obs:
-                epochs.append(GnssEpoch(m.t_gps, obs, source="base"))
+    epochs = _epochs_of(msgs, systems, "base")
     arp = [m.r_e for m in msgs if isinstance(m, BaseStationPosition)]
     if not epochs:
         raise GnssProcessingError(f"no base observations of the selected systems ({systems}) in {path} "
