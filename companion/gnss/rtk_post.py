@@ -64,9 +64,13 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     if not any(e.sat[0] in config.systems for e in ephs):
         raise ValueError(f"the navigation file(s) hold no ephemeris of the selected systems ({config.systems})")
     store = EphemerisStore(ephs)
-    base_marker = np.asarray(base_xyz if base_xyz is not None else hb["approx_position_e"], dtype=float)
-    if base_marker is None or not np.any(base_marker):
-        raise ValueError("the base position is neither given (--base-xyz) nor in the base file's header")
+    given = base_xyz if base_xyz is not None else hb.get("approx_position_e")
+    # (np.asarray(None, float) is NaN, which np.any takes for a position: test for it)
+    base_marker = None if given is None else np.asarray(given, dtype=float)
+    if base_marker is None or base_marker.shape != (3,) or not np.all(np.isfinite(base_marker)) \
+            or not np.any(base_marker):
+        raise ValueError("the base position is neither given (--base-xyz) nor in the base file (a RINEX header's "
+                         "APPROX POSITION XYZ, an RTCM 1005/1006)")
     base_ant = base_marker + antenna_delta_e(base_marker, hb.get("antenna_delta_hen_m"))
     pairs = pair_epochs(rover, base, tol_s=config.max_base_age_s)
     passes = ("forward", "backward") if direction == "combined" else (direction,)
