@@ -479,8 +479,8 @@ def _run_rtk(args) -> int:
             json.dump({**summary, "solutions": rows}, fh, indent=1)
     records = pos_records(sols)
     write_tracks(args, records, f"companion gnss rtk: {Path(args.rover).name}")
-    write_plot(args, records, f"companion gnss rtk ({','.join(cfg.systems)}): {Path(args.rover).name}, "
-                              f"{n_fix} of {len(sols)} fixed", truth)
+    write_plot(args, records, f"companion gnss rtk ({','.join(by_sys) or ','.join(cfg.systems)}, {direction}): "
+                              f"{Path(args.rover).name}, {n_fix} of {len(sols)} fixed", truth)
     if args.pos:
         write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
                   inputs=[args.rover, args.base, *(args.nav or [])],
