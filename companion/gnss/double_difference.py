@@ -158,10 +158,11 @@ def _tracks(q: ReceiverSat, signal: str) -> bool:
 def _renamed(q: ReceiverSat, names: dict[str, str]) -> ReceiverSat:
     """``q`` with its observables' signals renamed by ``names`` (new dicts: the originals may be
     shared with a cached epoch)."""
-    def re(d):
+    def keyed(d):
         return None if d is None else {names.get(k, k): v for k, v in d.items()}
-    return dataclasses.replace(q, code_m=re(q.code_m), phase_cyc=re(q.phase_cyc), wavelength_m=re(q.wavelength_m),
-                               slip=re(q.slip), half_cycle=re(q.half_cycle), lock_time_s=re(q.lock_time_s))
+    return dataclasses.replace(q, code_m=keyed(q.code_m), phase_cyc=keyed(q.phase_cyc),
+                               wavelength_m=keyed(q.wavelength_m), slip=keyed(q.slip),
+                               half_cycle=keyed(q.half_cycle), lock_time_s=keyed(q.lock_time_s))
 
 
 def cross_pair(sr: dict[str, ReceiverSat], sb: dict[str, ReceiverSat],

@@ -76,7 +76,7 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     passes = ("forward", "backward") if direction == "combined" else (direction,)
     done = 0
 
-    def step(_k, _n):
+    def step():                      # one epoch pair of one pass done
         nonlocal done
         done += 1
         if progress is not None:
@@ -109,20 +109,20 @@ def _solve_pass(filt: RtkFilter, pairs, store, hr: dict, config: RtkConfig, step
     rover_delta = hr.get("antenna_delta_hen_m")
     sols: list[RtkSolution] = []
     r_prior = hr.get("approx_position_e")
-    for k, (r_ep, b_ep) in enumerate(pairs):
+    for r_ep, b_ep in pairs:
         prior = None
         if not filt.initialized:
             spp = spp_epoch(r_ep, store, r_init_e=r_prior, systems=config.systems)
             if spp is None:
                 filt.counters["epochs without an SPP start"] = filt.counters.get("epochs without an SPP start", 0) + 1
-                step(k, len(pairs))
+                step()
                 continue
             prior = spp.r_e
         sol = filt.process(r_ep, b_ep, prior)
         if sol is not None:
             sol.r_e = sol.r_e - antenna_delta_e(sol.r_e, rover_delta)
             sols.append(sol)
-        step(k, len(pairs))
+        step()
     return sols
 
 
