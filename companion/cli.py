@@ -20,7 +20,8 @@ def _add_gnss(sub) -> None:
     p.add_argument("--rover", help="rover RINEX observation file (2.x or 3.x), or a u-blox capture (.ubx with "
                                    "RXM-RAWX and RXM-SFRBX); required")
     p.add_argument("--nav", action="append",
-                   help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides); may be repeated; "
+                   help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides; GLONASS's for "
+                        "--mode rtk --sys with R); may be repeated; "
                         "required with a RINEX rover, optional with a .ubx one")
     p.add_argument("--base", help="base station RINEX observation file (for --mode dgps and rtk); with rtk also an "
                                   "RTCM 3 capture (MSM4-7 or 1004/1012, its 1005/1006 position, ephemerides)")
@@ -34,7 +35,8 @@ def _add_gnss(sub) -> None:
     p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
     p.add_argument("--sys", default="auto",
                    help="constellations, e.g. G,E,C,J (GPS, Galileo, BeiDou, QZSS) or 'all'; default: every one "
-                        "with observations and ephemerides in the files (GLONASS is not used)")
+                        "with observations and ephemerides in the files.  GLONASS (R) with --mode rtk only, when "
+                        "asked (e.g. G,R,E,C,J or all): its ambiguities stay float")
     p.add_argument("--freq", choices=["l1", "if"], default="l1",
                    help="spp/dgps: l1 = each system's single-frequency code (GPS/QZSS L1 C/A, Galileo E1, "
                         "BeiDou B1I) with Klobuchar; if = dual-frequency iono-free per system")

@@ -73,6 +73,15 @@ RTK_FAMILIES_BY_SYSTEM: dict[str, dict[str, tuple[str, ...]]] = {
         "L1P": ("L1P", "L1X"),                        # B1C pilot / D+P
         "L5P": ("L5P", "L5X"),                        # B2a pilot / D+P
     },
+    # GLONASS: C/A and P apart on each band (in quadrature, as GPS's); the FDMA carriers differ per
+    # satellite, so the post-processing RTK keeps GLONASS ambiguities float (companion.gnss.rtk)
+    "R": {
+        "L1C": ("L1C",),
+        "L2C": ("L2C",),
+        "L1P": ("L1P",),
+        "L2P": ("L2P",),
+        "L3Q": ("L3Q", "L3X"),                        # L3OC (CDMA) pilot / I+Q
+    },
 }
 
 #: per system, (rover family, base family) -> the code of that cross pair: a satellite the two
@@ -84,8 +93,8 @@ RTK_CROSS_PAIRS_BY_SYSTEM: dict[str, dict[tuple[str, str], str]] = {
 #: GPS's families (kept under their old name)
 RTK_FAMILIES: dict[str, tuple[str, ...]] = RTK_FAMILIES_BY_SYSTEM["G"]
 
-#: systems whose observations are renamed and may be RTK-paired (the engine pairs those of
-#: ``[filter] systems`` among them)
+#: systems whose observations the engine may RTK-pair (those of ``[filter] systems`` among them);
+#: GLONASS only in post-processing (companion.gnss.rtk), which has its ephemerides
 RTK_SYSTEMS = "GECJ"
 
 #: per system, the engine's RTK signal list: the first one is the code whose pseudorange places the
@@ -124,7 +133,7 @@ def canonical_signal(sat: str, signal: str) -> str | None:
 
 
 def rtk_epoch(epoch: GnssEpoch) -> GnssEpoch:
-    """``epoch`` with every GPS / Galileo / BeiDou / QZSS observation of a known family renamed to its canonical code (one
+    """``epoch`` with every GPS / GLONASS / Galileo / BeiDou / QZSS observation of a known family renamed to its canonical code (one
     per satellite and family: the preferred code); everything else is passed unchanged.  An epoch
     that needs no renaming is returned as is (the same object)."""
     best: dict[tuple[str, str], int] = {}         # (sat, canonical) -> index of the kept observation

@@ -236,12 +236,21 @@ def test_glonass_ephemerides_held_equal_convbin(ours, convbin_files):
         # the latest record of the satellite: convbin writes each issue once, in stream order
         toc, v = [r[1:] for r in records if r[0] == sat][-1]
         week, sow = toc                                        # UTC calendar -> GPS time
-        assert math.isclose(eph.t_b_gps, week * SECONDS_PER_WEEK + sow + 18.0, abs_tol=1e-6)
-        assert _same(-eph.tau_n_s, v[0]) and _same(eph.gamma_n, v[1])
+        assert math.isclose(eph.t_oe_gps, week * SECONDS_PER_WEEK + sow + 18.0, abs_tol=1e-6)
+        assert _same(eph.clock_bias_s, v[0]) and _same(eph.clock_rate, v[1])
         for k, (vec, scale) in enumerate(((eph.r_e, 1e-3), (eph.v_e, 1e-3), (eph.a_e, 1e-3))):
             for axis in range(3):
                 assert _same(vec[axis] * scale, v[3 + k + 4 * axis]), (sat, k, axis)
-        assert eph.health == v[6] and eph.freq_channel == v[10] and eph.age_days == v[14]
+        assert eph.health == v[6] and eph.frequency_channel == v[10] and eph.age_days == v[14]
+    # the RINEX reader of the post-processor gives the same ephemerides from convbin's file
+    from companion.gnss.rinex import read_rinex_nav
+    rinex = {e.sat: e for e in read_rinex_nav(convbin_files[1], "R")}        # the latest per satellite
+    assert set(rinex) == set(dec.glonass_ephemerides)
+    for sat, eph in dec.glonass_ephemerides.items():
+        r = rinex[sat]
+        assert (r.t_oe_gps, r.iode, r.frequency_channel, r.health) == (eph.t_oe_gps, eph.iode, eph.frequency_channel, eph.health)
+        assert np.allclose(r.r_e, eph.r_e, rtol=0, atol=1e-3) and np.allclose(r.v_e, eph.v_e, rtol=0, atol=1e-6)
+        assert _same(r.clock_bias_s, eph.clock_bias_s) and _same(r.clock_rate, eph.clock_rate)
 
 
 def test_observations_equal_convbin_per_system_and_signal(ours, convbin_files):

@@ -22,6 +22,7 @@ import math
 import numpy as np
 import pytest
 
+from companion.gnss import glonass
 from companion.gnss.double_difference import model_range_m, receiver_sats
 from companion.gnss.ephemeris_store import EphemerisStore
 from companion.gnss.rtk import Q_FIX, RtkConfig, RtkFilter
@@ -45,14 +46,16 @@ def test_families_are_per_system():
     assert canonical_signal("J02", "L2S") == "L2X" and canonical_signal("J02", "L2W") is None
     assert canonical_signal("C20", "L2I") == "L2I" and canonical_signal("C20", "L6X") == "L6I"
     assert canonical_signal("E11", "L7X") == "L7Q" and canonical_signal("E11", "L5X") == "L5Q"
-    assert canonical_signal("R01", "L1C") is None and canonical_signal("I02", "L5A") is None
+    assert canonical_signal("R01", "L1C") == "L1C" and canonical_signal("R01", "L2X") is None
+    assert canonical_signal("I02", "L5A") is None
     assert RTK_SIGNALS[:3] == ("L1C", "L2X", "L2W")               # GPS's order kept
     assert signals_for_system("C", ("L1C", "L2W")) == ()          # BeiDou without its B1I: not paired
     assert signals_for_system("C", RTK_SIGNALS)[0] == "L2I"
     assert signals_for_system("G", ("L2W", "L1C")) == ("L1C", "L2W")
     for sys, sigs in RTK_SIGNALS_BY_SYSTEM.items():
-        for s in sigs:
-            assert math.isfinite(frequency_hz(sys + "01", s)), (sys, s)
+        for s in sigs:         # GLONASS: by the channel (-7..6); its CDMA L3 on one carrier
+            hz = glonass.carrier_hz(s, -7) if sys == "R" else frequency_hz(sys + "01", s)
+            assert math.isfinite(hz), (sys, s)
 
 
 # ------------------------------------------------------------------ real carriers, synthetic baseline
@@ -69,11 +72,15 @@ def test_decoded_wavelengths_are_each_systems_own(stream):
     seen = set()
     for ep in epochs:
         for o in ep.observations:
-            if canonical_signal(o.sat, o.signal) is not None:
+            if o.sat[0] == "R" and o.signal == "L1C":     # FDMA: one of the 14 channels' carriers
+                k = (SPEED_OF_LIGHT_MPS / o.wavelength_m - glonass.L1_BASE_HZ) / glonass.L1_STEP_HZ
+                assert -7 <= round(k) <= 6 and abs(k - round(k)) < 1e-6, (o.sat, k)
+                seen.add(("R", o.signal))
+            elif canonical_signal(o.sat, o.signal) is not None and o.sat[0] != "R":
                 lam = SPEED_OF_LIGHT_MPS / frequency_hz(o.sat, o.signal)
                 assert abs(o.wavelength_m - lam) < 1e-9, (o.sat, o.signal, o.wavelength_m, lam)
                 seen.add((o.sat[0], o.signal))
-    assert {s for s, _ in seen} == set("GECJ") and ("C", "L2I") in seen and ("E", "L7Q") in seen
+    assert {s for s, _ in seen} == set("GECJR") and ("C", "L2I") in seen and ("E", "L7Q") in seen
 
 
 def _moved_rover(epochs, store, r_rover_e, seed=0):

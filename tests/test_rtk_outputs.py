@@ -79,7 +79,7 @@ def test_tracking_families_pair_like_with_like():
     assert len(g07) == 1 and g07[0].signal == "L2X" and g07[0].carrier_cycles == 7.0    # L2L preferred over L2S
     assert rtk_epoch(b) is b                                      # already canonical: the same object
     assert canonical_signal("G01", "L2D") == "L2W" and canonical_signal("G01", "L1W") is None
-    assert canonical_signal("R01", "L1C") is None
+    assert canonical_signal("R01", "L1C") == "L1C" and canonical_signal("R01", "L1P") == "L1P"   # C/A and P apart
 
 
 def test_pipeline_renames_both_sides_and_cuts_other_systems_from_the_base():

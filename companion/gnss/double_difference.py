@@ -30,6 +30,8 @@ from ..rtk_signals import RTK_CROSS_PAIRS_BY_SYSTEM
 from .atmosphere import tropo_delay_m
 from .ephemeris import satellite_clock, satellite_state
 from .ephemeris_store import EphemerisStore
+from .glonass import GlonassEphemeris
+from .glonass import wavelength_m as glonass_wavelength_m
 
 
 @dataclass
@@ -122,11 +124,22 @@ def transmit_states(epoch: GnssEpoch, store: EphemerisStore, signals,
             r_s, v_s, clk, drift = satellite_state(eph, t_tx - clk1)
         fields = ({s: o.pseudorange_m for s, o in obs.items() if math.isfinite(o.pseudorange_m)},
                   {s: o.carrier_cycles for s, o in obs.items() if math.isfinite(o.carrier_cycles)},
-                  {s: o.wavelength_m for s, o in obs.items()},
+                  _wavelengths(obs, eph),
                   {s: bool(o.loss_of_lock) for s, o in obs.items()},
                   {s: bool(o.half_cycle_ambiguous) for s, o in obs.items()},
                   {s: float(o.lock_time_s) for s, o in obs.items()})
         out[sat] = TransmitState(r_s, v_s, clk * SPEED_OF_LIGHT_MPS, fields, eph, t_tx, clk1, drift, clk)
+    return out
+
+
+def _wavelengths(obs: dict, eph) -> dict:
+    """signal -> carrier wavelength (m): the observation's, or for a GLONASS FDMA signal that
+    comes without one (RINEX) the one of the ephemeris's frequency channel."""
+    out = {s: o.wavelength_m for s, o in obs.items()}
+    if isinstance(eph, GlonassEphemeris):
+        for s, lam in out.items():
+            if not math.isfinite(lam):
+                out[s] = glonass_wavelength_m(s, eph.frequency_channel)
     return out
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..messages import SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS, GpsEphemeris
 from ..nav.earth import GM_M3PS2, OMEGA_IE_RADPS
+from . import glonass
 
 # Relativistic clock term constant F = -2 sqrt(mu) / c^2  (IS-GPS-200 20.3.3.3.3.1)
 REL_F = -4.442807633e-10
@@ -50,7 +51,10 @@ def _wrap_week(dt_s: float) -> float:
 
 def satellite_clock(eph: GpsEphemeris, t_gps: float, e_anomaly_rad: float | None = None) -> tuple[float, float]:
     """(clock bias s, clock drift s/s) of the satellite at ``t_gps``, relativistic term included,
-    group delay (TGD) **not** included (L1-only users subtract ``eph.tgd_s``)."""
+    group delay (TGD) **not** included (L1-only users subtract ``eph.tgd_s``).  A GLONASS ephemeris
+    is :func:`companion.gnss.glonass.satellite_clock`'s."""
+    if isinstance(eph, glonass.GlonassEphemeris):
+        return glonass.satellite_clock(eph, t_gps)
     dt = _wrap_week(t_gps - eph.t_oc_gps)
     bias = eph.af0_s + eph.af1_sps * dt + eph.af2_sps2 * dt * dt
     drift = eph.af1_sps + 2.0 * eph.af2_sps2 * dt
@@ -78,8 +82,11 @@ def satellite_state(eph: GpsEphemeris, t_gps: float):
     """Satellite (r_e m, v_e m/s, clock bias s, clock drift s/s) at GPS time ``t_gps``.
 
     Velocity is the time derivative of the ECEF position (rotating frame), from the analytic
-    derivative of the orbit equations.  Clock bias includes the relativistic term, not TGD.
+    derivative of the orbit equations.  Clock bias includes the relativistic term, not TGD.  A
+    GLONASS ephemeris is integrated (:func:`companion.gnss.glonass.satellite_state`).
     """
+    if isinstance(eph, glonass.GlonassEphemeris):
+        return glonass.satellite_state(eph, t_gps)
     tk = _wrap_week(t_gps - eph.t_oe_gps)
     a = eph.sqrt_a * eph.sqrt_a
     e = eph.e

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.capture_format import is_rtcm_capture, is_ubx_capture
 from ..messages import SECONDS_PER_WEEK, BaseStationPosition
 from ..nav.earth import ecef_to_geodetic, ecef_to_ned
 from .dgps import DgpsCorrector
@@ -130,24 +131,23 @@ def _xyz(text: str, what: str) -> np.ndarray:
     return v
 
 
-def parse_systems(text: str | None) -> str | None:
-    """'G,E,C,J' / 'GECJ' / 'all' -> 'GECJ'; None or 'auto' -> None (decided from the files)."""
+_SYSTEM_NAMES = {"G": "GPS", "R": "GLONASS", "E": "Galileo", "C": "BeiDou", "J": "QZSS"}
+
+
+def parse_systems(text: str | None, supported: str = SUPPORTED_SYSTEMS) -> str | None:
+    """'G,E,C,J' / 'GECJ' / 'all' -> 'GECJ' (letters of ``supported``, in its order); None or
+    'auto' -> None (decided from the files)."""
     if text is None or text.strip().lower() == "auto":
         return None
     if text.strip().lower() == "all":
-        return SUPPORTED_SYSTEMS
+        return supported
     letters = "".join(c for c in text.upper() if c not in ", ")
-    bad = sorted(set(letters) - set(SUPPORTED_SYSTEMS))
+    bad = sorted(set(letters) - set(supported))
     if bad or not letters:
-        raise GnssProcessingError(f"--sys: expected letters of {','.join(SUPPORTED_SYSTEMS)} (GPS, Galileo, "
-                                  f"BeiDou, QZSS), got {text!r}" + (f" ({','.join(bad)} not supported)" if bad else ""))
-    return "".join(c for c in SUPPORTED_SYSTEMS if c in letters)
-
-
-def is_ubx_file(path) -> bool:
-    """A u-blox capture (UBX frames from the first byte), not a RINEX file."""
-    with open(path, "rb") as fh:
-        return fh.read(2) == b"\xb5\x62"
+        names = ", ".join(_SYSTEM_NAMES.get(c, c) for c in supported)
+        raise GnssProcessingError(f"--sys: expected letters of {','.join(supported)} ({names}), got {text!r}"
+                                  + (f" ({','.join(bad)} not supported in this mode)" if bad else ""))
+    return "".join(c for c in supported if c in letters)
 
 
 def _epochs_of(msgs, systems: str, source: str) -> list:
@@ -192,7 +192,7 @@ def _load(args):
     store = EphemerisStore()
     klob = None
     ubx_rover = None
-    if is_ubx_file(args.rover):
+    if is_ubx_capture(args.rover):
         ubx_rover = _load_ubx_rover(args.rover, wanted, store)
         klob = ubx_rover[2]
     elif not args.nav:
@@ -254,7 +254,7 @@ def _load(args):
 def satellites_by_system(solutions) -> dict[str, dict[str, float]]:
     """system -> {'mean', 'min', 'max'} satellites used per solved epoch (0 where it had none)."""
     solved = [s for s in solutions if s is not None]
-    letters = sorted({c for s in solved for c in s.n_sats_by_system}, key=lambda c: SUPPORTED_SYSTEMS.find(c) % 99)
+    letters = sorted({c for s in solved for c in s.n_sats_by_system}, key=lambda c: "GRECJ".find(c) % 99)
     out = {}
     for c in letters:
         n = [s.n_sats_by_system.get(c, 0) for s in solved]
@@ -368,24 +368,18 @@ def write_tracks(args, records, name: str) -> None:
         write_gpx(gpx, points, name)
 
 
-def is_rtcm_file(path) -> bool:
-    """An RTCM 3 capture (a frame preamble at the first byte), not a RINEX file."""
-    with open(path, "rb") as fh:
-        return fh.read(1) == b"\xd3"
-
-
 def _rtk_base(path: str, systems: str, week: int):
     """(header, epochs, ephemerides) of an RTK base: a RINEX observation file, or an RTCM 3
     capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its
-    position, broadcast ephemerides) decoded as the service decodes its NTRIP stream; ``week``:
+    position, broadcast ephemerides, GLONASS's 1020 too) decoded as the service decodes its NTRIP stream; ``week``:
     the GPS week of the rover's first epoch (MSM carries the time of week only)."""
-    if not is_rtcm_file(path):
+    if not is_rtcm_capture(path):
         hdr, epochs = read_rinex_obs(path, systems)
         return hdr, epochs, []
     from ..io.rtcm import decode_rtcm_file
     from ..messages import GpsEphemeris
     try:
-        msgs, _ = decode_rtcm_file(str(path), week_hint=week)
+        msgs, dec = decode_rtcm_file(str(path), week_hint=week)
     except (ValueError, IndexError) as exc:
         raise GnssProcessingError(f"cannot decode the RTCM capture {path}: {exc}") from exc
     epochs = _epochs_of(msgs, systems, "base")
@@ -395,13 +389,14 @@ def _rtk_base(path: str, systems: str, week: int):
                                   f"(MSM4-7 or 1004/1012 expected)")
     hdr = {"approx_position_e": np.asarray(arp[-1], float) if arp else None, "antenna_delta_hen_m": None,
            "obs_types": {}}
-    return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems]
+    glonass = list(dec.glonass_history.values()) if "R" in systems else []
+    return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass
 
 
 def _rtk_rover(path: str, systems: str):
     """(header, epochs, ephemerides) of an RTK rover: a RINEX observation file, or a u-blox capture
     (RXM-RAWX observations as the service decodes them, RXM-SFRBX ephemerides)."""
-    if not is_ubx_file(path):
+    if not is_ubx_capture(path):
         hdr, epochs = read_rinex_obs(path, systems)
         return hdr, epochs, []
     store = EphemerisStore()
@@ -414,11 +409,11 @@ def _rtk_rover(path: str, systems: str):
 def _run_rtk(args) -> int:
     """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
     from .rtk import RtkConfig
-    from .rtk_post import pos_records, solve_rtk_epochs
+    from .rtk_post import RTK_POST_SYSTEMS, pos_records, solve_rtk_epochs
     for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
-    if not args.nav and not is_ubx_file(args.rover) and not (args.base and is_rtcm_file(args.base)):
+    if not args.nav and not is_ubx_capture(args.rover) and not (args.base and is_rtcm_capture(args.base)):
         raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx rover or an RTCM 3 base can bring the "
                                   "ephemerides)")
     if not args.base:
@@ -427,9 +422,9 @@ def _run_rtk(args) -> int:
     truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
     cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg)
     direction = getattr(args, "direction", "forward")
-    wanted = parse_systems(getattr(args, "sys", None))
-    if wanted:
-        cfg = dataclasses.replace(cfg, systems="".join(c for c in cfg.systems if c in wanted))
+    wanted = parse_systems(getattr(args, "sys", None), RTK_POST_SYSTEMS)
+    if wanted:                 # GLONASS only when asked (float ambiguities: see the README)
+        cfg = dataclasses.replace(cfg, systems=wanted)
     try:
         hr, rover, ephs = _rtk_rover(args.rover, cfg.systems)
         if not rover:

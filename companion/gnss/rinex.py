@@ -3,7 +3,8 @@ QZSS LNAV) and observation files (any system).
 
 Own fixed-column parsers (no georinex at run time): a 1-h 30-s file reads in well under a second.
 
-* :func:`read_rinex_nav` -> list of :class:`GpsEphemeris` of G/E/C/J (GLONASS, SBAS, NavIC skipped).
+* :func:`read_rinex_nav` -> list of :class:`GpsEphemeris` of G/E/C/J, and on request GLONASS's
+  (:class:`~.glonass.GlonassEphemeris`, RINEX 3); SBAS and NavIC skipped.
 * :func:`read_rinex_nav_header_iono` -> Klobuchar (alpha[4], beta[4]) from the header, or None.
 * :func:`read_rinex_obs` -> (header dict, list of :class:`GnssEpoch`).
 
@@ -26,6 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from .ephemeris_store import MIN_FIT_INTERVAL_H
+from .glonass import GlonassEphemeris, gps_minus_utc_s
+from .glonass import ephemeris_from_rinex as glonass_ephemeris_from_rinex
 from .signals import FREQUENCY_HZ
 from ..messages import (SPEED_OF_LIGHT_MPS, SYSTEM_TO_GPS_S, SYSTEM_WEEK_TO_GPS_WEEK, GnssEpoch, GpsEphemeris,
                         SatObservation)
@@ -186,17 +189,20 @@ def _prefer_inav(recs: list[tuple[GpsEphemeris, bool]]) -> list[GpsEphemeris]:
     return [e for e, fnav in recs if not (fnav and (e.sat, e.iode, e.toe_s) in inav)]
 
 
-def read_rinex_nav(path, systems: str = "GECJ") -> list[GpsEphemeris]:
+def read_rinex_nav(path, systems: str = "GECJ") -> list:
     """Keplerian ephemerides of ``systems`` (GPS, Galileo, BeiDou, QZSS) from a RINEX 2.x GPS ('N'),
-    3.x or 4.x navigation file, in file order (Galileo F/NAV records with an I/NAV twin dropped).
-    GLONASS, SBAS and NavIC records, and RINEX 4's CNAV ephemerides and ION / STO / EOP records,
-    are skipped."""
+    3.x or 4.x navigation file, in file order (Galileo F/NAV records with an I/NAV twin dropped),
+    then, when ``systems`` has 'R', a RINEX 3 file's GLONASS records
+    (:class:`~.glonass.GlonassEphemeris`).  SBAS and NavIC records, RINEX 4's GLONASS and CNAV
+    ephemerides and its ION / STO / EOP records are skipped."""
     lines = _open_text(path)
     head = _header_end(lines)
     version = _f(lines[0][:9])
     file_sys = lines[0][40:41].upper() if version >= 3 else "G"
     out: list[GpsEphemeris] = []
     recs: list[tuple[GpsEphemeris, bool]] = []
+    glonass: list[GlonassEphemeris] = []
+    leap_s = _header_leap_seconds(lines, head)
     i = head
     n = len(lines)
     if version < 3:
@@ -239,12 +245,51 @@ def read_rinex_nav(path, systems: str = "GECJ") -> list[GpsEphemeris]:
             i = j
             continue
         sys_ = ln[0] if ln[0] != " " else file_sys
-        if sys_ not in systems or sys_ not in FIT_INTERVAL_H:
-            i += _NAV_LINES.get(sys_, 8)
+        if sys_ not in FIT_INTERVAL_H:
+            # GLONASS, SBAS, NavIC: a record that starts with its satellite's letter runs to the next
+            # one's line (GLONASS has 4 lines, 5 in RINEX 3.05)
+            j = i + _NAV_LINES.get(sys_, 8)
+            if ln[0] != " ":
+                j = i + 1
+                while j < n and lines[j][:1] == " ":
+                    j += 1
+            if sys_ == "R" and "R" in systems:
+                glonass.append(_glonass_record(lines, i, j, leap_s))
+            i = j
+            continue
+        if sys_ not in systems:
+            i += 8
             continue
         recs.append(_v3_nav_record(lines, i, sys_))
         i += 8
-    return _prefer_inav(recs)
+    return _prefer_inav(recs) + glonass
+
+
+def _header_leap_seconds(lines: list[str], head: int) -> int | None:
+    """GPS - UTC from a RINEX 3 header's LEAP SECONDS line, None without one."""
+    for ln in lines[:head]:
+        if ln[60:].strip().startswith("LEAP SECONDS"):
+            try:
+                return int(ln[:6])
+            except ValueError:
+                return None
+    return None
+
+
+def _glonass_record(lines: list[str], i: int, j: int, leap_s: int | None) -> GlonassEphemeris:
+    """The GLONASS record of lines ``i`` to ``j`` (its epoch is UTC; ``leap_s`` from the header,
+    or by the date when the header has none)."""
+    ln = lines[i]
+    yy, mo, dd, hh, mi, ss = (int(ln[4:8]), int(ln[9:11]), int(ln[12:14]), int(ln[15:17]),
+                              int(ln[18:20]), _f(ln[21:23]))
+    vals = [_f(ln[23:42]), _f(ln[42:61]), _f(ln[61:80])]
+    for k in range(i + 1, min(j, i + 4)):
+        row = lines[k]
+        for c in range(4):
+            vals.append(_f(row[4 + 19 * c:23 + 19 * c]))
+    t_utc = _calendar_to_t_gps(yy, mo, dd, hh, mi, ss)
+    leap = leap_s if leap_s is not None else gps_minus_utc_s(t_utc)
+    return glonass_ephemeris_from_rinex(f"R{int(ln[1:3]):02d}", t_utc, leap, vals)
 
 
 #: RINEX 4's Keplerian ephemeris messages, the ones read (the legacy navigation messages; CNAV,

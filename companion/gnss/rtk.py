@@ -67,6 +67,12 @@ from .lambda_kernel import lambda_ils      # compiled when numba is there, the s
 
 Q_FIX, Q_FLOAT = 1, 2
 
+#: systems whose ambiguities stay float (RTKLIB's gloarmode off): GLONASS's FDMA carriers differ per
+#: satellite, so a DD ambiguity lambda_i N_i - lambda_j N_j is not an integer of one wavelength, and
+#: each receiver make has its own inter-channel phase biases; a float single-difference ambiguity per
+#: satellite absorbs both, and the satellites still add geometry to the float solution
+FLOAT_ONLY_SYSTEMS = "R"
+
 
 @dataclass
 class RtkConfig:
@@ -318,21 +324,22 @@ class RtkFilter:
                 for sat in sats:
                     if sat == ref:
                         continue
-                    lam = sr[sat].wavelength_m[s]
+                    lam, lam_ref = sr[sat].wavelength_m[s], sr[ref].wavelength_m[s]
                     dd_rho = (model_r[sat][0] - model_b[sat][0]) - (model_r[ref][0] - model_b[ref][0])
                     H = np.zeros(n)
                     H[:3] = -(model_r[sat][1] - model_r[ref][1])
                     if kind == "phase":
-                        obs = lam * ((sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
-                                     - (sr[ref].phase_cyc[s] - sb[ref].phase_cyc[s]))
+                        # in metres, each satellite on its own carrier (GLONASS FDMA): the receiver
+                        # clocks cancel, the ambiguity term is lambda_i N_i - lambda_j N_j
+                        obs = (lam * (sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
+                               - lam_ref * (sr[ref].phase_cyc[s] - sb[ref].phase_cyc[s]))
                         ia, ir = self.amb[(sat, s)], self.amb[(ref, s)]
                         if fixed is not None and (sat, s) in fixed:
-                            amb = fixed[(sat, s)]
+                            h = dd_rho + lam * fixed[(sat, s)]      # fixed systems share one carrier
                         else:
-                            amb = x[ia] - x[ir]
                             H[ia] += lam
-                            H[ir] -= lam
-                        h = dd_rho + lam * amb
+                            H[ir] -= lam_ref
+                            h = dd_rho + lam * x[ia] - lam_ref * x[ir]
                     else:
                         if fixed is not None:
                             continue
@@ -383,6 +390,8 @@ class RtkFilter:
         """Transformation T (DD ambiguities = T x) and the (sat, signal, ref) of each row."""
         rows, labels = [], []
         for sys, s in self._groups:
+            if sys in FLOAT_ONLY_SYSTEMS:
+                continue
             sats = [q for q in common if q[:1] == sys and (q, s) in self.amb and q not in exclude]
             if len(sats) < 2:
                 continue
@@ -441,12 +450,12 @@ class RtkFilter:
     def _resolve(self, t: float, common, sr, sb) -> RtkSolution:
         n_dd = len(self._dd_ambiguities(common, sr)[1])
         by_sys = dict(Counter(q[:1] for q in common))
-        by_el = sorted(common, key=lambda q: sr[q].elevation_rad)
+        by_el = sorted((q for q in common if q[:1] not in FLOAT_ONLY_SYSTEMS), key=lambda q: sr[q].elevation_rad)
         exclude: list[str] = []
         out = None
         while True:
             out = self._try_fix(common, sr, sb, exclude, n_dd)
-            if out is not None or len(common) - len(exclude) <= 3:
+            if out is not None or len(by_el) - len(exclude) <= 3:
                 break
             exclude.append(by_el[len(exclude)])      # partial fixing: leave the lowest satellite float
         if out is None or out is _TOO_FEW:

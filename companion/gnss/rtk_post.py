@@ -1,6 +1,7 @@
 """Post-processed RTK from RINEX files: ``companion gnss --mode rtk`` (companion.gnss.rtk on a rover
 and a base observation file and their navigation files): GPS, Galileo, BeiDou and QZSS from RINEX 3
-(GPS from RINEX 2), each system double-differenced within itself.
+(GPS from RINEX 2), and GLONASS with float ambiguities (its ephemerides from a RINEX 3 navigation
+file), each system double-differenced within itself.
 
 The base antenna is the base header position (or ``base_xyz``) plus its ``ANTENNA: DELTA H/E/N``;
 solutions are reported at the rover's marker (antenna minus the rover's delta), as RTKLIB does.
@@ -34,6 +35,9 @@ def antenna_delta_e(marker_r_e, delta_hen_m) -> np.ndarray:
 #: the passes of each solution type (RTKLIB's forward / backward / combined)
 DIRECTIONS = ("forward", "backward", "combined")
 
+#: the systems the post-processing RTK can solve with, in RTKLIB's order (GLONASS float only)
+RTK_POST_SYSTEMS = "GRECJ"
+
 
 def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
                     progress=None, direction: str = "forward") -> tuple[list[RtkSolution], dict]:
@@ -44,7 +48,7 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
     hb, base = read_rinex_obs(base_obs, config.systems)
     ephs = []
     for n in navs:
-        ephs += read_rinex_nav(n)
+        ephs += read_rinex_nav(n, config.systems)
     return solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=config, progress=progress,
                             direction=direction)
 

@@ -19,7 +19,8 @@
     1045/1046 (Galileo F/NAV, I/NAV; ``galileo_nav`` chooses), once per new issue per satellite
     (:mod:`companion.io.rtcm_eph`: the field scaling, checked against convbin).
   - 1020 (GLONASS ephemeris) gives the satellites' FDMA frequency channels and
-    ``glonass_ephemerides`` (held, not emitted: no GLONASS orbits in the navigation yet).
+    ``glonass_ephemerides`` / ``glonass_history`` (held, not emitted: the engine does not model
+    GLONASS; the post-processing RTK takes them from a base capture).
 
 Times: RTCM carries time of week (GPS, Galileo, QZSS, SBAS, NavIC: GPS TOW in ms; BeiDou: BDT =
 GPS - 14 s; GLONASS: day of week + Moscow time of day, converted with ``leap_seconds``; once the
@@ -57,6 +58,8 @@ log = logging.getLogger(__name__)
 RtcmMessage = Union[GnssEpoch, GpsEphemeris, BaseStationPosition]
 
 PREAMBLE = 0xD3
+#: GLONASS issues held in ``RtcmDecoder.glonass_history`` (24 satellites x 48 issues a day = 1152: a day)
+MAX_GLONASS_HISTORY = 1152
 MS_TO_M = 299792.458          # light travel in one millisecond, m
 
 # --------------------------------------------------------------------------------------------
@@ -331,7 +334,8 @@ class RtcmDecoder:
     1046, what u-blox SFRBX and E1/E5b receivers use; a 1045 is held until the next observation
     message and dropped if that satellite's 1046 came meanwhile or ever before, so an F/NAV-only
     caster still works), ``'fnav'`` (the mirror image) or ``'both'``.  GLONASS 1020 ephemerides are
-    decoded into ``glonass_ephemerides`` (latest per satellite), not emitted.
+    decoded into ``glonass_ephemerides`` (latest per satellite) and ``glonass_history`` (every
+    issue, the last :data:`MAX_GLONASS_HISTORY`), not emitted: the engine does not model GLONASS.
     """
 
     def __init__(self, week_hint: WeekHint = None, leap_seconds: int = DEFAULT_LEAP_SECONDS,
@@ -352,6 +356,8 @@ class RtcmDecoder:
         self._gal_seen: dict[str, set[str]] = {GALILEO_INAV: set(), GALILEO_FNAV: set()}
         self._gal_held: dict[str, GpsEphemeris] = {}
         self.glonass_ephemerides: dict[str, GlonassEphemeris] = {}
+        # every issue, first copy kept (a post-processed capture needs the earlier ones too)
+        self.glonass_history: dict[tuple[str, float], GlonassEphemeris] = {}
         self._t_rx: float | None = None
 
     @property
@@ -441,6 +447,9 @@ class RtcmDecoder:
             if ref is not None:
                 eph = glonass_ephemeris(msg, ref, self.leap_seconds)
                 self.glonass_ephemerides[eph.sat] = eph
+                self.glonass_history.setdefault((eph.sat, eph.t_oe_gps), eph)
+                if len(self.glonass_history) > MAX_GLONASS_HISTORY:
+                    self.glonass_history.pop(next(iter(self.glonass_history)))     # the oldest
             return []
         self._count(f"ignored_{mtype}")
         return []

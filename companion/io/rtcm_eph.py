@@ -1,5 +1,5 @@
 """RTCM 3 broadcast ephemerides -> :class:`~companion.messages.GpsEphemeris` (GPS 1019, QZSS 1044,
-Galileo F/NAV 1045 and I/NAV 1046, BeiDou 1042) and :class:`GlonassEphemeris` (1020).
+Galileo F/NAV 1045 and I/NAV 1046, BeiDou 1042) and :class:`~companion.gnss.glonass.GlonassEphemeris` (1020).
 
 pyrtcm extracts the fields already scaled by the RTCM 10403.3 resolutions: seconds, metres,
 radians for the harmonic corrections, but **semicircles** (and semicircles/s) for the angles and
@@ -16,11 +16,10 @@ satellite's own system time (BDT for BeiDou), ``week`` in GPS weeks (GST week + 
 """
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
 
 import numpy as np
 
+from ..gnss.glonass import GlonassEphemeris
 from ..gnss.lnav import URA_M, fit_interval_h, resolve_week
 from ..messages import SECONDS_PER_WEEK, SYSTEM_TO_GPS_S, SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris
 
@@ -147,25 +146,6 @@ def beidou_ephemeris(msg, ref_gps: float) -> GpsEphemeris:
         ura_m=URA_M[int(msg.DF490) & 0x0F], fit_interval_h=FIT_INTERVAL_BEIDOU_H)
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class GlonassEphemeris:
-    """GLONASS FDMA broadcast ephemeris (ICD GLONASS 2008, 4.4): PZ-90 state at ``t_b_gps``,
-    clock ``-tau_n + gamma_n (t - t_b)`` (RINEX's SV clock bias is ``-tau_n``).  Held by the RTCM
-    decoder; not used by the navigation yet (no GLONASS orbit integrator)."""
-
-    sat: str                  # 'R12'
-    t_b_gps: float            # reference time t_b, continuous GPS seconds
-    r_e: np.ndarray           # PZ-90 position, m
-    v_e: np.ndarray           # m/s
-    a_e: np.ndarray           # luni-solar acceleration, m/s^2
-    tau_n_s: float
-    gamma_n: float
-    delta_tau_n_s: float
-    freq_channel: int         # k, -7..+6
-    health: int               # B_n MSB (DF104 is the almanac health)
-    age_days: int             # E_n
-
-
 def glonass_ephemeris(msg, ref_gps: float, leap_seconds: int) -> GlonassEphemeris:
     """RTCM 1020.  t_b (DF110, 15-min units of Moscow time of day) resolved to the day nearest
     ``ref_gps``; km -> m."""
@@ -173,13 +153,13 @@ def glonass_ephemeris(msg, ref_gps: float, leap_seconds: int) -> GlonassEphemeri
     t_b = tod_gps + 86400.0 * round((ref_gps - tod_gps) / 86400.0)
     km = 1e3
     return GlonassEphemeris(
-        sat=f"R{int(msg.DF038):02d}", t_b_gps=t_b,
+        sat=f"R{int(msg.DF038):02d}", t_oe_gps=t_b,
         r_e=np.array([msg.DF112, msg.DF115, msg.DF118], float) * km,
         v_e=np.array([msg.DF111, msg.DF114, msg.DF117], float) * km,
         a_e=np.array([msg.DF113, msg.DF116, msg.DF119], float) * km,
-        tau_n_s=int(msg.DF124) * 2.0 ** -30, gamma_n=int(msg.DF121) * 2.0 ** -40,
-        delta_tau_n_s=int(msg.DF125) * 2.0 ** -30, freq_channel=int(msg.DF040) - 7,
-        health=int(msg.DF108), age_days=int(msg.DF126))
+        clock_bias_s=-int(msg.DF124) * 2.0 ** -30, clock_rate=int(msg.DF121) * 2.0 ** -40,
+        frequency_channel=int(msg.DF040) - 7, health=int(msg.DF108), iode=int(msg.DF110),
+        delta_tau_n_s=int(msg.DF125) * 2.0 ** -30, age_days=int(msg.DF126))
 
 
 __all__ = ["GlonassEphemeris", "GALILEO_FNAV", "GALILEO_INAV", "beidou_ephemeris", "galileo_ephemeris",

@@ -1,0 +1,156 @@
+"""GLONASS broadcast ephemerides (ICD GLONASS edition 5.1, A.3.1.2): the satellite state by
+numerical integration, its clock, and the FDMA carrier of each frequency channel.
+
+A GLONASS ephemeris is not Keplerian: it is the satellite's PZ-90 position, velocity and the
+lunisolar acceleration at ``t_b`` (every 30 min), valid about 15 min either side.  The state at
+another time comes from integrating the equations of motion in the rotating earth frame (central
+field, J2, centrifugal and Coriolis terms, the broadcast acceleration held constant) by
+fourth-order Runge-Kutta in steps of at most :data:`STEP_S` (RTKLIB's ``glorbit``, 60 s).
+PZ-90.11 and WGS-84 (G1762) agree to centimetres, so no frame transformation is applied.
+
+Time: the RINEX record's epoch is ``t_b`` in UTC(SU) - 3 h read as UTC; it becomes GPS time by the
+leap seconds (the file header's ``LEAP SECONDS``, or :func:`gps_minus_utc_s`).  Clock: RINEX keeps
+``-tau_n`` and ``+gamma_n``, so the satellite clock bias at ``t`` is
+``-tau_n + gamma_n (t - t_b)`` (seconds, relativity included).
+
+Carriers (FDMA): L1 = 1602 MHz + k 562.5 kHz, L2 = 1246 MHz + k 437.5 kHz, k in -7..+6 the
+broadcast frequency channel; L3 (CDMA) 1202.025 MHz for every satellite.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..messages import SPEED_OF_LIGHT_MPS
+
+#: PZ-90 constants of the equations of motion (ICD GLONASS 5.1 table 3.2)
+GM_GLO_M3PS2 = 3.9860044e14
+J2_GLO = 1.0826257e-3
+RE_GLO_M = 6378136.0
+OMEGA_GLO_RADPS = 7.292115e-5
+#: largest Runge-Kutta step (s)
+STEP_S = 60.0
+#: how far from t_b an ephemeris is used (s) either side (RTKLIB's MAXDTOE_GLO): the store's window
+VALIDITY_H = 1.0
+
+L1_BASE_HZ, L1_STEP_HZ = 1602.0e6, 562.5e3
+L2_BASE_HZ, L2_STEP_HZ = 1246.0e6, 437.5e3
+L3_HZ = 1202.025e6
+
+#: GPS - UTC from each date on (IERS Bulletin C); the last entry holds until the next leap second
+_LEAP_SECONDS = ((_dt.date(1999, 1, 1), 13), (_dt.date(2006, 1, 1), 14), (_dt.date(2009, 1, 1), 15),
+                 (_dt.date(2012, 7, 1), 16), (_dt.date(2015, 7, 1), 17), (_dt.date(2017, 1, 1), 18))
+_GPS_EPOCH = _dt.date(1980, 1, 6)
+
+
+def gps_minus_utc_s(t_gps: float) -> int:
+    """Leap seconds GPS - UTC at GPS time ``t_gps`` (s since 1980-01-06), from 1999 on."""
+    day = _GPS_EPOCH + _dt.timedelta(days=int(t_gps // 86400))
+    out = _LEAP_SECONDS[0][1]
+    for since, n in _LEAP_SECONDS:
+        if day >= since:
+            out = n
+    return out
+
+
+@dataclass(eq=False)
+class GlonassEphemeris:
+    """One GLONASS broadcast ephemeris (from RINEX 3 or RTCM 1020), in the attributes the ephemeris
+    store selects by (``sat``, ``t_oe_gps``, ``iode``, ``health``, ``fit_interval_h``)."""
+
+    sat: str                        # 'R05'
+    t_oe_gps: float                 # t_b in continuous GPS seconds
+    r_e: np.ndarray                 # PZ-90 position at t_b (m)
+    v_e: np.ndarray                 # velocity at t_b in the rotating frame (m/s)
+    a_e: np.ndarray                 # lunisolar acceleration (m/s^2)
+    clock_bias_s: float             # -tau_n
+    clock_rate: float               # +gamma_n (s/s)
+    frequency_channel: int          # k
+    health: int = 0
+    iode: int = 0                   # t_b's 15-min slot of the Moscow day (GLONASS has no IODE)
+    fit_interval_h: float = 2.0 * VALIDITY_H
+    delta_tau_n_s: float = 0.0      # L2 - L1 group delay (RTCM 1020; not in RINEX 3.04)
+    age_days: int = 0               # E_n, days since the data were uploaded (RTCM 1020)
+
+
+def carrier_hz(signal: str, channel: int) -> float:
+    """Carrier frequency of a GLONASS signal ('L1C', 'L2P', 'L3Q') on frequency channel ``channel``;
+    NaN for a band GLONASS does not have."""
+    band = signal[1:2]
+    if band == "1":
+        return L1_BASE_HZ + channel * L1_STEP_HZ
+    if band == "2":
+        return L2_BASE_HZ + channel * L2_STEP_HZ
+    if band == "3":
+        return L3_HZ
+    return math.nan
+
+
+def wavelength_m(signal: str, channel: int) -> float:
+    return SPEED_OF_LIGHT_MPS / carrier_hz(signal, channel)
+
+
+def _derivative(x: np.ndarray, acc: np.ndarray) -> np.ndarray:
+    """d/dt of the state (position, velocity) in the rotating PZ-90 frame."""
+    r, v = x[:3], x[3:]
+    r2 = float(r @ r)
+    r1 = math.sqrt(r2)
+    r3 = r2 * r1
+    j2 = 1.5 * J2_GLO * GM_GLO_M3PS2 * RE_GLO_M * RE_GLO_M / (r2 * r3)
+    z2 = 5.0 * r[2] * r[2] / r2
+    c = -GM_GLO_M3PS2 / r3 - j2 * (1.0 - z2)
+    w2 = OMEGA_GLO_RADPS * OMEGA_GLO_RADPS
+    out = np.empty(6)
+    out[:3] = v
+    out[3] = (c + w2) * r[0] + 2.0 * OMEGA_GLO_RADPS * v[1] + acc[0]
+    out[4] = (c + w2) * r[1] - 2.0 * OMEGA_GLO_RADPS * v[0] + acc[1]
+    out[5] = (c - 2.0 * j2) * r[2] + acc[2]
+    return out
+
+
+def _rk4(x: np.ndarray, acc: np.ndarray, h: float) -> np.ndarray:
+    k1 = _derivative(x, acc)
+    k2 = _derivative(x + 0.5 * h * k1, acc)
+    k3 = _derivative(x + 0.5 * h * k2, acc)
+    k4 = _derivative(x + h * k3, acc)
+    return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def satellite_clock(eph: GlonassEphemeris, t_gps: float) -> tuple[float, float]:
+    """(clock bias s, clock drift s/s) at GPS time ``t_gps``."""
+    return eph.clock_bias_s + eph.clock_rate * (t_gps - eph.t_oe_gps), eph.clock_rate
+
+
+def satellite_state(eph: GlonassEphemeris, t_gps: float):
+    """Satellite (r_e m, v_e m/s, clock bias s, clock drift s/s) at GPS time ``t_gps``: the
+    broadcast state integrated from ``t_b`` in equal steps of at most :data:`STEP_S`."""
+    dt = t_gps - eph.t_oe_gps
+    x = np.concatenate([eph.r_e, eph.v_e])
+    n = max(1, math.ceil(abs(dt) / STEP_S))
+    h = dt / n
+    if dt != 0.0:
+        for _ in range(n):
+            x = _rk4(x, eph.a_e, h)
+    bias, drift = satellite_clock(eph, t_gps)
+    return x[:3], x[3:], bias, drift
+
+
+def ephemeris_from_rinex(sat: str, t_b_utc_as_gps: float, leap_s: int, fields: list[float]) -> GlonassEphemeris:
+    """A RINEX 3 GLONASS record: ``fields`` = -tau_n, +gamma_n, t_k, then per axis X, X', X'', and
+    health / frequency number / age (km, km/s, km/s^2); ``t_b_utc_as_gps``: the record's epoch
+    read as if GPS time (it is UTC)."""
+    t_b = t_b_utc_as_gps + leap_s
+    km = 1000.0
+    r = np.array([fields[3], fields[7], fields[11]]) * km
+    v = np.array([fields[4], fields[8], fields[12]]) * km
+    a = np.array([fields[5], fields[9], fields[13]]) * km
+    slot = int(round(((t_b_utc_as_gps + 10800.0) % 86400.0) / 900.0))     # t_b in Moscow time, 15-min units
+    return GlonassEphemeris(sat, t_b, r, v, a, fields[0], fields[1], int(round(fields[10])),
+                            health=int(round(fields[6])), iode=slot)
+
+
+__all__ = ["GlonassEphemeris", "carrier_hz", "wavelength_m", "satellite_state", "satellite_clock",
+           "ephemeris_from_rinex", "gps_minus_utc_s", "STEP_S"]
