@@ -26,6 +26,7 @@ import time
 
 import numpy as np
 
+from .io.capture_format import is_ubx_capture
 from .io.ubx import ubx_checksum
 
 RAWX_HEADER = b"\xb5\x62\x02\x15"
@@ -53,11 +54,6 @@ def ubx_segments(data: bytes) -> list[tuple[float, bytes]]:
         hi = starts[k + 1][0] if k + 1 < len(starts) else len(data)
         out.append((t, data[lo:hi]))
     return out
-
-
-def is_ubx(path) -> bool:
-    with open(path, "rb") as fh:
-        return fh.read(2) == b"\xb5\x62"
 
 
 GPS_WEEK_ROLLOVER = 1024
@@ -108,7 +104,7 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
     from .io.imu_csv import read_imu_csv
     from .replay import IMU_RATE_NEEDED_HZ, ReplayResult, imu_rate_check
     t_start = time.perf_counter()
-    ubx = is_ubx(obs_path)
+    ubx = is_ubx_capture(obs_path)        # a log may start mid-frame
     res = ReplayResult(kind="ubx+imu" if ubx else "rinex+imu")
     cfg = config or Config()
     try:

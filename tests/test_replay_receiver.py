@@ -118,6 +118,17 @@ def test_capture_and_imu_give_a_tightly_coupled_solution_on_truth(flight):
     assert rms < 5.0                       # standalone GPS L1 with broadcast orbits: metres, not tens
 
 
+def test_a_capture_that_starts_mid_frame_is_still_a_capture(flight, tmp_path):
+    """A logger started mid-stream leaves a frame's tail first: it was taken for RINEX by its first
+    two bytes and refused."""
+    _, d = flight
+    cut = tmp_path / "cut.ubx"
+    cut.write_bytes((d / "rover.ubx").read_bytes()[10:])
+    res = replay_receiver(cut, d / "imu.csv", csv_options=CSV_OPTIONS)
+    assert not res.refusal, res.refusal
+    assert sum(1 for s in res.solutions if s.status == "nav") > 400
+
+
 def _horizontal_rms(sim, sols) -> float:
     from companion.nav.earth import C_n_e, ecef_to_geodetic
     tr, err = sim.truth, []

@@ -16,7 +16,6 @@ satellite's own system time (BDT for BeiDou), ``week`` in GPS weeks (GST week + 
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from ..gnss.glonass import GlonassEphemeris
