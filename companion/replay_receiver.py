@@ -206,4 +206,4 @@ def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", ubx:
     return res
 
 
-__all__ = ["replay_receiver", "replay_segments", "ubx_segments", "is_ubx"]
+__all__ = ["replay_receiver", "replay_segments", "ubx_segments"]

@@ -46,7 +46,7 @@ from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
 from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
 from .signals import SUPPORTED_SYSTEMS
-from .rtk_post import antenna_delta_e
+from .rtk_post import RTK_POST_SYSTEMS, antenna_delta_e
 from .spp import SppSolution, spp_epoch
 
 log = logging.getLogger(__name__)
@@ -254,7 +254,7 @@ def _load(args):
 def satellites_by_system(solutions) -> dict[str, dict[str, float]]:
     """system -> {'mean', 'min', 'max'} satellites used per solved epoch (0 where it had none)."""
     solved = [s for s in solutions if s is not None]
-    letters = sorted({c for s in solved for c in s.n_sats_by_system}, key=lambda c: "GRECJ".find(c) % 99)
+    letters = sorted({c for s in solved for c in s.n_sats_by_system}, key=lambda c: RTK_POST_SYSTEMS.find(c) % 99)
     out = {}
     for c in letters:
         n = [s.n_sats_by_system.get(c, 0) for s in solved]
@@ -371,8 +371,8 @@ def write_tracks(args, records, name: str) -> None:
 def _rtk_base(path: str, systems: str, week: int):
     """(header, epochs, ephemerides) of an RTK base: a RINEX observation file, or an RTCM 3
     capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its
-    position, broadcast ephemerides, GLONASS's 1020 too) decoded as the service decodes its NTRIP stream; ``week``:
-    the GPS week of the rover's first epoch (MSM carries the time of week only)."""
+    position, broadcast ephemerides, GLONASS's 1020 too) decoded as the service decodes its NTRIP
+    stream; ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only)."""
     if not is_rtcm_capture(path):
         hdr, epochs = read_rinex_obs(path, systems)
         return hdr, epochs, []
@@ -409,7 +409,7 @@ def _rtk_rover(path: str, systems: str):
 def _run_rtk(args) -> int:
     """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
     from .rtk import RtkConfig
-    from .rtk_post import RTK_POST_SYSTEMS, pos_records, solve_rtk_epochs
+    from .rtk_post import pos_records, solve_rtk_epochs
     for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")

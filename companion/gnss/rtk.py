@@ -7,7 +7,8 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
   ambiguity per (satellite, signal) in cycles, ``N = N_rover - N_base``, added when the satellite
   is acquired or after a slip, dropped when it is lost.  Single differences as states make the
   reference satellite a choice of the measurement, not of the state (RTKLIB's ``IB(s,f)``).
-* **Systems**: GPS, Galileo, BeiDou and QZSS (``systems``), each on its own signals
+* **Systems**: GPS, Galileo, BeiDou and QZSS (``systems``), and GLONASS with float ambiguities
+  only (:data:`FLOAT_ONLY_SYSTEMS`), each on its own signals
   (:data:`companion.rtk_signals.RTK_SIGNALS_BY_SYSTEM` among ``signals``; the epochs renamed to
   their tracking families first, :func:`companion.rtk_signals.rtk_epoch`) and differenced within
   the system only (a reference per system and signal: no inter-system bias, as RTKLIB's ``ddres``
@@ -15,7 +16,8 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
   as L2C and the base only as P(Y) is paired across the families in a group of its own
   (:func:`~.double_difference.cross_pair`).
 * **Measurements** per system and frequency, against the highest-elevation satellite ``j``:
-  ``DD phase  = lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j) + e``,
+  ``DD phase  = lambda_i dphi_i - lambda_j dphi_j = DD rho + lambda_i N_i - lambda_j N_j + e``
+  (one wavelength for every satellite but GLONASS's),
   ``DD code   = dP_i - dP_j = DD rho + e`` with ``d = rover - base`` and ``rho`` the geometric
   range (satellite at its own transmit time from each receiver's pseudorange, Sagnac rotation,
   satellite clock) plus the Saastamoinen troposphere at each receiver's height; receiver clocks
