@@ -32,6 +32,9 @@ def _add_gnss(sub) -> None:
                    help="rtk: forward (each epoch from the ones before it), backward, or combined (both passes "
                         "compared per epoch: a fix the other pass contradicts is reported float; RTKLIB's "
                         "solution types)")
+    p.add_argument("--glonass-ar", choices=["auto", "on", "off"], default="auto",
+                   help="rtk with GLONASS (--sys with R): fix its integers too (on), keep them float (off), or auto: "
+                        "on when both RINEX headers name the same receiver model (inter-channel biases cancel)")
     p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
     p.add_argument("--sys", default="auto",
                    help="constellations, e.g. G,E,C,J (GPS, Galileo, BeiDou, QZSS) or 'all'; default: every one "

@@ -420,7 +420,7 @@ def _run_rtk(args) -> int:
         raise GnssProcessingError("--mode rtk needs --base")
     base_xyz = _xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
     truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
-    cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg)
+    cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"))
     direction = getattr(args, "direction", "forward")
     wanted = parse_systems(getattr(args, "sys", None), RTK_POST_SYSTEMS)
     if wanted:                 # GLONASS only when asked (float ambiguities: see the README)
@@ -450,7 +450,7 @@ def _run_rtk(args) -> int:
                "paired_epochs": info["paired_epochs"], "solved": len(sols), "fixed": n_fix,
                "elevation_mask_deg": args.elevation_mask_deg, "systems": cfg.systems,
                "satellites_by_system": by_sys, "base_epochs": info["base_epochs"],
-               "max_base_age_s": info["max_base_age_s"], "counters": info["counters"]}
+               "max_base_age_s": info["max_base_age_s"], "glonass_ar": info["glonass_ar"], "counters": info["counters"]}
     if truth is not None:
         summary.update(statistics(sols, truth))
         fixed = [s for s in sols if s.quality == 1]
@@ -464,6 +464,8 @@ def _run_rtk(args) -> int:
               f"{info['max_base_age_s']:.1f} s apart (at most {cfg.max_base_age_s:g} s)")
     print("satellites per epoch (common to rover and base, above the mask): "
           + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
+    if info["glonass_ar"]:
+        print(f"GLONASS integers: {info['glonass_ar']}")
     if args.json:
         rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
                  "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,
@@ -482,5 +484,6 @@ def _run_rtk(args) -> int:
                   options={"pos mode": "kinematic", "freqs": "L1+L2", "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
-                           "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"})
+                           "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"
+                                      + (f"; GLONASS {info['glonass_ar'].split()[0]}" if info["glonass_ar"] else "")})
     return 0

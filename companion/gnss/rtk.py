@@ -69,11 +69,14 @@ from .lambda_kernel import lambda_ils      # compiled when numba is there, the s
 
 Q_FIX, Q_FLOAT = 1, 2
 
-#: systems whose ambiguities stay float (RTKLIB's gloarmode off): GLONASS's FDMA carriers differ per
-#: satellite, so a DD ambiguity lambda_i N_i - lambda_j N_j is not an integer of one wavelength, and
-#: each receiver make has its own inter-channel phase biases; a float single-difference ambiguity per
-#: satellite absorbs both, and the satellites still add geometry to the float solution
+#: systems whose ambiguities stay float unless ``glonass_ar`` is 'on' (RTKLIB's gloarmode off):
+#: GLONASS's FDMA carriers differ per satellite, so a DD ambiguity lambda_i N_i - lambda_j N_j is not
+#: an integer of one wavelength, and each receiver make has its own inter-channel phase biases; a
+#: float single-difference ambiguity per satellite absorbs both, and the satellites still add
+#: geometry to the float solution.  With the biases equal (one receiver model at both ends) the
+#: integer is N_i - N_j, and the DD phase lambda_i (N_i - N_j) + (lambda_i - lambda_j) N_j
 FLOAT_ONLY_SYSTEMS = "R"
+GLONASS_AR_OPTIONS = ("auto", "on", "off")
 
 
 @dataclass
@@ -120,6 +123,10 @@ class RtkConfig:
     # held would pull the float filter onto its integers, and the next epochs would confirm it
     hold_after_fixes: int = 10
     hold_sigma_cycles: float = 0.03
+    # GLONASS integers too (RTKLIB's gloarmode on): 'on' only for two receivers of one model, whose
+    # inter-channel phase biases cancel between them; 'off' keeps GLONASS float; 'auto' is decided
+    # by companion.gnss.rtk_post from the two receivers' types (the filter alone takes it for 'off')
+    glonass_ar: str = "auto"
 
 
 @dataclass
@@ -182,6 +189,9 @@ class RtkFilter:
             if own:
                 self.sig[sys] = own
         self._groups = [(sys, q) for sys, sigs in self.sig.items() for q in sigs]
+        if config.glonass_ar not in GLONASS_AR_OPTIONS:
+            raise ValueError(f"glonass_ar must be one of {', '.join(GLONASS_AR_OPTIONS)}, not {config.glonass_ar!r}")
+        self._float_only = "" if config.glonass_ar == "on" else FLOAT_ONLY_SYSTEMS
 
     def _count(self, key: str, n: int = 1) -> None:
         self.counters[key] = self.counters.get(key, 0) + n
@@ -337,7 +347,8 @@ class RtkFilter:
                                - lam_ref * (sr[ref].phase_cyc[s] - sb[ref].phase_cyc[s]))
                         ia, ir = self.amb[(sat, s)], self.amb[(ref, s)]
                         if fixed is not None and (sat, s) in fixed:
-                            h = dd_rho + lam * fixed[(sat, s)]      # fixed systems share one carrier
+                            # lambda_i N_i - lambda_j N_j = lambda_i (N_i - N_j) + (lambda_i - lambda_j) N_j
+                            h = dd_rho + lam * fixed[(sat, s)] + (lam - lam_ref) * x[ir]
                         else:
                             H[ia] += lam
                             H[ir] -= lam_ref
@@ -392,7 +403,7 @@ class RtkFilter:
         """Transformation T (DD ambiguities = T x) and the (sat, signal, ref) of each row."""
         rows, labels = [], []
         for sys, s in self._groups:
-            if sys in FLOAT_ONLY_SYSTEMS:
+            if sys in self._float_only:
                 continue
             sats = [q for q in common if q[:1] == sys and (q, s) in self.amb and q not in exclude]
             if len(sats) < 2:
@@ -452,7 +463,7 @@ class RtkFilter:
     def _resolve(self, t: float, common, sr, sb) -> RtkSolution:
         n_dd = len(self._dd_ambiguities(common, sr)[1])
         by_sys = dict(Counter(q[:1] for q in common))
-        by_el = sorted((q for q in common if q[:1] not in FLOAT_ONLY_SYSTEMS), key=lambda q: sr[q].elevation_rad)
+        by_el = sorted((q for q in common if q[:1] not in self._float_only), key=lambda q: sr[q].elevation_rad)
         exclude: list[str] = []
         out = None
         while True:
@@ -501,4 +512,5 @@ def pair_epochs(rover_epochs, base_epochs, tol_s: float = 0.5):
     return out
 
 
-__all__ = ["RtkConfig", "RtkFilter", "RtkSolution", "pair_epochs", "Q_FIX", "Q_FLOAT"]
+__all__ = ["RtkConfig", "RtkFilter", "RtkSolution", "pair_epochs", "Q_FIX", "Q_FLOAT", "FLOAT_ONLY_SYSTEMS",
+           "GLONASS_AR_OPTIONS"]

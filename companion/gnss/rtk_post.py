@@ -11,6 +11,8 @@ Solution types as RTKLIB's: forward, backward (the epochs newest first, :class:`
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from ..nav.earth import C_n_e, ecef_to_geodetic
@@ -76,6 +78,7 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
         raise ValueError("the base position is neither given (--base-xyz) nor in the base file (a RINEX header's "
                          "APPROX POSITION XYZ, an RTCM 1005/1006)")
     base_ant = base_marker + antenna_delta_e(base_marker, hb.get("antenna_delta_hen_m"))
+    config, glonass_ar = glonass_ar_of(config, hr, hb)
     pairs = pair_epochs(rover, base, tol_s=config.max_base_age_s)
     passes = ("forward", "backward") if direction == "combined" else (direction,)
     done = 0
@@ -103,8 +106,23 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     info = {"rover_epochs": len(rover), "base_epochs": len(base), "paired_epochs": len(pairs),
             "max_base_age_s": max((abs(r.t_gps - b.t_gps) for r, b in pairs), default=0.0),
             "solutions": len(sols), "fixed": sum(1 for s in sols if s.quality == 1), "direction": direction,
-            "base_antenna_e": base_ant.tolist(), "counters": counters}
+            "base_antenna_e": base_ant.tolist(), "counters": counters, "glonass_ar": glonass_ar}
     return sols, info
+
+
+def glonass_ar_of(config: RtkConfig, hr: dict, hb: dict) -> tuple[RtkConfig, str]:
+    """``config`` with ``glonass_ar`` 'auto' decided from the two headers' receiver types (REC # /
+    TYPE / VERS): 'on' when both name the same model, else 'off'; and the decision in words
+    ('' without GLONASS)."""
+    if "R" not in config.systems:
+        return config, ""
+    if config.glonass_ar != "auto":
+        return config, f"{config.glonass_ar} (asked)"
+    rover, base = (str(h.get("receiver") or "").strip() for h in (hr, hb))
+    if rover and rover.upper() == base.upper():
+        return dataclasses.replace(config, glonass_ar="on"), f"on (both receivers {rover})"
+    why = f"receivers {rover or 'unknown'} / {base or 'unknown'}"
+    return dataclasses.replace(config, glonass_ar="off"), f"off ({why}: their inter-channel biases may differ)"
 
 
 def _solve_pass(filt: RtkFilter, pairs, store, hr: dict, config: RtkConfig, step) -> list[RtkSolution]:
@@ -134,4 +152,5 @@ def pos_records(sols: list[RtkSolution]) -> list[PosRecord]:
     return [PosRecord(s.t_gps, s.r_e, s.cov_e, s.quality, s.n_sats, s.age_s, s.ratio) for s in sols]
 
 
-__all__ = ["DIRECTIONS", "solve_rtk_rinex", "solve_rtk_epochs", "pos_records", "antenna_delta_e"]
+__all__ = ["DIRECTIONS", "RTK_POST_SYSTEMS", "solve_rtk_rinex", "solve_rtk_epochs", "pos_records", "antenna_delta_e",
+           "glonass_ar_of"]
