@@ -236,9 +236,17 @@ def test_cli_uses_glonass_when_asked_and_says_where_it_cannot(tmp_path, capsys):
     summary = json.loads(out.read_text())
     assert summary["systems"] == "GR" and set(summary["satellites_by_system"]) == {"G", "R"}
     assert "% navi sys  : G,R" in pos.read_text()
-    # by default (auto) GLONASS is left out of RTK, and SPP / DGPS do not model it
+    # by default (--sys auto) GLONASS joins when its integers can be fixed: one receiver model at
+    # both ends here, two makes on the car (Leica base, Septentrio rover)
     assert main(["gnss", *files, "--mode", "rtk", xyz, "--json", str(out)]) == 0
-    assert "R" not in json.loads(out.read_text())["satellites_by_system"]
+    summary = json.loads(out.read_text())
+    assert set(summary["satellites_by_system"]) == set("GRECJ") and summary["glonass_ar"].startswith("on")
+    car = ["--rover", str(CAR / "rover.crx.gz"), "--base", str(CAR / "base.crx.gz"), "--nav", str(CAR / "nav.rnx.gz")]
+    assert main(["gnss", *car, "--mode", "rtk", "--base-xyz=4777633.8947,203108.9850,4206595.1487",
+                 "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert set(summary["satellites_by_system"]) == set("GEC") and not summary["glonass_ar"]
+    # SPP / DGPS do not model GLONASS
     assert main(["gnss", *files, "--sys", "G,R"]) != 0
     assert "R not supported in this mode" in capsys.readouterr().err
 

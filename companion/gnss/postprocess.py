@@ -406,6 +406,16 @@ def _rtk_rover(path: str, systems: str):
     return hdr, epochs, [e for sat in store.sats for e in store.all(sat)]
 
 
+def _auto_rtk_systems(cfg, hr: dict, hb: dict) -> str:
+    """``--sys`` auto for RTK: the configured systems (G, E, C, J), and GLONASS when its integers
+    can be fixed (``--glonass-ar`` on, or auto with one receiver model at both ends): as a float
+    it cost fixes between two makes (README)."""
+    from .rtk_post import glonass_ar_of
+    with_r = "".join(c for c in RTK_POST_SYSTEMS if c in cfg.systems + "R")
+    return with_r if glonass_ar_of(dataclasses.replace(cfg, systems=with_r), hr, hb)[0].glonass_ar == "on" \
+        else cfg.systems
+
+
 def _run_rtk(args) -> int:
     """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
     from .rtk import RtkConfig
@@ -423,14 +433,16 @@ def _run_rtk(args) -> int:
     cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"))
     direction = getattr(args, "direction", "forward")
     wanted = parse_systems(getattr(args, "sys", None), RTK_POST_SYSTEMS)
-    if wanted:                 # GLONASS only when asked (float ambiguities: see the README)
+    if wanted:
         cfg = dataclasses.replace(cfg, systems=wanted)
     try:
-        hr, rover, ephs = _rtk_rover(args.rover, cfg.systems)
+        hr, rover, ephs = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS)
         if not rover:
             raise GnssProcessingError(f"no observation epochs in {args.rover}")
-        hb, base, base_ephs = _rtk_base(args.base, cfg.systems, int(rover[0].t_gps // SECONDS_PER_WEEK))
-        ephs += base_ephs
+        hb, base, base_ephs = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS, int(rover[0].t_gps // SECONDS_PER_WEEK))
+        if not wanted:
+            cfg = dataclasses.replace(cfg, systems=_auto_rtk_systems(cfg, hr, hb))
+        ephs = [e for e in ephs + base_ephs if e.sat[0] in cfg.systems]
         for p in args.nav or []:
             ephs += read_rinex_nav(p, cfg.systems)
         if not ephs and not args.nav:
