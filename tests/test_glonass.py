@@ -9,6 +9,10 @@ checked against physics and real receivers, since no precise orbit is at hand:
   as GPS's (millimetres);
 * each satellite's carrier on its own FDMA channel's wavelength follows its pseudorange (the
   neighbouring channel's drifts 3.5e-4 of the range change away).
+
+Then in ``companion gnss --mode rtk``: float GLONASS ambiguities help the float solution; its
+integers are fixed between two receivers of one model (closer to the reference) and kept float
+between two makes (forced, they are wrong); an RTCM base capture brings its own 1020 ephemerides.
 """
 from __future__ import annotations
 
