@@ -109,6 +109,14 @@ def test_rinex_records_read_with_their_channel_and_the_header_leap_seconds(tmp_p
     assert all(a.t_oe_gps == b.t_oe_gps and np.array_equal(a.r_e, b.r_e) for a, b in zip(again, glo))
     # not asked for, the five-line records are stepped over whole (a four-line step misread them)
     assert read_rinex_nav(f) == read_rinex_nav(NAVS[0])
+    # a record with an impossible frequency channel (wrong carriers) or cut short is left out
+    k = next(i for i, ln in enumerate(text) if ln.startswith("R04"))
+    bad = list(text)
+    bad[k + 2] = bad[k + 2][:61] + "9.900000000000e+01" + bad[k + 2][79:]
+    last = max(i for i, ln in enumerate(bad) if ln.startswith("R"))
+    f.write_text("\n".join(bad[:last + 2]) + "\n")                  # the file ends two lines into it
+    left = [e for e in read_rinex_nav(f, "R")]
+    assert len(left) == 42 and all(-7 <= e.frequency_channel <= 13 for e in left)
 
 
 def test_leap_seconds_by_date():

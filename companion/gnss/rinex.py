@@ -254,7 +254,9 @@ def read_rinex_nav(path, systems: str = "GECJ") -> list:
                 while j < n and lines[j][:1] == " ":
                     j += 1
             if sys_ == "R" and "R" in systems:
-                glonass.append(_glonass_record(lines, i, j, leap_s))
+                eph = _glonass_record(lines, i, j, leap_s)
+                if eph is not None:
+                    glonass.append(eph)
             i = j
             continue
         if sys_ not in systems:
@@ -276,9 +278,10 @@ def _header_leap_seconds(lines: list[str], head: int) -> int | None:
     return None
 
 
-def _glonass_record(lines: list[str], i: int, j: int, leap_s: int | None) -> GlonassEphemeris:
+def _glonass_record(lines: list[str], i: int, j: int, leap_s: int | None) -> GlonassEphemeris | None:
     """The GLONASS record of lines ``i`` to ``j`` (its epoch is UTC; ``leap_s`` from the header,
-    or by the date when the header has none)."""
+    or by the date when the header has none); None for a record cut short or with a frequency
+    channel outside -7..+13 (its carriers would be wrong)."""
     ln = lines[i]
     yy, mo, dd, hh, mi, ss = (int(ln[4:8]), int(ln[9:11]), int(ln[12:14]), int(ln[15:17]),
                               int(ln[18:20]), _f(ln[21:23]))
@@ -287,6 +290,8 @@ def _glonass_record(lines: list[str], i: int, j: int, leap_s: int | None) -> Glo
         row = lines[k]
         for c in range(4):
             vals.append(_f(row[4 + 19 * c:23 + 19 * c]))
+    if len(vals) < 15 or not -7 <= vals[10] <= 13:
+        return None
     t_utc = _calendar_to_t_gps(yy, mo, dd, hh, mi, ss)
     leap = leap_s if leap_s is not None else gps_minus_utc_s(t_utc)
     return glonass_ephemeris_from_rinex(f"R{int(ln[1:3]):02d}", t_utc, leap, vals)
