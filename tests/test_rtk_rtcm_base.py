@@ -7,7 +7,8 @@ its GPS (L1 C/A, L2 P(Y), L2C, L5), Galileo (E1, E5a, E5b) and BeiDou (B1I, B2I,
 encoded as MSM7 (sitl.rtcm_msm, decoded back by pyrtcm in its own tests), each signal's lock time
 counted from the first epoch and restarted at a loss-of-lock flag, with a 1005 of the base
 position; no Doppler.  The RINEX base with the same signals must give the same solutions (MSM7
-rounds the pseudorange to 0.6 mm and the phase to 0.14 mm)."""
+rounds the pseudorange to 0.6 mm and the phase to 0.14 mm).  And a real single-frequency capture
+(legacy 1002) in a zero baseline."""
 from __future__ import annotations
 
 import dataclasses
@@ -83,3 +84,27 @@ def test_what_an_rtcm_base_lacks_is_said(tmp_path, capsys):
     _msm7_capture(rtcm, station=False)
     assert main(["gnss", "--rover", str(ROVER), "--base", str(rtcm), "--nav", str(NAV), "--mode", "rtk"]) == 2
     assert "an RTCM 1005/1006" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(__import__("shutil").which("convbin") is None, reason="RTKLIB convbin not installed (apt install rtklib)")
+def test_a_real_single_frequency_base_capture_zero_baseline(tmp_path):
+    """A real Emlid Reach (u-blox M8T) capture: legacy 1002 (GPS L1 only) with 1006 and 1019,
+    starting mid-frame, as the base; RTKLIB convbin's RINEX of the same bytes as the rover.  A zero
+    baseline: L1-only RTK through the 1002 decoder and the capture's own ephemerides, no --nav."""
+    import subprocess
+    from companion.cli import main
+    from tests._data import data_path
+    capture = data_path("qzsl6tool-hiroshima-rtcm3-ubx") / "20190529hiroshima.rtcm"
+    assert capture.read_bytes()[0] != 0xD3
+    obs = tmp_path / "r.obs"
+    subprocess.run(["convbin", "-r", "rtcm3", "-tr", "2019/05/29", "00:00:00", "-v", "3.04", "-od", "-os",
+                    "-o", str(obs), "-n", str(tmp_path / "r.nav"), str(capture)], check=True, capture_output=True,
+                   timeout=120)
+    arp = next(ln for ln in obs.read_text().splitlines() if "APPROX POSITION XYZ" in ln).split()[:3]
+    out = tmp_path / "zb.json"
+    assert main(["gnss", "--rover", str(obs), "--base", str(capture), "--mode", "rtk",
+                 "--truth-xyz=" + ",".join(arp), "--json", str(out)]) == 0
+    summary = json.loads(out.read_text())
+    assert summary["satellites_by_system"]["G"]["min"] >= 5
+    assert summary["solved"] >= 40 and summary["fixed"] == summary["solved"]     # measured 41 of 41
+    assert summary["max_3d_m"] < 0.001                                          # 0.3 mm (RINEX's rounding)
