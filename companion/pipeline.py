@@ -547,9 +547,9 @@ class NavPipeline:
     def _rtk_epoch(self, epoch: GnssEpoch) -> GnssEpoch:
         """With RTK on: GPS tracking families renamed to one code on both receivers (a u-blox
         rover's L2L pairs with a base's 2X; with its 2W only when the base has no 2X, in a group of
-        its own: companion.rtk_signals), and a
-        base epoch cut to the systems the engine positions with (no GPS-Galileo double
-        differences on the shared 'L1C' name: their inter-system phase bias is not modelled)."""
+        its own: companion.rtk_signals), and a base epoch cut to the systems the engine positions
+        with (no GPS-Galileo double differences on the shared 'L1C' name: their inter-system phase
+        bias is not modelled)."""
         out = rtk_epoch(epoch)
         if out is not epoch:
             self.counters[f"rtk: {epoch.source} epochs with signals renamed to their family"] += 1

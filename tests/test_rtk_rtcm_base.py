@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -86,7 +87,7 @@ def test_what_an_rtcm_base_lacks_is_said(tmp_path, capsys):
     assert "an RTCM 1005/1006" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(__import__("shutil").which("convbin") is None, reason="RTKLIB convbin not installed (apt install rtklib)")
+@pytest.mark.skipif(shutil.which("convbin") is None, reason="RTKLIB convbin not installed (apt install rtklib)")
 def test_a_real_single_frequency_base_capture_zero_baseline(tmp_path):
     """A real Emlid Reach (u-blox M8T) capture: legacy 1002 (GPS L1 only) with 1006 and 1019,
     starting mid-frame, as the base; RTKLIB convbin's RINEX of the same bytes as the rover.  A zero

@@ -4,7 +4,9 @@ or of a u-blox capture (RXM-RAWX + RXM-SFRBX, decoded as the service decodes its
 Solutions are at the rover's marker and the base antenna is its marker plus the header's
 ``ANTENNA: DELTA H/E/N``, as RTKLIB applies them; ``--pos`` writes RTKLIB's solution format
 (:mod:`companion.gnss.pos_format`: Q 5 single, 4 DGPS, 1 fixed / 2 float RTK) that rtkplot and
-pos2kml read; ``--kml`` / ``--gpx`` the same epochs as tracks (:mod:`companion.io.track_export`).  ``--mode rtk`` is :mod:`companion.gnss.rtk_post` (L1+L2 double differences, LAMBDA).
+pos2kml read; ``--kml`` / ``--gpx`` the same epochs as tracks (:mod:`companion.io.track_export`).
+``--mode rtk`` is :mod:`companion.gnss.rtk_cli` (on :mod:`companion.gnss.rtk_post`: L1+L2 double
+differences, LAMBDA).
 
 Pipeline per rover epoch: (optional) divergence-free carrier smoothing of rover and base code
 (:class:`CarrierSmoother`), base corrections from the latest base epoch at or before the rover
@@ -25,7 +27,6 @@ default ones (:data:`KLOBUCHAR_DEFAULT`) rather than no model (tests/test_spp_mu
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -36,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.capture_format import is_rtcm_capture, is_ubx_capture
-from ..messages import SECONDS_PER_WEEK, BaseStationPosition
+from ..io.capture_format import is_ubx_capture
+from ..messages import BaseStationPosition
 from ..nav.earth import ecef_to_geodetic, ecef_to_ned
 from .dgps import DgpsCorrector
 from .ephemeris_store import EphemerisStore
@@ -121,7 +122,7 @@ def statistics(solutions, truth_e) -> dict:
             "max_3d_m": float(np.max(e3)), "mean_ned_m": [float(x) for x in err.mean(axis=0)]}
 
 
-def _xyz(text: str, what: str) -> np.ndarray:
+def parse_xyz(text: str, what: str) -> np.ndarray:
     try:
         v = np.array([float(x) for x in text.replace(" ", "").split(",")])
     except ValueError:
@@ -150,7 +151,7 @@ def parse_systems(text: str | None, supported: str = SUPPORTED_SYSTEMS) -> str |
     return "".join(c for c in supported if c in letters)
 
 
-def _epochs_of(msgs, systems: str, source: str) -> list:
+def epochs_of(msgs, systems: str, source: str) -> list:
     """The decoded GnssEpochs among ``msgs``, cut to ``systems`` (epochs left empty dropped), as ``source``."""
     from ..messages import GnssEpoch
     out = []
@@ -162,7 +163,7 @@ def _epochs_of(msgs, systems: str, source: str) -> list:
     return out
 
 
-def _load_ubx_rover(path: str, wanted: str | None, store: EphemerisStore):
+def load_ubx_rover(path: str, wanted: str | None, store: EphemerisStore):
     """Observations (RXM-RAWX) and broadcast ephemerides (RXM-SFRBX: GPS/QZSS LNAV, Galileo I/NAV,
     BeiDou D1/D2) of a u-blox capture, decoded as the service decodes its receiver's stream.
     Returns (header-like dict without a marker position or antenna delta, epochs, Klobuchar)."""
@@ -178,7 +179,7 @@ def _load_ubx_rover(path: str, wanted: str | None, store: EphemerisStore):
         if isinstance(m, GpsEphemeris) and m.sat[0] in keep:
             store.add(m)
             n_eph += 1
-    epochs = _epochs_of(msgs, keep, "rover")
+    epochs = epochs_of(msgs, keep, "rover")
     log.info("%s: %d RXM-RAWX epochs, %d ephemerides from RXM-SFRBX", path, len(epochs), n_eph)
     klob = getattr(getattr(dec, "ephemerides", None), "klobuchar", None)
     return {"approx_position_e": None, "antenna_delta_hen_m": None}, epochs, klob
@@ -193,7 +194,7 @@ def _load(args):
     klob = None
     ubx_rover = None
     if is_ubx_capture(args.rover):
-        ubx_rover = _load_ubx_rover(args.rover, wanted, store)
+        ubx_rover = load_ubx_rover(args.rover, wanted, store)
         klob = ubx_rover[2]
     elif not args.nav:
         raise GnssProcessingError("--nav is required with a RINEX rover file (a u-blox .ubx capture brings "
@@ -234,7 +235,7 @@ def _load(args):
         except (ValueError, IndexError) as exc:
             raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
         if args.base_xyz:
-            r_b = _xyz(args.base_xyz, "--base-xyz")
+            r_b = parse_xyz(args.base_xyz, "--base-xyz")
         elif bhdr["approx_position_e"] is not None:
             r_b = bhdr["approx_position_e"]
         else:
@@ -288,7 +289,8 @@ def run(args) -> int:
 
 def _run(args) -> int:
     if args.mode == "rtk":
-        return _run_rtk(args)
+        from .rtk_cli import run_rtk
+        return run_rtk(args)
     if getattr(args, "direction", "forward") != "forward":
         raise GnssProcessingError(f"--direction {args.direction} applies to --mode rtk (spp and dgps solve each "
                                   f"epoch on its own)")
@@ -299,7 +301,7 @@ def _run(args) -> int:
     iono = "iono-free" if signal == "IF" else ("DGPS corrections" if args.mode == "dgps" else "Klobuchar (broadcast)")
     if klob is None and signal != "IF" and args.mode == "spp":
         klob, iono = KLOBUCHAR_DEFAULT, "Klobuchar (RTKLIB's default coefficients: none broadcast)"
-    truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
+    truth = parse_xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
     sols = process(rover, store, opts, klobuchar=klob, base_epochs=base_epochs, base=base,
                    progress=epoch_progress(args.mode, min_epochs=500))
     for s in sols:                          # antenna -> marker
@@ -366,136 +368,3 @@ def write_tracks(args, records, name: str) -> None:
         write_kml(kml, points, name)
     if gpx:
         write_gpx(gpx, points, name)
-
-
-def _rtk_base(path: str, systems: str, week: int):
-    """(header, epochs, ephemerides) of an RTK base: a RINEX observation file, or an RTCM 3
-    capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its
-    position, broadcast ephemerides, GLONASS's 1020 too) decoded as the service decodes its NTRIP
-    stream; ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only)."""
-    if not is_rtcm_capture(path):
-        hdr, epochs = read_rinex_obs(path, systems)
-        return hdr, epochs, []
-    from ..io.rtcm import decode_rtcm_file
-    from ..messages import GpsEphemeris
-    try:
-        msgs, dec = decode_rtcm_file(str(path), week_hint=week)
-    except (ValueError, IndexError) as exc:
-        raise GnssProcessingError(f"cannot decode the RTCM capture {path}: {exc}") from exc
-    epochs = _epochs_of(msgs, systems, "base")
-    arp = [m.r_e for m in msgs if isinstance(m, BaseStationPosition)]
-    if not epochs:
-        raise GnssProcessingError(f"no base observations of the selected systems ({systems}) in {path} "
-                                  f"(MSM4-7 or 1004/1012 expected)")
-    hdr = {"approx_position_e": np.asarray(arp[-1], float) if arp else None, "antenna_delta_hen_m": None,
-           "obs_types": {}}
-    glonass = list(dec.glonass_history.values()) if "R" in systems else []
-    return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass
-
-
-def _rtk_rover(path: str, systems: str):
-    """(header, epochs, ephemerides) of an RTK rover: a RINEX observation file, or a u-blox capture
-    (RXM-RAWX observations as the service decodes them, RXM-SFRBX ephemerides)."""
-    if not is_ubx_capture(path):
-        hdr, epochs = read_rinex_obs(path, systems)
-        return hdr, epochs, []
-    store = EphemerisStore()
-    hdr, epochs, _ = _load_ubx_rover(path, systems, store)
-    if not epochs:
-        raise GnssProcessingError(f"no RXM-RAWX epoch of the selected systems ({systems}) in {path}")
-    return hdr, epochs, [e for sat in store.sats for e in store.all(sat)]
-
-
-def _auto_rtk_systems(cfg, hr: dict, hb: dict) -> str:
-    """``--sys`` auto for RTK: the configured systems (G, E, C, J), and GLONASS when its integers
-    can be fixed (``--glonass-ar`` on, or auto with one receiver model at both ends): as a float
-    it cost fixes between two makes (README)."""
-    from .rtk_post import glonass_ar_of
-    with_r = "".join(c for c in RTK_POST_SYSTEMS if c in cfg.systems + "R")
-    return with_r if glonass_ar_of(dataclasses.replace(cfg, systems=with_r), hr, hb)[0].glonass_ar == "on" \
-        else cfg.systems
-
-
-def _run_rtk(args) -> int:
-    """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
-    from .rtk import RtkConfig
-    from .rtk_post import pos_records, solve_rtk_epochs
-    for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
-        if not Path(p).is_file():
-            raise GnssProcessingError(f"file not found: {p}")
-    if not args.nav and not is_ubx_capture(args.rover) and not (args.base and is_rtcm_capture(args.base)):
-        raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx rover or an RTCM 3 base can bring the "
-                                  "ephemerides)")
-    if not args.base:
-        raise GnssProcessingError("--mode rtk needs --base")
-    base_xyz = _xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
-    truth = _xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
-    cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"))
-    direction = getattr(args, "direction", "forward")
-    wanted = parse_systems(getattr(args, "sys", None), RTK_POST_SYSTEMS)
-    if wanted:
-        cfg = dataclasses.replace(cfg, systems=wanted)
-    try:
-        hr, rover, ephs = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS)
-        if not rover:
-            raise GnssProcessingError(f"no observation epochs in {args.rover}")
-        hb, base, base_ephs = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS, int(rover[0].t_gps // SECONDS_PER_WEEK))
-        if not wanted:
-            cfg = dataclasses.replace(cfg, systems=_auto_rtk_systems(cfg, hr, hb))
-        ephs = [e for e in ephs + base_ephs if e.sat[0] in cfg.systems]
-        for p in args.nav or []:
-            ephs += read_rinex_nav(p, cfg.systems)
-        if not ephs and not args.nav:
-            raise GnssProcessingError(f"no ephemeris of the selected systems ({cfg.systems}): neither capture "
-                                      f"brings them (RXM-SFRBX, RTCM 1019/1042/1044/1045/1046); give --nav")
-        # an RTK epoch costs milliseconds (tens with four systems): a minute of 1-Hz data is worth a progress line
-        sols, info = solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=cfg,
-                                      progress=epoch_progress("rtk", min_epochs=60), direction=direction)
-    except (ValueError, IndexError) as exc:
-        raise GnssProcessingError(str(exc)) from exc
-    if not sols:
-        raise GnssProcessingError(f"no epoch could be solved ({info['paired_epochs']} rover/base epoch pairs; "
-                                  f"{info['counters']})")
-    n_fix = sum(1 for s in sols if s.quality == 1)
-    by_sys = satellites_by_system(sols)
-    summary = {"mode": "rtk", "direction": direction, "signals": list(cfg.signals), "epochs": info["rover_epochs"],
-               "paired_epochs": info["paired_epochs"], "solved": len(sols), "fixed": n_fix,
-               "elevation_mask_deg": args.elevation_mask_deg, "systems": cfg.systems,
-               "satellites_by_system": by_sys, "base_epochs": info["base_epochs"],
-               "max_base_age_s": info["max_base_age_s"], "glonass_ar": info["glonass_ar"], "counters": info["counters"]}
-    if truth is not None:
-        summary.update(statistics(sols, truth))
-        fixed = [s for s in sols if s.quality == 1]
-        if fixed:
-            summary["fixed_stats"] = statistics(fixed, truth)
-    print(f"companion gnss rtk ({direction}): {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
-          + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
-             f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
-    if info["max_base_age_s"] > 0:
-        print(f"base: {info['base_epochs']} epochs, each rover epoch solved against the nearest one, up to "
-              f"{info['max_base_age_s']:.1f} s apart (at most {cfg.max_base_age_s:g} s)")
-    print("satellites per epoch (common to rover and base, above the mask): "
-          + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
-    if info["glonass_ar"]:
-        print(f"GLONASS integers: {info['glonass_ar']}")
-    if args.json:
-        rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
-                 "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,
-                 "n_sats_by_system": s.n_sats_by_system, "age_s": s.age_s,
-                 **({"err_ned_m": [float(x) for x in ecef_to_ned(s.r_e, truth)]} if truth is not None else {})}
-                for s in sols]
-        with open(args.json, "w") as fh:
-            json.dump({**summary, "solutions": rows}, fh, indent=1)
-    records = pos_records(sols)
-    write_tracks(args, records, f"companion gnss rtk: {Path(args.rover).name}")
-    write_plot(args, records, f"companion gnss rtk ({','.join(by_sys) or ','.join(cfg.systems)}, {direction}): "
-                              f"{Path(args.rover).name}, {n_fix} of {len(sols)} fixed", truth)
-    if args.pos:
-        write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
-                  inputs=[args.rover, args.base, *(args.nav or [])],
-                  options={"pos mode": "kinematic", "freqs": "L1+L2", "solution": direction,
-                           "elev mask": f"{args.elevation_mask_deg:.1f} deg",
-                           "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
-                           "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"
-                                      + (f"; GLONASS {info['glonass_ar'].split()[0]}" if info["glonass_ar"] else "")})
-    return 0

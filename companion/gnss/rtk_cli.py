@@ -1,0 +1,155 @@
+"""``companion gnss --mode rtk``: the rover (RINEX or a u-blox capture) and the base (RINEX or an
+RTCM 3 capture) read, the systems chosen (``--sys`` auto adds GLONASS where its integers can be
+fixed), :func:`companion.gnss.rtk_post.solve_rtk_epochs` run, and the summary, JSON, ``.pos``,
+tracks and plot written as the SPP / DGPS modes write theirs (:mod:`companion.gnss.postprocess`)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..io.capture_format import is_rtcm_capture, is_ubx_capture
+from ..messages import SECONDS_PER_WEEK, BaseStationPosition
+from ..nav.earth import ecef_to_ned
+from .ephemeris_store import EphemerisStore
+from .pos_format import write_pos
+from .postprocess import (GnssProcessingError, epoch_progress, epochs_of, load_ubx_rover, parse_systems, parse_xyz,
+                          satellites_by_system, statistics, write_plot, write_tracks)
+from .rinex import read_rinex_nav, read_rinex_obs
+from .rtk import RtkConfig
+from .rtk_post import RTK_POST_SYSTEMS, glonass_ar_of, pos_records, solve_rtk_epochs
+
+
+def _rtk_base(path: str, systems: str, week: int):
+    """(header, epochs, ephemerides) of an RTK base: a RINEX observation file, or an RTCM 3
+    capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its
+    position, broadcast ephemerides, GLONASS's 1020 too) decoded as the service decodes its NTRIP
+    stream; ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only)."""
+    if not is_rtcm_capture(path):
+        hdr, epochs = read_rinex_obs(path, systems)
+        return hdr, epochs, []
+    from ..io.rtcm import decode_rtcm_file          # the RTCM stack only when a capture is read
+    from ..messages import GpsEphemeris
+    try:
+        msgs, dec = decode_rtcm_file(str(path), week_hint=week)
+    except (ValueError, IndexError) as exc:
+        raise GnssProcessingError(f"cannot decode the RTCM capture {path}: {exc}") from exc
+    epochs = epochs_of(msgs, systems, "base")
+    arp = [m.r_e for m in msgs if isinstance(m, BaseStationPosition)]
+    if not epochs:
+        raise GnssProcessingError(f"no base observations of the selected systems ({systems}) in {path} "
+                                  f"(MSM4-7 or 1004/1012 expected)")
+    hdr = {"approx_position_e": np.asarray(arp[-1], float) if arp else None, "antenna_delta_hen_m": None,
+           "obs_types": {}}
+    glonass = list(dec.glonass_history.values()) if "R" in systems else []
+    return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass
+
+
+def _rtk_rover(path: str, systems: str):
+    """(header, epochs, ephemerides) of an RTK rover: a RINEX observation file, or a u-blox capture
+    (RXM-RAWX observations as the service decodes them, RXM-SFRBX ephemerides)."""
+    if not is_ubx_capture(path):
+        hdr, epochs = read_rinex_obs(path, systems)
+        return hdr, epochs, []
+    store = EphemerisStore()
+    hdr, epochs, _ = load_ubx_rover(path, systems, store)
+    if not epochs:
+        raise GnssProcessingError(f"no RXM-RAWX epoch of the selected systems ({systems}) in {path}")
+    return hdr, epochs, [e for sat in store.sats for e in store.all(sat)]
+
+
+def _auto_rtk_systems(cfg, hr: dict, hb: dict) -> str:
+    """``--sys`` auto for RTK: the configured systems (G, E, C, J), and GLONASS when its integers
+    can be fixed (``--glonass-ar`` on, or auto with one receiver model at both ends): as a float
+    it cost fixes between two makes (README)."""
+    with_r = "".join(c for c in RTK_POST_SYSTEMS if c in cfg.systems + "R")
+    return with_r if glonass_ar_of(dataclasses.replace(cfg, systems=with_r), hr, hb)[0].glonass_ar == "on" \
+        else cfg.systems
+
+
+def run_rtk(args) -> int:
+    """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
+    for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
+        if not Path(p).is_file():
+            raise GnssProcessingError(f"file not found: {p}")
+    if not args.nav and not is_ubx_capture(args.rover) and not (args.base and is_rtcm_capture(args.base)):
+        raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx rover or an RTCM 3 base can bring the "
+                                  "ephemerides)")
+    if not args.base:
+        raise GnssProcessingError("--mode rtk needs --base")
+    base_xyz = parse_xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
+    truth = parse_xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
+    cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"))
+    direction = getattr(args, "direction", "forward")
+    wanted = parse_systems(getattr(args, "sys", None), RTK_POST_SYSTEMS)
+    if wanted:
+        cfg = dataclasses.replace(cfg, systems=wanted)
+    try:
+        hr, rover, ephs = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS)
+        if not rover:
+            raise GnssProcessingError(f"no observation epochs in {args.rover}")
+        hb, base, base_ephs = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS, int(rover[0].t_gps // SECONDS_PER_WEEK))
+        if not wanted:
+            cfg = dataclasses.replace(cfg, systems=_auto_rtk_systems(cfg, hr, hb))
+        ephs = [e for e in ephs + base_ephs if e.sat[0] in cfg.systems]
+        for p in args.nav or []:
+            ephs += read_rinex_nav(p, cfg.systems)
+        if not ephs and not args.nav:
+            raise GnssProcessingError(f"no ephemeris of the selected systems ({cfg.systems}): neither capture "
+                                      f"brings them (RXM-SFRBX, RTCM 1019/1042/1044/1045/1046); give --nav")
+        # an RTK epoch costs milliseconds (tens with four systems): a minute of 1-Hz data is worth a progress line
+        sols, info = solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=cfg,
+                                      progress=epoch_progress("rtk", min_epochs=60), direction=direction)
+    except (ValueError, IndexError) as exc:
+        raise GnssProcessingError(str(exc)) from exc
+    if not sols:
+        raise GnssProcessingError(f"no epoch could be solved ({info['paired_epochs']} rover/base epoch pairs; "
+                                  f"{info['counters']})")
+    n_fix = sum(1 for s in sols if s.quality == 1)
+    by_sys = satellites_by_system(sols)
+    summary = {"mode": "rtk", "direction": direction, "signals": list(cfg.signals), "epochs": info["rover_epochs"],
+               "paired_epochs": info["paired_epochs"], "solved": len(sols), "fixed": n_fix,
+               "elevation_mask_deg": args.elevation_mask_deg, "systems": cfg.systems,
+               "satellites_by_system": by_sys, "base_epochs": info["base_epochs"],
+               "max_base_age_s": info["max_base_age_s"], "glonass_ar": info["glonass_ar"], "counters": info["counters"]}
+    if truth is not None:
+        summary.update(statistics(sols, truth))
+        fixed = [s for s in sols if s.quality == 1]
+        if fixed:
+            summary["fixed_stats"] = statistics(fixed, truth)
+    print(f"companion gnss rtk ({direction}): {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
+          + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
+             f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
+    if info["max_base_age_s"] > 0:
+        print(f"base: {info['base_epochs']} epochs, each rover epoch solved against the nearest one, up to "
+              f"{info['max_base_age_s']:.1f} s apart (at most {cfg.max_base_age_s:g} s)")
+    print("satellites per epoch (common to rover and base, above the mask): "
+          + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
+    if info["glonass_ar"]:
+        print(f"GLONASS integers: {info['glonass_ar']}")
+    if args.json:
+        rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
+                 "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,
+                 "n_sats_by_system": s.n_sats_by_system, "age_s": s.age_s,
+                 **({"err_ned_m": [float(x) for x in ecef_to_ned(s.r_e, truth)]} if truth is not None else {})}
+                for s in sols]
+        with open(args.json, "w") as fh:
+            json.dump({**summary, "solutions": rows}, fh, indent=1)
+    records = pos_records(sols)
+    write_tracks(args, records, f"companion gnss rtk: {Path(args.rover).name}")
+    write_plot(args, records, f"companion gnss rtk ({','.join(by_sys) or ','.join(cfg.systems)}, {direction}): "
+                              f"{Path(args.rover).name}, {n_fix} of {len(sols)} fixed", truth)
+    if args.pos:
+        write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
+                  inputs=[args.rover, args.base, *(args.nav or [])],
+                  options={"pos mode": "kinematic", "freqs": "L1+L2", "solution": direction,
+                           "elev mask": f"{args.elevation_mask_deg:.1f} deg",
+                           "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
+                           "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"
+                                      + (f"; GLONASS {info['glonass_ar'].split()[0]}" if info["glonass_ar"] else "")})
+    return 0
+
+
+__all__ = ["run_rtk"]
