@@ -90,3 +90,28 @@ def test_state_properties_copy_in_and_out(workload):
     assert np.array_equal(a.r_e, r)
     pt = a.ins_at(a.t_gps - 0.5)
     assert pt is not None and pt.r_e.shape == (3,) and pt.C_b_e.shape == (3, 3)
+
+
+def test_stillness_statistics_equal_numpy_on_wrapped_rings():
+    """The compiled window statistic (imu_fused.still_window_std) gives numpy's std of the rates to
+    the bit, on windows that wrap round the ring and windows that do not."""
+    from companion.nav import imu_fused as F
+    from companion.nav import nav_state as S
+    kernels = F.ensure_compiled()
+    rng = np.random.default_rng(1)
+    wrapped = 0
+    for _ in range(100):
+        scr_n, cap = int(rng.integers(1, 20)), int(rng.integers(5, 300))
+        m, head = int(rng.integers(2, cap + 1)), int(rng.integers(0, cap))
+        ws = np.zeros(S.HEADER + 6 * scr_n + 7 * cap)
+        ws[S.SCR_N], ws[S.ST_CAP], ws[S.ST_HEAD] = scr_n, cap, head
+        ring = ws[S.still_offset(ws):].reshape(cap, 7)
+        ring[:, :6] = rng.normal(size=(cap, 6)) * 1e-3 + rng.normal(size=6) * 1e-2
+        ring[:, 6] = 0.005 * (1.0 + 0.01 * rng.normal(size=cap))
+        rows = ring[head - m:head] if m <= head else np.concatenate((ring[cap - (m - head):], ring[:head]))
+        wrapped += m > head
+        std = (rows[:, :6] / rows[:, 6:7]).std(axis=0)
+        out = np.zeros(2)
+        kernels.still_window_std(ws, m, out)
+        assert out[0] == std[:3].max() and out[1] == std[3:].max()
+    assert wrapped > 10

@@ -206,9 +206,39 @@ def imu_run(ws, hist, P, phi, Qd, tail_q, work, work_cc, t, tau, th, dv, i0, t_s
     out[0] = i
 
 
+def still_window_std(ws, m, out):
+    """The stillness test's statistics on the ring's last ``m`` rows (raw dtheta 3, dv 3, tau):
+    the population standard deviation of each of the six rates increment/tau, two passes as
+    numpy's std (the same sums in the same order); out[0]: the largest of the three gyro axes', out[1]: of the three accelerometer
+    axes' (companion.nav.stillness.StillnessDetector.decide).  numpy on the same window costs
+    ~25 us a call, four times a second."""
+    o = S.HEADER + 6 * int(ws[S.SCR_N])
+    cap = int(ws[S.ST_CAP])
+    first = int(ws[S.ST_HEAD]) - m
+    if first < 0:
+        first += cap
+    mean = np.zeros(6)
+    for k in range(m):
+        q = o + 7 * ((first + k) % cap)
+        tau = ws[q + 6]
+        for c in range(6):
+            mean[c] += ws[q + c] / tau
+    for c in range(6):
+        mean[c] /= m
+    var = np.zeros(6)
+    for k in range(m):
+        q = o + 7 * ((first + k) % cap)
+        tau = ws[q + 6]
+        for c in range(6):
+            d = ws[q + c] / tau - mean[c]
+            var[c] += d * d
+    out[0] = math.sqrt(max(var[0], var[1], var[2]) / m)
+    out[1] = math.sqrt(max(var[3], var[4], var[5]) / m)
+
+
 class _Kernels:
-    def __init__(self, imu_step, imu_run):
-        self.imu_step, self.imu_run = imu_step, imu_run
+    def __init__(self, imu_step, imu_run, still_window_std):
+        self.imu_step, self.imu_run, self.still_window_std = imu_step, imu_run, still_window_std
 
 
 def ensure_compiled():
@@ -225,7 +255,7 @@ def ensure_compiled():
     _strapdown, _propagate = k.strapdown, k.propagate
     _screen_quick, _screen_commit = jit(screen_quick), jit(screen_commit)
     _imu_step = jit(imu_step)
-    _compiled = _Kernels(_imu_step, jit(imu_run))
+    _compiled = _Kernels(_imu_step, jit(imu_run), jit(still_window_std))
     return _compiled
 
 

@@ -47,10 +47,16 @@ class StillnessDetector:
         the compiled path's ring (companion.nav.imu_fused)."""
         rates = w[:, 0:6] / w[:, 6:7]
         std = rates.std(axis=0)
-        still = bool(std[0:3].max() < self.gyro_std_radps and std[3:6].max() < self.accel_std_mps2)
+        return self.decide(float(std[0:3].max()), float(std[3:6].max()), lambda: rates)
+
+    def decide(self, gyro_std_max: float, accel_std_max: float, window_rates) -> bool:
+        """The test on a window's statistics: the largest standard deviation of the gyro axes'
+        rates and of the accelerometer axes'.  ``window_rates()`` gives the window's rates (rows:
+        gyro 3, accel 3), asked for only when the window is still and an update is due."""
+        still = gyro_std_max < self.gyro_std_radps and accel_std_max < self.accel_std_mps2
         if still and self._since_update_s >= self.window_s:
             self._since_update_s = 0.0
-            self._window = rates
+            self._window = window_rates()
             return True
         return False
 
