@@ -93,8 +93,8 @@ def test_state_properties_copy_in_and_out(workload):
 
 
 def test_stillness_statistics_equal_numpy_on_wrapped_rings():
-    """The compiled window statistic (imu_fused.still_window_std) gives numpy's std of the rates to
-    the bit, on windows that wrap round the ring and windows that do not."""
+    """The compiled window statistics (imu_fused.still_window_std) give numpy's std and mean of the
+    rates to the bit, on windows that wrap round the ring and windows that do not."""
     from companion.nav import imu_fused as F
     from companion.nav import nav_state as S
     kernels = F.ensure_compiled()
@@ -110,8 +110,10 @@ def test_stillness_statistics_equal_numpy_on_wrapped_rings():
         ring[:, 6] = 0.005 * (1.0 + 0.01 * rng.normal(size=cap))
         rows = ring[head - m:head] if m <= head else np.concatenate((ring[cap - (m - head):], ring[:head]))
         wrapped += m > head
-        std = (rows[:, :6] / rows[:, 6:7]).std(axis=0)
-        out = np.zeros(2)
+        rates = rows[:, :6] / rows[:, 6:7]
+        std = rates.std(axis=0)
+        out = np.zeros(5)
         kernels.still_window_std(ws, m, out)
         assert out[0] == std[:3].max() and out[1] == std[3:].max()
+        assert np.array_equal(out[2:5], rates[:, :3].mean(axis=0))
     assert wrapped > 10

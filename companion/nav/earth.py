@@ -145,12 +145,19 @@ def gravity_gradient_ecef(r_e) -> np.ndarray:
 
 def rotation_from_rotvec(phi) -> np.ndarray:
     """Rodrigues: rotation matrix exp([phi x]) (seed 004 eq 6)."""
-    a2 = float(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    K = skew(phi)
+    x, y, z = float(phi[0]), float(phi[1]), float(phi[2])
+    a2 = x * x + y * y + z * z
     if a2 < 1e-16:
-        return np.eye(3) + K + 0.5 * (K @ K)
-    a = math.sqrt(a2)
-    return np.eye(3) + (math.sin(a) / a) * K + ((1.0 - math.cos(a)) / a2) * (K @ K)
+        s, c = 1.0, 0.5
+    else:
+        a = math.sqrt(a2)
+        s, c = math.sin(a) / a, (1.0 - math.cos(a)) / a2
+    # I + s K + c K^2 with K = [phi x], written out (plain floats: a quarter of the numpy version's
+    # cost, every closed-loop feedback)
+    xy, xz, yz = c * x * y, c * x * z, c * y * z
+    return np.array([[1.0 - c * (y * y + z * z), xy - s * z, xz + s * y],
+                     [xy + s * z, 1.0 - c * (x * x + z * z), yz - s * x],
+                     [xz - s * y, yz + s * x, 1.0 - c * (x * x + y * y)]])
 
 
 def euler_to_dcm(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:

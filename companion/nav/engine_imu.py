@@ -98,7 +98,7 @@ class ImuPath:
         self._grad = None               # the gravity gradient (pure-Python path: its object identity)
         self._fused = False             # the compiled path is in use
         self._fused_out = np.zeros(2, dtype=np.int64)
-        self._still_stats = np.zeros(2)  # the stillness window's largest gyro / accel std (compiled)
+        self._still_stats = np.zeros(5)  # the stillness window's largest gyro / accel std, gyro mean (compiled)
         self._P_checked = None          # the covariance array last seen contiguous float64 (checked once)
 
     # ------------------------------------------------------------------ path selection
@@ -113,8 +113,9 @@ class ImuPath:
         ws[S.I_ATT], ws[S.I_POS], ws[S.I_VEL] = L.att.start, L.pos.start, L.vel.start
         ws[S.I_BA], ws[S.I_BG] = L.ba.start, L.bg.start
         ws[S.KTAU] = -1.0
+        self._hist.correct_kernel = None
         if self._fused:
-            F.ensure_compiled()
+            self._hist.correct_kernel = F.ensure_compiled().history_correct
             self._objects_to_state()
 
     def _objects_to_state(self) -> None:
@@ -178,11 +179,6 @@ class ImuPath:
             return ring[head - m:head]          # a view: no copy when the window does not wrap
         return np.concatenate((ring[cap - (m - head):], ring[:head]))
 
-    def _still_rates(self, m: int) -> np.ndarray:
-        """The rates of the last m stillness rows (gyro 3, accel 3), oldest first."""
-        w = self._still_rows(m)
-        return w[:, 0:6] / w[:, 6:7]
-
     def _still_due(self, tau_sample: float) -> bool:
         """The stillness test, due after a compiled step (StillnessDetector.add's second half)."""
         ws, st = self._ws, self._still
@@ -199,7 +195,7 @@ class ImuPath:
         st._since_update_s = float(ws[S.ST_SINCE_UPDATE])
         stats = self._still_stats
         F.kernels().still_window_std(ws, m, stats)
-        still = st.decide(float(stats[0]), float(stats[1]), lambda: self._still_rates(m))
+        still = st.decide(float(stats[0]), float(stats[1]), stats[2:5], m)
         ws[S.ST_SINCE_UPDATE] = st._since_update_s
         return still
 

@@ -70,6 +70,9 @@ class InsHistory:
     def __init__(self, ws: np.ndarray, capacity: int = 4096):
         self.ws = ws
         self.hist = np.zeros((capacity, HIST_COLS))
+        # the compiled :meth:`correct` (companion.nav.imu_fused.history_correct), set by the engine
+        # with its compiled path; None: numpy
+        self.correct_kernel = None
 
     def clear(self) -> None:
         self.ws[H_START] = 0.0
@@ -113,6 +116,11 @@ class InsHistory:
     def correct(self, dr_e, dv_e, R_e) -> None:
         """Add dr_e to every position, dv_e to every velocity, rotate every attitude by R_e (None:
         leave it), e.g. a closed-loop correction applied to the history too."""
+        if self.correct_kernel is not None and dr_e is not None and dv_e is not None and R_e is not None:
+            s, n = self.span()
+            self.correct_kernel(self.hist, s, n, np.asarray(dr_e, float), np.asarray(dv_e, float),
+                                np.asarray(R_e, float))
+            return
         rows = self.rows()
         if dr_e is not None:
             rows[:, R:R + 3] += dr_e

@@ -113,17 +113,27 @@ def solution_separation(H: np.ndarray, z: np.ndarray, r_var: np.ndarray, P: np.n
     L = 0.5 * (L + L.T)
     M = C_h @ PHt                          # (2, m)
     U = M @ L                              # column i: u_i = M l_i
-    d = np.diag(L).copy()
+    d = L.diagonal().copy()
     w = L @ z                              # l_i^T z
     ok = d > 0.0
-    d_safe = np.where(ok, d, 1.0)
-    u_norm = np.linalg.norm(U, axis=0)
-    sep = np.where(ok, u_norm * np.abs(w) / d_safe, 0.0)
-    sig = np.where(ok, u_norm / np.sqrt(d_safe), 0.0)
+    all_ok = bool(ok.all())
+    d_safe = d if all_ok else np.where(ok, d, 1.0)
+    u0, u1 = U[0], U[1]
+    u_norm = np.hypot(u0, u1)
+    inv_sqrt_d = 1.0 / np.sqrt(d_safe)
+    abs_w = np.abs(w)
+    sig = u_norm * inv_sqrt_d
+    sep = sig * (abs_w * inv_sqrt_d)       # |u_i| |w_i| / d_i
+    ratio = abs_w * inv_sqrt_d / k_detect
+    D = np.empty((m, 2, 2))                # u_i u_i^T / d_i
+    D[:, 0, 0] = u0 * u0 / d_safe
+    D[:, 0, 1] = D[:, 1, 0] = u0 * u1 / d_safe
+    D[:, 1, 1] = u1 * u1 / d_safe
+    if not all_ok:                         # a row the others fully determine: no separation
+        sep, sig, ratio = np.where(ok, sep, 0.0), np.where(ok, sig, 0.0), np.where(ok, ratio, 0.0)
+        D[~ok] = 0.0
     thr = k_detect * sig
-    ratio = np.where(ok, np.abs(w) / np.sqrt(d_safe) / k_detect, 0.0)
-    D = np.where(ok[:, None, None], np.einsum("ai,bi->iab", U, U) / d_safe[:, None, None], 0.0)
-    P_h_post = C_h @ P @ C_h.T - M @ L @ M.T
+    P_h_post = C_h @ P @ C_h.T - U @ M.T   # M L M^T
     return SolutionSeparation(list(labels) if labels is not None else [str(i) for i in range(m)],
                               sep, sig, thr, ratio, D, 0.5 * (P_h_post + P_h_post.T))
 

@@ -12,7 +12,8 @@ class StillnessDetector:
     """Stillness test on the last ``zupt_window_s`` of raw IMU rates.
 
     Samples are appended to a bounded deque (no numpy at IMU rate); the window statistics are
-    computed with numpy every half window only.
+    computed with numpy every half window only (the engine's compiled path keeps its own ring and
+    computes them in companion.nav.imu_fused.still_window_std: both end in :meth:`decide`).
     """
 
     def __init__(self, window_s: float, gyro_std_radps: float, accel_std_mps2: float):
@@ -21,7 +22,8 @@ class StillnessDetector:
         self.buf: deque = deque(maxlen=2)   # resized to one window of samples at the IMU's rate
         self._since_check_s = 0.0
         self._since_update_s = 0.0
-        self._window: np.ndarray | None = None
+        self._gyro_mean = np.zeros(3)          # the last still window's (gyro_mean_and_sigma)
+        self._gyro_sigma_of_mean = math.inf
 
     def add(self, dtheta, dv, tau: float) -> bool:
         """Add one sample (raw increments); True when the last window is still and an update is due."""
@@ -47,21 +49,20 @@ class StillnessDetector:
         the compiled path's ring (companion.nav.imu_fused)."""
         rates = w[:, 0:6] / w[:, 6:7]
         std = rates.std(axis=0)
-        return self.decide(float(std[0:3].max()), float(std[3:6].max()), lambda: rates)
+        return self.decide(float(std[0:3].max()), float(std[3:6].max()), rates[:, 0:3].mean(axis=0), len(w))
 
-    def decide(self, gyro_std_max: float, accel_std_max: float, window_rates) -> bool:
-        """The test on a window's statistics: the largest standard deviation of the gyro axes'
-        rates and of the accelerometer axes'.  ``window_rates()`` gives the window's rates (rows:
-        gyro 3, accel 3), asked for only when the window is still and an update is due."""
+    def decide(self, gyro_std_max: float, accel_std_max: float, gyro_mean, n: int) -> bool:
+        """The test on a window's statistics (``n`` samples): the largest standard deviation of the
+        gyro axes' rates and of the accelerometer axes', the gyro axes' mean rates (kept for
+        :meth:`gyro_mean_and_sigma` when the window is still and an update is due)."""
         still = gyro_std_max < self.gyro_std_radps and accel_std_max < self.accel_std_mps2
         if still and self._since_update_s >= self.window_s:
             self._since_update_s = 0.0
-            self._window = window_rates()
+            self._gyro_mean = np.array(gyro_mean, dtype=float)
+            self._gyro_sigma_of_mean = gyro_std_max / math.sqrt(n)
             return True
         return False
 
     def gyro_mean_and_sigma(self):
-        """Mean raw gyro rate over the still window and the standard error of that mean."""
-        w = self._window
-        mean = w[:, 0:3].mean(axis=0)
-        return mean, float(w[:, 0:3].std(axis=0).max() / math.sqrt(len(w)))
+        """Mean raw gyro rate over the last still window and the standard error of that mean."""
+        return self._gyro_mean.copy(), self._gyro_sigma_of_mean
