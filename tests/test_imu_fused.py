@@ -117,3 +117,43 @@ def test_stillness_statistics_equal_numpy_on_wrapped_rings():
         assert out[0] == std[:3].max() and out[1] == std[3:].max()
         assert np.array_equal(out[2:5], rates[:, :3].mean(axis=0))
     assert wrapped > 10
+
+
+def test_history_kernels_equal_numpy():
+    """The compiled history look-up and correction (imu_fused.history_interpolate, history_correct)
+    against InsHistory's numpy versions: interpolation to the bit inside, at a tag and at both ends,
+    None outside; the correction to rounding (a 3x3 product summed in its own order)."""
+    from companion.nav import imu_fused as F
+    from companion.nav import nav_state as S
+    kernels = F.ensure_compiled()
+    rng = np.random.default_rng(2)
+    hists = []
+    for kernel in (False, True):
+        h = S.InsHistory(S.new_ws(9, 100), capacity=64)
+        h.ws[S.HIST_S] = 0.3                  # ~57 live rows of the 64
+        if kernel:
+            h.correct_kernel, h.interpolate_kernel = kernels.history_correct, kernels.history_interpolate
+        hists.append(h)
+    t = 100.0
+    for _ in range(150):                      # the live rows reach the ring's end and move to the front
+        t += 0.005 * (1.0 + 0.1 * rng.random())
+        row = np.concatenate(([t], rng.normal(size=6) * 100.0, rng.normal(size=9)))
+        for h in hists:
+            h.ws[S.T:S.C + 9] = row
+            h.push_current()
+    ref, fast = hists
+    assert len(ref.hist) == 64 and 0 < ref.span()[0] < 64 - ref.span()[1]   # moved, not grown
+    ts = ref.times()
+    probes = [ts[0], ts[-1], ts[10], ts[0] - 1e-9, ts[-1] + 1e-9] + list(rng.uniform(ts[0], ts[-1], 50))
+    for tp in probes:
+        a, b = ref.interpolate(tp), fast.interpolate(tp)
+        assert (a is None) == (b is None)
+        if a is not None:
+            for x, y in zip(a, b):
+                assert np.array_equal(x, y)
+    assert sum(ref.interpolate(tp) is None for tp in probes) == 2
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    for h in hists:
+        h.correct(np.array([0.1, -0.2, 0.3]), np.array([0.01, 0.02, -0.03]), R)
+    np.testing.assert_allclose(fast.rows(), ref.rows(), rtol=1e-15, atol=1e-12)
+    assert np.array_equal(fast.rows()[:, :7], ref.rows()[:, :7])   # sums of floats: the same bits

@@ -113,9 +113,10 @@ class ImuPath:
         ws[S.I_ATT], ws[S.I_POS], ws[S.I_VEL] = L.att.start, L.pos.start, L.vel.start
         ws[S.I_BA], ws[S.I_BG] = L.ba.start, L.bg.start
         ws[S.KTAU] = -1.0
-        self._hist.correct_kernel = None
+        self._hist.correct_kernel = self._hist.interpolate_kernel = None
         if self._fused:
-            self._hist.correct_kernel = F.ensure_compiled().history_correct
+            k = F.ensure_compiled()
+            self._hist.correct_kernel, self._hist.interpolate_kernel = k.history_correct, k.history_interpolate
             self._objects_to_state()
 
     def _objects_to_state(self) -> None:

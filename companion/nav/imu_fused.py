@@ -253,10 +253,43 @@ def history_correct(hist, start, count, dr_e, dv_e, R_e):
                 hist[k, 7 + 3 * i + j] = R_e[i, 0] * c0 + R_e[i, 1] * c1 + R_e[i, 2] * c2
 
 
+def history_interpolate(hist, start, count, t, out):
+    """companion.nav.nav_state.InsHistory.interpolate on the live rows, the same arithmetic: False
+    outside them, else True with out[0:3] r_e, out[3:6] v_e (linear in time between the two
+    bracketing rows), out[6:15] C_b_e row-major (the nearer row's).  numpy costs ~12 us a call,
+    three a GNSS epoch."""
+    if count == 0:
+        return False
+    if t > hist[start + count - 1, 0] or t < hist[start, 0]:
+        return False
+    lo, hi = start, start + count            # the first row at or after t (searchsorted, left)
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if hist[mid, 0] < t:
+            lo = mid + 1
+        else:
+            hi = mid
+    k = lo
+    t1 = hist[k, 0]
+    if k == start or t1 == t:
+        for c in range(15):
+            out[c] = hist[k, 1 + c]
+        return True
+    t0 = hist[k - 1, 0]
+    a = (t - t0) / (t1 - t0)
+    for c in range(6):
+        out[c] = hist[k - 1, 1 + c] * (1.0 - a) + hist[k, 1 + c] * a
+    near = k - 1 if a < 0.5 else k
+    for c in range(6, 15):
+        out[c] = hist[near, 1 + c]
+    return True
+
+
 class _Kernels:
-    def __init__(self, imu_step, imu_run, still_window_std, history_correct):
+    def __init__(self, imu_step, imu_run, still_window_std, history_correct, history_interpolate):
         self.imu_step, self.imu_run = imu_step, imu_run
         self.still_window_std, self.history_correct = still_window_std, history_correct
+        self.history_interpolate = history_interpolate
 
 
 def ensure_compiled():
@@ -273,7 +306,8 @@ def ensure_compiled():
     _strapdown, _propagate = k.strapdown, k.propagate
     _screen_quick, _screen_commit = jit(screen_quick), jit(screen_commit)
     _imu_step = jit(imu_step)
-    _compiled = _Kernels(_imu_step, jit(imu_run), jit(still_window_std), jit(history_correct))
+    _compiled = _Kernels(_imu_step, jit(imu_run), jit(still_window_std), jit(history_correct),
+                         jit(history_interpolate))
     return _compiled
 
 

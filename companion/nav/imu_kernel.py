@@ -264,6 +264,7 @@ def _warm_up_engine() -> None:
     from . import imu_fused
     imu_fused.kernels().still_window_std(eng._ws, 2, np.zeros(5))
     eng._hist.correct(np.zeros(3), np.zeros(3), np.eye(3))
+    eng._hist.interpolate(0.0125)
 
 
 if __name__ == "__main__":            # python -m companion.nav.imu_kernel

@@ -70,9 +70,10 @@ class InsHistory:
     def __init__(self, ws: np.ndarray, capacity: int = 4096):
         self.ws = ws
         self.hist = np.zeros((capacity, HIST_COLS))
-        # the compiled :meth:`correct` (companion.nav.imu_fused.history_correct), set by the engine
-        # with its compiled path; None: numpy
+        # the compiled :meth:`correct` and :meth:`interpolate` (companion.nav.imu_fused's
+        # history_correct, history_interpolate), set by the engine with its compiled path; None: numpy
         self.correct_kernel = None
+        self.interpolate_kernel = None
 
     def clear(self) -> None:
         self.ws[H_START] = 0.0
@@ -138,6 +139,12 @@ class InsHistory:
 
     def interpolate(self, t_gps: float):
         """(r, v, C) linearly interpolated to t_gps (attitude: the nearer sample's), or None outside."""
+        if self.interpolate_kernel is not None:
+            s, n = self.span()
+            out = np.empty(15)
+            if not self.interpolate_kernel(self.hist, s, n, float(t_gps), out):
+                return None
+            return out[0:3], out[3:6], out[6:15].reshape(3, 3)
         rows = self.rows()
         if not len(rows) or t_gps > rows[-1, 0] or t_gps < rows[0, 0]:
             return None
