@@ -214,8 +214,8 @@ class ImuPath:
                 self._P_checked = P
             ws = self._ws
             ws[S.KTAU] = kf._last_tau
-            f = F.kernels().imu_step(ws, self._hist.hist, P, kf._phi, kf._Qd, kf._kernel_tail_q, kf._kernel_work,
-                                     kf._kernel_work_cc, s.t_gps, s.dt_s, s.dtheta_b, s.dv_b, False)
+            f = F.kernels().imu_step(ws, self._hist.hist, P, kf._kernel_buf, s.t_gps, s.dt_s, s.dtheta_b, s.dv_b,
+                                     False)
             if f == F.OK:
                 if self._pending or self.cfg.nhc_enabled:
                     self._after_step(s.dt_s)
@@ -245,8 +245,7 @@ class ImuPath:
             if not kf.P.flags.c_contiguous or kf.P.dtype != np.float64:
                 kf.P = np.ascontiguousarray(kf.P, dtype=float)
             self._ws[S.KTAU] = kf._last_tau
-            F.kernels().imu_run(self._ws, self._hist.hist, kf.P, kf._phi, kf._Qd, kf._kernel_tail_q,
-                                kf._kernel_work, kf._kernel_work_cc, t, tau, th, dv, i, math.inf, out)
+            F.kernels().imu_run(self._ws, self._hist.hist, kf.P, kf._kernel_buf, t, tau, th, dv, i, math.inf, out)
             i, f = int(out[0]), int(out[1])
             if f == F.STILL_DUE:
                 if self._still_due(float(tau[i - 1])) and self.ground_mode:
@@ -358,8 +357,8 @@ class ImuPath:
             if not kf.P.flags.c_contiguous or kf.P.dtype != np.float64:
                 kf.P = np.ascontiguousarray(kf.P, dtype=float)
             ws[S.KTAU] = kf._last_tau
-            f = F.kernels().imu_step(ws, self._hist.hist, kf.P, kf._phi, kf._Qd, kf._kernel_tail_q,
-                                     kf._kernel_work, kf._kernel_work_cc, s.t_gps, s.dt_s, s.dtheta_b, s.dv_b, True)
+            f = F.kernels().imu_step(ws, self._hist.hist, kf.P, kf._kernel_buf, s.t_gps, s.dt_s, s.dtheta_b, s.dv_b,
+                                     True)
             if f in (F.OK, F.STILL_DUE):
                 break
             self._fix_prerequisite(f, tau)

@@ -42,6 +42,7 @@ from scipy.linalg.lapack import dpotrf as _potrf, dtrtri as _trtri, dtrtrs as _t
 from .chi2 import chi2_ppf
 
 from . import imu_kernel
+from .imu_fused import FILTER_BUFFER_SCRATCH
 from .earth import OMEGA_IE_RADPS, skew
 from .state_layout import DEFAULT_LAYOUT, DT_IMU, StateLayout, delete_block, insert_block, isb_block_name
 
@@ -152,7 +153,24 @@ class ErrorStateKalmanFilter:
         L = self.layout
         nd = L.n if L.n <= self.DENSE_MAX_STATES else L.n_core
         self._n_dense = nd
-        self._phi = np.eye(nd)     # constant entries stay; the rest is rewritten every step
+        # the compiled step's matrices in one buffer (numba unboxes every array argument, ~0.1 us
+        # each, at every IMU sample): nd, then Phi, Qd (nd x nd), the identity tail's noise
+        # (n - nd), a work buffer (nd x n) and another (nd x nd), each a view below, and the step's
+        # scratch (companion.nav.imu_fused.unpack_filter_buffer reads the same layout)
+        n = L.n
+        buf = self._kernel_buf = np.zeros(1 + 3 * nd * nd + (n - nd) + nd * n + FILTER_BUFFER_SCRATCH)
+        buf[0] = nd
+        o = 1
+        self._phi = buf[o:o + nd * nd].reshape(nd, nd)
+        o += nd * nd
+        self._Qd = buf[o:o + nd * nd].reshape(nd, nd)
+        o += nd * nd
+        self._kernel_tail_q = buf[o:o + n - nd]
+        o += n - nd
+        self._kernel_work = buf[o:o + nd * n].reshape(nd, n)
+        o += nd * n
+        self._kernel_work_cc = buf[o:o + nd * nd].reshape(nd, nd)
+        self._phi[...] = np.eye(nd)     # constant entries stay; the rest is rewritten every step
         self._phi_T = self._phi.T                   # a view: follows every in-place write to Phi
         self._phi_att_att = self._phi[L.att, L.att]
         self._phi_pos_vel = self._phi[L.pos, L.vel]
@@ -161,7 +179,6 @@ class ErrorStateKalmanFilter:
         self._phi_vel_vel = self._phi[L.vel, L.vel]
         self._phi_att_bg = self._phi[L.att, L.bg]
         self._phi_vel_ba = self._phi[L.vel, L.ba]
-        self._Qd = np.zeros((nd, nd))
         self._grad_tau = None
         self._last_tau = -1.0
         # random-walk PSD of every identity state (indices n_core .. n-1)
@@ -170,11 +187,8 @@ class ErrorStateKalmanFilter:
             self._tail_psd[b.start - L.n_core:b.stop - L.n_core] = self._block_psd.get(b.name, 0.0)
         self._tail_q_scalar = []
         self._views_of = None
-        # the compiled kernel's arguments: block starts, the identity tail's noise, a work buffer
+        # the compiled kernel's block starts
         self._kernel_idx = (L.att.start, L.vel.start, L.ba.start, L.bg.start)
-        self._kernel_tail_q = np.zeros(L.n - nd)
-        self._kernel_work = np.empty((nd, L.n))
-        self._kernel_work_cc = np.empty((nd, nd))
 
     def _set_interval(self, tau: float) -> None:
         """Entries of Phi and Qd that depend only on the interval length (constant at a fixed IMU rate)."""
@@ -195,13 +209,13 @@ class ErrorStateKalmanFilter:
         d[nc:] = self._tail_psd[:nd - nc] * tau                 # identity blocks in the dense group
         Qd = np.diag(d)
         Qd[L.clk, L.drift] = Qd[L.drift, L.clk] = q.clock_drift_psd_m2ps3 * tau ** 2 / 2.0
-        self._Qd = Qd
+        self._Qd[...] = Qd
         # identity blocks outside the dense group: their process noise alone
         self._tail_q = self._tail_psd * tau
         nz = np.flatnonzero(self._tail_q) if nd < L.n else []
         self._tail_q_scalar = ([((nc + int(i), nc + int(i)), float(self._tail_q[i])) for i in nz]
                                if len(nz) <= self._SCALAR_TAIL_NOISE_MAX else None)
-        self._kernel_tail_q = np.ascontiguousarray(self._tail_q[nd - nc:])
+        self._kernel_tail_q[...] = self._tail_q[nd - nc:]
         self._last_tau = tau
         self._grad_tau = None  # the gravity-gradient block scales with tau: rewrite it
 

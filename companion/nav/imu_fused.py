@@ -32,15 +32,38 @@ INTERVAL = 5         # a new interval length: Phi and Qd constants
 HIST_FULL = 6        # the history ring needs more rows
 STILL_DUE = 16       # (bit, after a completed step) the stillness window is due for its test
 
+#: the filter buffer's scratch (unpack_filter_buffer): the state before and after a step
+FILTER_BUFFER_SCRATCH = 30
+
 # the compiled callees (imu_kernel.strapdown / propagate and the functions below), module globals
 # that numba resolves when it compiles imu_step / imu_run (set by ensure_compiled)
-_strapdown = _propagate = _screen_quick = _screen_commit = _imu_step = None
+_strapdown = _propagate = _screen_quick = _screen_commit = _unpack = _imu_step = None
 _compiled = None
 
 
-def imu_step(ws, hist, P, phi, Qd, tail_q, work, work_cc, t, tau_s, th, dv, override):
+def unpack_filter_buffer(kbuf, n):
+    """Views of the filter's buffer (companion.nav.filter.ErrorStateKalmanFilter._kernel_buf) for a
+    state of ``n``: Phi, Qd (nd x nd), the identity tail's noise (n - nd), work (nd x n), work_cc
+    (nd x nd), the step's scratch (FILTER_BUFFER_SCRATCH); nd is its first element."""
+    nd = int(kbuf[0])
+    o = 1
+    phi = kbuf[o:o + nd * nd].reshape((nd, nd))
+    o += nd * nd
+    Qd = kbuf[o:o + nd * nd].reshape((nd, nd))
+    o += nd * nd
+    tail_q = kbuf[o:o + n - nd]
+    o += n - nd
+    work = kbuf[o:o + nd * n].reshape((nd, n))
+    o += nd * n
+    work_cc = kbuf[o:o + nd * nd].reshape((nd, nd))
+    o += nd * nd
+    return phi, Qd, tail_q, work, work_cc, kbuf[o:o + FILTER_BUFFER_SCRATCH]
+
+
+def imu_step(ws, hist, P, kbuf, t, tau_s, th, dv, override):
     """One sample ending at ``t`` (increments ``th``, ``dv`` over ``tau_s``).  ``override``: the
-    screen and gap tests were done in Python, which put the interval to integrate in ws[OV_*]."""
+    screen and gap tests were done in Python, which put the interval to integrate in ws[OV_*].
+    ``kbuf``: the filter's Phi, Qd and work buffers (:func:`unpack_filter_buffer`)."""
     t_prev = ws[S.T]
     a0, a1, a2 = th[0], th[1], th[2]
     b0, b1, b2 = dv[0], dv[1], dv[2]
@@ -87,13 +110,15 @@ def imu_step(ws, hist, P, phi, Qd, tail_q, work, work_cc, t, tau_s, th, dv, over
     bx = b0 - ws[S.BA] * tau
     by = b1 - ws[S.BA + 1] * tau
     bz = b2 - ws[S.BA + 2] * tau
-    r0 = ws[S.R:S.R + 3].copy()
-    v0 = ws[S.V:S.V + 3].copy()
-    C0 = np.empty((3, 3))
+    phi, Qd, tail_q, work, work_cc, scratch = _unpack(kbuf, P.shape[0])
+    # the state before and after the step in the buffer's scratch (views: no allocation per sample)
+    r0, v0, C0 = scratch[0:3], scratch[3:6], scratch[6:15].reshape((3, 3))
+    r1, v1, C1 = scratch[15:18], scratch[18:21], scratch[21:30].reshape((3, 3))
     for i in range(3):
+        r0[i] = ws[S.R + i]
+        v0[i] = ws[S.V + i]
         for j in range(3):
             C0[i, j] = ws[S.C + 3 * i + j]
-    r1, v1, C1 = np.empty(3), np.empty(3), np.empty((3, 3))
     fx, fy, fz = _strapdown(r0, v0, C0, ax, ay, az, bx, by, bz, tau, gx, gy, gz, ws[S.TURN_CO], ws[S.TURN_SI],
                             OMEGA_IE_RADPS, r1, v1, C1)
     i_pos, i_vel = int(ws[S.I_POS]), int(ws[S.I_VEL])
@@ -186,7 +211,7 @@ def screen_commit(ws, w0, w1, w2, f0, f1, f2):
         ws[S.SCR_GOOD + i] = ws[S.SCR_PREV + i]
 
 
-def imu_run(ws, hist, P, phi, Qd, tail_q, work, work_cc, t, tau, th, dv, i0, t_stop, out):
+def imu_run(ws, hist, P, kbuf, t, tau, th, dv, i0, t_stop, out):
     """:func:`imu_step` over samples i0.. of the arrays (t, tau: (N,); th, dv: (N, 3)) while
     t[i] <= t_stop; stops after a STILL_DUE step or before a sample with another flag.  out[0]:
     the index of the next sample to process, out[1]: the flag that stopped the run (OK: the
@@ -195,7 +220,7 @@ def imu_run(ws, hist, P, phi, Qd, tail_q, work, work_cc, t, tau, th, dv, i0, t_s
     i = i0
     out[1] = OK
     while i < n and t[i] <= t_stop:
-        f = _imu_step(ws, hist, P, phi, Qd, tail_q, work, work_cc, t[i], tau[i], th[i], dv[i], False)
+        f = _imu_step(ws, hist, P, kbuf, t[i], tau[i], th[i], dv[i], False)
         if f == OK:
             i += 1
             continue
@@ -295,7 +320,7 @@ class _Kernels:
 def ensure_compiled():
     """The compiled imu_step / imu_run (compiled, or loaded from numba's disk cache, at their first
     call); None without the kernels (:func:`.imu_kernel.compiled`)."""
-    global _strapdown, _propagate, _screen_quick, _screen_commit, _imu_step, _compiled
+    global _strapdown, _propagate, _screen_quick, _screen_commit, _unpack, _imu_step, _compiled
     if _compiled is not None:
         return _compiled
     k = imu_kernel.compiled()
@@ -305,6 +330,7 @@ def ensure_compiled():
     jit = numba.njit(**imu_kernel.jit_options(numba))
     _strapdown, _propagate = k.strapdown, k.propagate
     _screen_quick, _screen_commit = jit(screen_quick), jit(screen_commit)
+    _unpack = jit(unpack_filter_buffer)
     _imu_step = jit(imu_step)
     _compiled = _Kernels(_imu_step, jit(imu_run), jit(still_window_std), jit(history_correct),
                          jit(history_interpolate))
