@@ -122,7 +122,8 @@ def test_stillness_statistics_equal_numpy_on_wrapped_rings():
 def test_history_kernels_equal_numpy():
     """The compiled history look-up and correction (imu_fused.history_interpolate, history_correct)
     against InsHistory's numpy versions: interpolation to the bit inside, at a tag and at both ends,
-    None outside; the correction to rounding (a 3x3 product summed in its own order)."""
+    None outside; the correction to the bit too (a replay runs the path its process has, whichever
+    the live service ran)."""
     from companion.nav import imu_fused as F
     from companion.nav import nav_state as S
     kernels = F.ensure_compiled()
@@ -153,7 +154,9 @@ def test_history_kernels_equal_numpy():
                 assert np.array_equal(x, y)
     assert sum(ref.interpolate(tp) is None for tp in probes) == 2
     R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    before = ref.rows()[:, 7:16].reshape(-1, 3, 3).copy()
     for h in hists:
         h.correct(np.array([0.1, -0.2, 0.3]), np.array([0.01, 0.02, -0.03]), R)
-    np.testing.assert_allclose(fast.rows(), ref.rows(), rtol=1e-15, atol=1e-12)
-    assert np.array_equal(fast.rows()[:, :7], ref.rows()[:, :7])   # sums of floats: the same bits
+    assert np.array_equal(fast.rows(), ref.rows())
+    # and the rotation is R_e C_b_e (against np.matmul, to rounding)
+    np.testing.assert_allclose(ref.rows()[:, 7:16].reshape(-1, 3, 3), np.matmul(R, before), rtol=0, atol=1e-12)

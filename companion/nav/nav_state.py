@@ -128,8 +128,12 @@ class InsHistory:
         if dv_e is not None:
             rows[:, V:V + 3] += dv_e
         if R_e is not None:
+            # R_e C row by row as three products summed in order, as the compiled version does
+            # (np.matmul may sum in another order or fuse: a replay would then differ by rounding)
             Cs = rows[:, C:C + 9].reshape(-1, 3, 3)
-            rows[:, C:C + 9] = np.matmul(R_e, Cs).reshape(-1, 9)
+            Rk = np.asarray(R_e, float)[None, :, :, None]          # (1, 3, 3, 1): R[i, k]
+            rows[:, C:C + 9] = (Rk[:, :, 0] * Cs[:, 0:1, :] + Rk[:, :, 1] * Cs[:, 1:2, :]
+                                + Rk[:, :, 2] * Cs[:, 2:3, :]).reshape(-1, 9)
 
     def set_last(self) -> None:
         """The newest row := the state in ws."""
