@@ -260,7 +260,7 @@ def _warm_up_engine() -> None:
     dv = np.array([0.0, 0.0, -0.049])
     eng.process_imu(ImuSample(0.005, 0.005, np.zeros(3), dv))
     eng.process_imu_batch(np.array([0.01, 0.015]), np.full(2, 0.005), np.zeros((2, 3)), np.tile(dv, (2, 1)))
-    # the stillness statistics and the history correction, called from Python when due
+    # the stillness statistics and the history correction and look-up, called from Python when due
     from . import imu_fused
     imu_fused.kernels().still_window_std(eng._ws, 2, np.zeros(5))
     eng._hist.correct(np.zeros(3), np.zeros(3), np.eye(3))

@@ -45,8 +45,8 @@ class StillnessDetector:
         return max(2, int(round(self.window_s / tau)))
 
     def evaluate(self, w: np.ndarray) -> bool:
-        """The test on one full window (rows: raw dtheta 3, dv 3, tau; oldest first), shared with
-        the compiled path's ring (companion.nav.imu_fused)."""
+        """The test on one full window (rows: raw dtheta 3, dv 3, tau; oldest first): its statistics
+        in numpy, then :meth:`decide` (the compiled path computes the same numbers on its ring)."""
         rates = w[:, 0:6] / w[:, 6:7]
         std = rates.std(axis=0)
         return self.decide(float(std[0:3].max()), float(std[3:6].max()), rates[:, 0:3].mean(axis=0), len(w))
