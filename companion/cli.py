@@ -23,9 +23,12 @@ def _add_gnss(sub) -> None:
                    help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides; GLONASS's for "
                         "--mode rtk --sys with R); may be repeated; "
                         "required with a RINEX rover, optional with a .ubx one")
-    p.add_argument("--base", help="base station RINEX observation file (for --mode dgps and rtk); with rtk also an "
-                                  "RTCM 3 capture (MSM4-7 or 1004/1012, its 1005/1006 position, ephemerides)")
-    p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header)")
+    p.add_argument("--base", help="base station RINEX observation file or u-blox capture (RXM-RAWX, RXM-SFRBX) for "
+                                  "--mode dgps and rtk; with rtk also an RTCM 3 capture (MSM4-7 or 1004/1012, its "
+                                  "1005/1006 position, ephemerides)")
+    p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header; a u-blox base "
+                                      "capture has none); rtk: 'spp' = the median of the base's own single-point "
+                                      "solutions (metres off; the baseline stays exact)")
     p.add_argument("--mode", choices=["spp", "dgps", "rtk"], default="spp",
                    help="rtk: L1+L2 carrier phase, integer ambiguities (LAMBDA), fix-and-hold")
     p.add_argument("--direction", choices=["forward", "backward", "combined"], default="forward",

@@ -277,7 +277,7 @@ def test_f9p_capture_read_directly_matches_its_rinex(files, tmp_path):
     are convbin's: with the same navigation file and the systems convbin's RINEX holds (G, C, J:
     convbin 2.4.3 reads no F9P Galileo SFRBX), iono-free, the positions of the two paths agree to
     a few millimetres (RINEX rounds to 1 mm and has no lock times for the carrier smoothing)."""
-    from companion.gnss.postprocess import load_ubx_rover
+    from companion.gnss.postprocess import load_ubx_capture
 
     out = tmp_path / "ubx.json"
     r = subprocess.run([sys.executable, "-m", "companion", "gnss", "--rover", str(DATA / "20230919-114418.ubx"),
@@ -288,7 +288,7 @@ def test_f9p_capture_read_directly_matches_its_rinex(files, tmp_path):
     assert direct["solved"] == direct["epochs"] == 36
     assert direct["constellations_used"] == 4 and direct["satellites_by_system"]["E"]["min"] >= 4
     store = EphemerisStore(read_rinex_nav(files / "f9p.nav", "GCJ"))
-    _, ubx_epochs, _ = load_ubx_rover(DATA / "20230919-114418.ubx", "GCJ", EphemerisStore())
+    _, ubx_epochs, _ = load_ubx_capture(DATA / "20230919-114418.ubx", "GCJ", EphemerisStore())
     _, rinex_epochs = read_rinex_obs(files / "f9p.obs", "GCJ")
     opts = ProcessOptions(signal="IF", systems="GCJ")
     a, b = process(ubx_epochs, store, opts), process(rinex_epochs, store, opts)

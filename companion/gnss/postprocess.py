@@ -110,6 +110,21 @@ def process(rover_epochs, store: EphemerisStore, opts: ProcessOptions, *, klobuc
     return out
 
 
+def median_spp_position(epochs, store: EphemerisStore, systems: str, klobuchar=None) -> tuple[np.ndarray, int, np.ndarray]:
+    """A receiver's position from its own observations: the median of its single-point solutions
+    (carrier-smoothed, RAIM) over ``epochs`` (RTKLIB's "average of single" base position, robust
+    to a few bad epochs).  Returns (ECEF m, solutions used, their north/east/down standard
+    deviations m); GnssProcessingError when none solves."""
+    opts = ProcessOptions(mode="spp", systems=systems, signal="L1C")
+    sols = [s for s in process(epochs, store, opts, klobuchar=klobuchar or KLOBUCHAR_DEFAULT) if s is not None]
+    if not sols:
+        raise GnssProcessingError(f"no single-point solution of the base in {len(epochs)} epochs ({systems}): "
+                                  f"give --base-xyz X,Y,Z")
+    r = np.array([s.r_e for s in sols])
+    med = np.median(r, axis=0)
+    return med, len(sols), np.array([ecef_to_ned(x, med) for x in r]).std(axis=0)
+
+
 def statistics(solutions, truth_e) -> dict:
     """rms_3d_m, rms_h_m, rms_v_m, p95_3d_m, max_3d_m, mean_ned_m over the solved epochs."""
     err = np.array([ecef_to_ned(s.r_e, truth_e) for s in solutions if s is not None])
@@ -163,10 +178,11 @@ def epochs_of(msgs, systems: str, source: str) -> list:
     return out
 
 
-def load_ubx_rover(path: str, wanted: str | None, store: EphemerisStore):
+def load_ubx_capture(path: str, wanted: str | None, store: EphemerisStore, source: str = "rover"):
     """Observations (RXM-RAWX) and broadcast ephemerides (RXM-SFRBX: GPS/QZSS LNAV, Galileo I/NAV,
-    BeiDou D1/D2) of a u-blox capture, decoded as the service decodes its receiver's stream.
-    Returns (header-like dict without a marker position or antenna delta, epochs, Klobuchar)."""
+    BeiDou D1/D2, added to ``store``) of a u-blox capture, decoded as the service decodes its
+    receiver's stream; the epochs tagged as ``source`` ('rover' or 'base').  Returns (header-like
+    dict without a marker position or antenna delta, epochs, Klobuchar)."""
     from ..io.ubx import decode_ubx_file
     from ..messages import GpsEphemeris
     try:
@@ -179,7 +195,7 @@ def load_ubx_rover(path: str, wanted: str | None, store: EphemerisStore):
         if isinstance(m, GpsEphemeris) and m.sat[0] in keep:
             store.add(m)
             n_eph += 1
-    epochs = epochs_of(msgs, keep, "rover")
+    epochs = epochs_of(msgs, keep, source)
     log.info("%s: %d RXM-RAWX epochs, %d ephemerides from RXM-SFRBX", path, len(epochs), n_eph)
     klob = getattr(getattr(dec, "ephemerides", None), "klobuchar", None)
     return {"approx_position_e": None, "antenna_delta_hen_m": None}, epochs, klob
@@ -194,7 +210,7 @@ def _load(args):
     klob = None
     ubx_rover = None
     if is_ubx_capture(args.rover):
-        ubx_rover = load_ubx_rover(args.rover, wanted, store)
+        ubx_rover = load_ubx_capture(args.rover, wanted, store)
         klob = ubx_rover[2]
     elif not args.nav:
         raise GnssProcessingError("--nav is required with a RINEX rover file (a u-blox .ubx capture brings "
@@ -230,16 +246,20 @@ def _load(args):
     if args.mode == "dgps":
         if not args.base:
             raise GnssProcessingError("--mode dgps needs --base")
-        try:
-            bhdr, base_epochs = read_rinex_obs(args.base, systems)
-        except (ValueError, IndexError) as exc:
-            raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
+        if is_ubx_capture(args.base):        # its ephemerides join the rover's
+            bhdr, base_epochs, _ = load_ubx_capture(args.base, systems, store, source="base")
+        else:
+            try:
+                bhdr, base_epochs = read_rinex_obs(args.base, systems)
+            except (ValueError, IndexError) as exc:
+                raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
         if args.base_xyz:
             r_b = parse_xyz(args.base_xyz, "--base-xyz")
         elif bhdr["approx_position_e"] is not None:
             r_b = bhdr["approx_position_e"]
         else:
-            raise GnssProcessingError("base position unknown: give --base-xyz (header has no APPROX POSITION XYZ)")
+            raise GnssProcessingError("base position unknown: give --base-xyz X,Y,Z (the base file has none: no "
+                                      "APPROX POSITION XYZ, or a u-blox capture)")
         r_b = np.asarray(r_b, float)
         base = BaseStationPosition(station_id=0, r_e=r_b + antenna_delta_e(r_b, bhdr.get("antenna_delta_hen_m")))
         t_r = {round(e.t_gps) for e in rover}

@@ -1,5 +1,5 @@
-"""``companion gnss --mode rtk``: the rover (RINEX or a u-blox capture) and the base (RINEX or an
-RTCM 3 capture) read, the systems chosen (``--sys`` auto adds GLONASS where its integers can be
+"""``companion gnss --mode rtk``: the rover (RINEX or a u-blox capture) and the base (RINEX, an
+RTCM 3 capture or a u-blox capture; its position given, in the file, or ``--base-xyz spp``) read, the systems chosen (``--sys`` auto adds GLONASS where its integers can be
 fixed), :func:`companion.gnss.rtk_post.solve_rtk_epochs` run, and the summary, JSON, ``.pos``,
 tracks and plot written as the SPP / DGPS modes write theirs (:mod:`companion.gnss.postprocess`)."""
 from __future__ import annotations
@@ -15,21 +15,24 @@ from ..messages import SECONDS_PER_WEEK, BaseStationPosition
 from ..nav.earth import ecef_to_ned
 from .ephemeris_store import EphemerisStore
 from .pos_format import write_pos
-from .postprocess import (GnssProcessingError, epoch_progress, epochs_of, load_ubx_rover, parse_systems, parse_xyz,
-                          satellites_by_system, statistics, write_plot, write_tracks)
-from .rinex import read_rinex_nav, read_rinex_obs
+from .postprocess import (GnssProcessingError, epoch_progress, epochs_of, load_ubx_capture, median_spp_position,
+                          parse_systems, parse_xyz, satellites_by_system, statistics, write_plot, write_tracks)
+from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
 from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, glonass_ar_of, pos_records, solve_rtk_epochs
 
 
 def _rtk_base(path: str, systems: str, week: int):
-    """(header, epochs, ephemerides) of an RTK base: a RINEX observation file, or an RTCM 3
-    capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its
-    position, broadcast ephemerides, GLONASS's 1020 too) decoded as the service decodes its NTRIP
-    stream; ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only)."""
+    """(header, epochs, ephemerides, Klobuchar or None) of an RTK base: a RINEX observation file,
+    a u-blox capture (as a rover's: no position in it), or an RTCM 3 capture (MSM4-7 or 1004/1012
+    observations, the 1005/1006 antenna reference point as its position, broadcast ephemerides,
+    GLONASS's 1020 too) decoded as the service decodes its NTRIP stream; ``week``: the GPS week
+    of the rover's first epoch (MSM carries the time of week only)."""
+    if is_ubx_capture(path):
+        return _ubx_epochs(path, systems, "base")
     if not is_rtcm_capture(path):
         hdr, epochs = read_rinex_obs(path, systems)
-        return hdr, epochs, []
+        return hdr, epochs, [], None
     from ..io.rtcm import decode_rtcm_file          # the RTCM stack only when a capture is read
     from ..messages import GpsEphemeris
     try:
@@ -44,20 +47,39 @@ def _rtk_base(path: str, systems: str, week: int):
     hdr = {"approx_position_e": np.asarray(arp[-1], float) if arp else None, "antenna_delta_hen_m": None,
            "obs_types": {}}
     glonass = list(dec.glonass_history.values()) if "R" in systems else []
-    return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass
+    return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass, None
 
 
 def _rtk_rover(path: str, systems: str):
-    """(header, epochs, ephemerides) of an RTK rover: a RINEX observation file, or a u-blox capture
-    (RXM-RAWX observations as the service decodes them, RXM-SFRBX ephemerides)."""
+    """(header, epochs, ephemerides, Klobuchar or None) of an RTK rover: a RINEX observation file,
+    or a u-blox capture."""
     if not is_ubx_capture(path):
         hdr, epochs = read_rinex_obs(path, systems)
-        return hdr, epochs, []
+        return hdr, epochs, [], None
+    return _ubx_epochs(path, systems, "rover")
+
+
+def _ubx_epochs(path: str, systems: str, source: str):
+    """(header, epochs, ephemerides, Klobuchar) of a u-blox capture: RXM-RAWX observations as the
+    service decodes them, RXM-SFRBX ephemerides."""
     store = EphemerisStore()
-    hdr, epochs, _ = load_ubx_rover(path, systems, store)
+    hdr, epochs, klob = load_ubx_capture(path, systems, store, source=source)
     if not epochs:
         raise GnssProcessingError(f"no RXM-RAWX epoch of the selected systems ({systems}) in {path}")
-    return hdr, epochs, [e for sat in store.sats for e in store.all(sat)]
+    return hdr, epochs, [e for sat in store.sats for e in store.all(sat)], klob
+
+
+def _base_from_spp(base, ephs, systems: str, klobuchar) -> np.ndarray:
+    """``--base-xyz spp``: the base's position from its own single-point solutions (the median;
+    metres off, which the rover's absolute positions inherit while the baseline does not)."""
+    from ..messages import GpsEphemeris
+    store = EphemerisStore([e for e in ephs if isinstance(e, GpsEphemeris)])
+    kepler = "".join(c for c in systems if c in "GECJ")
+    r, n, sd = median_spp_position(base, store, kepler, klobuchar)
+    print(f"base position from its own {n} single-point solutions (median, {kepler}): "
+          f"{r[0]:.3f},{r[1]:.3f},{r[2]:.3f} (spread north/east/down {sd[0]:.1f}/{sd[1]:.1f}/{sd[2]:.1f} m); "
+          f"the rover positions carry its error, the baseline does not")
+    return r
 
 
 def _auto_rtk_systems(cfg, hr: dict, hb: dict) -> str:
@@ -74,12 +96,14 @@ def run_rtk(args) -> int:
     for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
-    if not args.nav and not is_ubx_capture(args.rover) and not (args.base and is_rtcm_capture(args.base)):
-        raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx rover or an RTCM 3 base can bring the "
+    if not args.nav and not is_ubx_capture(args.rover) and not (args.base and (is_rtcm_capture(args.base)
+                                                                               or is_ubx_capture(args.base))):
+        raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx capture or an RTCM 3 base can bring the "
                                   "ephemerides)")
     if not args.base:
         raise GnssProcessingError("--mode rtk needs --base")
-    base_xyz = parse_xyz(args.base_xyz, "--base-xyz") if args.base_xyz else None
+    base_spp = (args.base_xyz or "").strip().lower() == "spp"
+    base_xyz = parse_xyz(args.base_xyz, "--base-xyz") if args.base_xyz and not base_spp else None
     truth = parse_xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
     cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"))
     direction = getattr(args, "direction", "forward")
@@ -87,10 +111,11 @@ def run_rtk(args) -> int:
     if wanted:
         cfg = dataclasses.replace(cfg, systems=wanted)
     try:
-        hr, rover, ephs = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS)
+        hr, rover, ephs, klob = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS)
         if not rover:
             raise GnssProcessingError(f"no observation epochs in {args.rover}")
-        hb, base, base_ephs = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS, int(rover[0].t_gps // SECONDS_PER_WEEK))
+        hb, base, base_ephs, base_klob = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS,
+                                                   int(rover[0].t_gps // SECONDS_PER_WEEK))
         if not wanted:
             cfg = dataclasses.replace(cfg, systems=_auto_rtk_systems(cfg, hr, hb))
         ephs = [e for e in ephs + base_ephs if e.sat[0] in cfg.systems]
@@ -99,6 +124,9 @@ def run_rtk(args) -> int:
         if not ephs and not args.nav:
             raise GnssProcessingError(f"no ephemeris of the selected systems ({cfg.systems}): neither capture "
                                       f"brings them (RXM-SFRBX, RTCM 1019/1042/1044/1045/1046); give --nav")
+        if base_spp:
+            navs_klob = next((k for k in map(read_rinex_nav_header_iono, args.nav or []) if k), None)
+            base_xyz = _base_from_spp(base, ephs, cfg.systems, base_klob or klob or navs_klob)
         # an RTK epoch costs milliseconds (tens with four systems): a minute of 1-Hz data is worth a progress line
         sols, info = solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=cfg,
                                       progress=epoch_progress("rtk", min_epochs=60), direction=direction)
@@ -113,7 +141,8 @@ def run_rtk(args) -> int:
                "paired_epochs": info["paired_epochs"], "solved": len(sols), "fixed": n_fix,
                "elevation_mask_deg": args.elevation_mask_deg, "systems": cfg.systems,
                "satellites_by_system": by_sys, "base_epochs": info["base_epochs"],
-               "max_base_age_s": info["max_base_age_s"], "glonass_ar": info["glonass_ar"], "counters": info["counters"]}
+               "max_base_age_s": info["max_base_age_s"], "base_antenna_e": info["base_antenna_e"],
+               "glonass_ar": info["glonass_ar"], "counters": info["counters"]}
     if truth is not None:
         summary.update(statistics(sols, truth))
         fixed = [s for s in sols if s.quality == 1]

@@ -75,8 +75,10 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     base_marker = None if given is None else np.asarray(given, dtype=float)
     if base_marker is None or base_marker.shape != (3,) or not np.all(np.isfinite(base_marker)) \
             or not np.any(base_marker):
-        raise ValueError("the base position is neither given (--base-xyz) nor in the base file (a RINEX header's "
-                         "APPROX POSITION XYZ, an RTCM 1005/1006)")
+        raise ValueError("the base position is neither given (--base-xyz X,Y,Z) nor in the base file (a RINEX "
+                         "header's APPROX POSITION XYZ, an RTCM 1005/1006; a u-blox capture has none); --base-xyz "
+                         "spp takes the median of the base's own single-point solutions (metres off: the rover's "
+                         "positions inherit that, the baseline does not)")
     base_ant = base_marker + antenna_delta_e(base_marker, hb.get("antenna_delta_hen_m"))
     config, glonass_ar = glonass_ar_of(config, hr, hb)
     pairs = pair_epochs(rover, base, tol_s=config.max_base_age_s)
