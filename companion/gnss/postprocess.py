@@ -212,9 +212,14 @@ def _load(args):
     if is_ubx_capture(args.rover):
         ubx_rover = load_ubx_capture(args.rover, wanted, store)
         klob = ubx_rover[2]
-    elif not args.nav:
+    elif not args.nav and not (args.mode == "dgps" and args.base and is_ubx_capture(args.base)):
         raise GnssProcessingError("--nav is required with a RINEX rover file (a u-blox .ubx capture brings "
                                   "its own ephemerides in RXM-SFRBX)")
+    ubx_base = None
+    if args.mode == "dgps" and args.base and is_ubx_capture(args.base):
+        # its ephemerides join the rover's before the systems are chosen
+        ubx_base = load_ubx_capture(args.base, wanted, store, source="base")
+        klob = klob or ubx_base[2]
     for p in args.nav or []:
         try:
             for e in read_rinex_nav(p, wanted or SUPPORTED_SYSTEMS):
@@ -246,8 +251,9 @@ def _load(args):
     if args.mode == "dgps":
         if not args.base:
             raise GnssProcessingError("--mode dgps needs --base")
-        if is_ubx_capture(args.base):        # its ephemerides join the rover's
-            bhdr, base_epochs, _ = load_ubx_capture(args.base, systems, store, source="base")
+        if ubx_base is not None:
+            bhdr = ubx_base[0]
+            base_epochs = epochs_of(ubx_base[1], systems, "base")     # cut to the systems chosen
         else:
             try:
                 bhdr, base_epochs = read_rinex_obs(args.base, systems)
