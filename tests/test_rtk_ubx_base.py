@@ -59,6 +59,10 @@ def test_ubx_base_without_a_position_says_how_to_give_one(rinex, capsys):
     assert main(["gnss", "--rover", str(obs), "--base", str(CAPTURE), "--mode", "rtk"]) == 2
     err = capsys.readouterr().err
     assert "--base-xyz X,Y,Z" in err and "--base-xyz spp" in err
+    assert main(["gnss", "--rover", str(obs), "--base", str(CAPTURE), "--mode", "dgps"]) == 2
+    assert "--base-xyz X,Y,Z" in capsys.readouterr().err
+    assert main(["gnss", "--rover", str(obs), "--base", str(CAPTURE), "--mode", "dgps", "--base-xyz", "spp"]) == 2
+    assert "only with --mode rtk" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("with_nav", [False, True], ids=["base-ephemerides", "nav-file"])

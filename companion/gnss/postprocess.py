@@ -259,6 +259,9 @@ def _load(args):
                 bhdr, base_epochs = read_rinex_obs(args.base, systems)
             except (ValueError, IndexError) as exc:
                 raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
+        if args.base_xyz and args.base_xyz.strip().lower() == "spp":
+            raise GnssProcessingError("--base-xyz spp: only with --mode rtk (DGPS corrections from a base position "
+                                      "metres off shift the rover by as much); give --base-xyz X,Y,Z")
         if args.base_xyz:
             r_b = parse_xyz(args.base_xyz, "--base-xyz")
         elif bhdr["approx_position_e"] is not None:

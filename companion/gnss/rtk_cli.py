@@ -1,7 +1,8 @@
 """``companion gnss --mode rtk``: the rover (RINEX or a u-blox capture) and the base (RINEX, an
-RTCM 3 capture or a u-blox capture; its position given, in the file, or ``--base-xyz spp``) read, the systems chosen (``--sys`` auto adds GLONASS where its integers can be
-fixed), :func:`companion.gnss.rtk_post.solve_rtk_epochs` run, and the summary, JSON, ``.pos``,
-tracks and plot written as the SPP / DGPS modes write theirs (:mod:`companion.gnss.postprocess`)."""
+RTCM 3 capture or a u-blox capture; its position given, in the file, or ``--base-xyz spp``) read,
+the systems chosen (``--sys`` auto adds GLONASS where its integers can be fixed),
+:func:`companion.gnss.rtk_post.solve_rtk_epochs` run, and the summary, JSON, ``.pos``, tracks and
+plot written as the SPP / DGPS modes write theirs (:mod:`companion.gnss.postprocess`)."""
 from __future__ import annotations
 
 import dataclasses
