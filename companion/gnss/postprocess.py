@@ -208,15 +208,15 @@ def _load(args):
     wanted = parse_systems(getattr(args, "sys", None))
     store = EphemerisStore()
     klob = None
-    ubx_rover = None
+    ubx_rover = ubx_base = None
+    base_is_ubx = args.mode == "dgps" and bool(args.base) and is_ubx_capture(args.base)
     if is_ubx_capture(args.rover):
         ubx_rover = load_ubx_capture(args.rover, wanted, store)
         klob = ubx_rover[2]
-    elif not args.nav and not (args.mode == "dgps" and args.base and is_ubx_capture(args.base)):
+    elif not args.nav and not base_is_ubx:
         raise GnssProcessingError("--nav is required with a RINEX rover file (a u-blox .ubx capture brings "
                                   "its own ephemerides in RXM-SFRBX)")
-    ubx_base = None
-    if args.mode == "dgps" and args.base and is_ubx_capture(args.base):
+    if base_is_ubx:
         # its ephemerides join the rover's before the systems are chosen
         ubx_base = load_ubx_capture(args.base, wanted, store, source="base")
         klob = klob or ubx_base[2]

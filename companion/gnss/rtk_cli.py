@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.capture_format import is_rtcm_capture, is_ubx_capture
-from ..messages import SECONDS_PER_WEEK, BaseStationPosition
+from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GpsEphemeris
 from ..nav.earth import ecef_to_ned
 from .ephemeris_store import EphemerisStore
 from .pos_format import write_pos
@@ -35,7 +35,6 @@ def _rtk_base(path: str, systems: str, week: int):
         hdr, epochs = read_rinex_obs(path, systems)
         return hdr, epochs, [], None
     from ..io.rtcm import decode_rtcm_file          # the RTCM stack only when a capture is read
-    from ..messages import GpsEphemeris
     try:
         msgs, dec = decode_rtcm_file(str(path), week_hint=week)
     except (ValueError, IndexError) as exc:
@@ -73,7 +72,6 @@ def _ubx_epochs(path: str, systems: str, source: str):
 def _base_from_spp(base, ephs, systems: str, klobuchar) -> np.ndarray:
     """``--base-xyz spp``: the base's position from its own single-point solutions (the median;
     metres off, which the rover's absolute positions inherit while the baseline does not)."""
-    from ..messages import GpsEphemeris
     store = EphemerisStore([e for e in ephs if isinstance(e, GpsEphemeris)])
     kepler = "".join(c for c in systems if c in "GECJ")
     r, n, sd = median_spp_position(base, store, kepler, klobuchar)
