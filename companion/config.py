@@ -109,6 +109,12 @@ class MavlinkConfig:
     link_timeout_s: float = _f(3.0, min=0.5, max=60.0, doc="no autopilot HEARTBEAT for this long = link lost")
     timesync_interval_s: float = _f(1.0, min=0.0, max=60.0, doc="TIMESYNC requests (0 = only answer)")
     interval_retry_s: float = _f(1.0, min=0.1, max=30.0, doc="re-send an unacknowledged SET_MESSAGE_INTERVAL")
+    rx_pacing: bool = _f(True, doc="between reads the link sleeps until shortly before the IMU sample that "
+                         "opens the next output slot and reads what came meanwhile in one go: the same "
+                         "estimates at the same latency with fewer wake-ups (companion.io.rx_pacing; "
+                         "`sitl fly`: 19-24 % less CPU); false = every datagram on arrival")
+    rx_pacing_margin_s: float = _f(0.004, min=0.0, max=0.1, doc="how early the reader wakes before that "
+                                   "sample is due (the stream's jitter)")
     signing_key_file: str = _f("", doc="MAVLink 2 signing key file (mode 0600): 64 hex characters = the "
                                "32-byte key of SETUP_SIGNING, other text = a passphrase, key = its SHA-256 "
                                "(MAVProxy 'signing setup'); `companion signing setup --key-file F` makes one; "

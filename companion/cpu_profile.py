@@ -73,11 +73,11 @@ def install(path: str) -> None:
     handle_run = asyncio.events.Handle._run
 
     def _run(self):
+        k = _key_of(self._callback)      # before: a callback that cancels its own handle clears it
         t0 = tt()
         try:
             return handle_run(self)
         finally:
-            k = _key_of(self._callback)
             _cpu[k] += tt() - t0
             _calls[k] += 1
     asyncio.events.Handle._run = _run

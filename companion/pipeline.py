@@ -683,6 +683,13 @@ class NavPipeline:
         self._announce_hold(sol.extras.get("integrity"))
         return [self._finish(sol)]
 
+    def next_output_t_gps(self) -> float | None:
+        """The GPS time that opens the next output slot: its first IMU sample brings the next
+        solution (None before the first solution or while not initialised)."""
+        if self._last_output_slot is None or not self.engine.initialized:
+            return None
+        return (self._last_output_slot + 1) / self.output_rate_hz
+
     def _gsf_imu(self, s: ImuSample) -> None:
         """The yaw estimator's IMU: every sample, screened like the engine's (its own screen)."""
         if self._gsf_t_imu is not None:

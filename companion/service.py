@@ -343,6 +343,8 @@ class Service:
                 children.append(asyncio.create_task(claim.run(), name="serial-control-claim"))
             pipe = self.pipeline
             pet = self.notifier.pet
+            pacer = self._pace_reads(link)
+            seen = [None]              # the last IMU sample the pacer saw
 
             def on_message(lm) -> None:
                 pet()                  # the IMU path is alive (the watchdog restarts a stuck one)
@@ -352,6 +354,10 @@ class Service:
                     self._outputs(sols)
                 if pipe.events:
                     self._announce()
+                if pacer is not None and pipe.last_imu is not seen[0]:
+                    seen[0] = pipe.last_imu
+                    if seen[0] is not None:
+                        pacer.observe(lm.t_mono_ns * 1e-9, seen[0].t_gps)
             # synchronously from the link's receive callback: record, feed and send in the same
             # event-loop pass as the datagram, no queue hop (an exception ends this task as before)
             await link.deliver_to(on_message)
@@ -366,6 +372,18 @@ class Service:
             if self.link is link:
                 self.link = None
             await link.close()
+
+    def _pace_reads(self, link):
+        """The link's reader sleeps between reads until shortly before the next output slot's IMU
+        sample (companion.io.rx_pacing), unless ``mavlink.rx_pacing`` is off."""
+        mc = self.cfg.mavlink
+        if not mc.rx_pacing:
+            return None
+        from .io.rx_pacing import OutputPacedReads
+        pacer = OutputPacedReads(margin_s=mc.rx_pacing_margin_s)
+        pipe = self.pipeline
+        link.rx_pause = lambda: pacer.pause_s(time.monotonic(), pipe.next_output_t_gps())
+        return pacer
 
     def _subscribe(self, link) -> None:
         """What the service takes from the link besides the logged stream: GPS_GLOBAL_ORIGIN and

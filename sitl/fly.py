@@ -695,7 +695,8 @@ def cmd_fly(args) -> int:
         res = asyncio.run(fly(args.scenario, args.duration, args.speedup, rate_hz=args.rate, seed=args.seed,
                               out_dir=args.out, output_mode=args.output, imu_units=args.imu_units, faults=faults,
                               system_time_late_s=args.system_time_late, progress=not args.quiet,
-                              handle_signals=True, rover_outage_s=_rover_outage(args), imu_rate_hz=args.imu_rate_hz))
+                              handle_signals=True, rover_outage_s=_rover_outage(args), imu_rate_hz=args.imu_rate_hz,
+                              config_keys=_config_keys(args.set)))
     except KeyboardInterrupt:
         # interrupted before the flight started (during the simulation): nothing to score
         print("sitl fly: interrupted before the flight started", file=sys.stderr)
@@ -718,6 +719,25 @@ def cmd_fly(args) -> int:
         print("sitl fly: INTERRUPTED: the figures above cover only the part that was flown", file=sys.stderr)
         return 130
     return 0 if res["estimates_received"] else 1
+
+
+def _config_keys(items) -> dict | None:
+    """--set SECTION.KEY=TOML (repeatable, as ``sitl ardupilot``'s) -> {section: {key: value}}."""
+    import tomllib
+    if not items:
+        return None
+    keys: dict = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        section, dot, key = name.strip().rpartition(".")
+        if not sep or not dot or not key:
+            raise SystemExit(f"sitl fly: --set {item!r}: expected SECTION.KEY=TOML, e.g. mavlink.rx_pacing=false")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError as exc:
+            raise SystemExit(f"sitl fly: --set {item!r}: the value is not TOML ({exc}); a string needs quotes")
+        keys.setdefault(section, {})[key] = value
+    return keys
 
 
 #: the rtk (and rtk-gec) scenario's 30-s outage moved into a flight too short for its own (130-160 s): after the
@@ -768,6 +788,9 @@ def register(subparsers) -> None:
                         f"default for the rtk and rtk-gec scenarios when the flight ends before their own "
                         f"130-160 s outage: "
                         f"{RTK_FLY_OUTAGE_S[0]:g} {RTK_FLY_OUTAGE_S[1]:g}")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=TOML",
+                   help="a key of the companion's configuration for this flight (repeatable), e.g. "
+                        "--set mavlink.rx_pacing=false to measure the same flight reading every datagram on arrival")
     p.set_defaults(func=cmd_fly)
 
 

@@ -86,6 +86,14 @@ IMU_AUTO_FALLBACK = {"HIGHRES_IMU": "RAW_IMU"}
 STREAM_FALLBACK_AFTER_S = 3.0
 TIMER_SAFETY_NET_S = 0.25      # the link's periodic work runs at least this often (see _arm)
 POLL_NO_FD_S = 0.01            # a transport without a file descriptor is polled this often
+MIN_RX_PAUSE_S = 0.002         # a shorter sleep saves no wake-up (rx_pause)
+# a read that brought more than this many messages (or bad frames) is not followed by a sleep: a 40-ms one
+# brings ~10 at 200 Hz; a burst (a parameter download) or a flood would overflow the socket's
+# buffer (~200 small datagrams in Linux's default 208 KB) or a serial port's (4 KB) meanwhile
+RX_BUSY_MESSAGES = 48
+HOOK_EARLY_S = 0.002           # a hook due as the paused reader wakes runs this much before (_arm_paused_hooks)
+HOOK_WINDOW_S = 0.008          # ... when due within this after the wake (the wait for the slot's sample)
+TIMESYNC_REPLY_WAIT_S = 0.1    # the reader does not pause this long after our TIMESYNC request (rx_pause)
 DEADLINE_SLACK_S = 0.002       # a timeout checked just after it expires, not just before
 
 
@@ -820,7 +828,7 @@ class MavlinkLink:
             "rx_queue_overflow": 0, "heartbeats_rx": 0, "link_losses": 0, "link_recoveries": 0,
             "interval_requests": 0, "interval_acks": 0, "interval_nacks": 0, "interval_gave_up": 0,
             "timesync_answered": 0, "timesync_sent": 0, "timesync_replies": 0, "autopilot_reboots": 0,
-            "stream_fallbacks": 0}
+            "stream_fallbacks": 0, "rx_pauses": 0, "rx_busy_reads": 0}
         self.bad_data_reasons: dict[str, int] = {}
         self.connected = False
         self.last_heartbeat_mono: float | None = None
@@ -832,6 +840,7 @@ class MavlinkLink:
         self._ts_rate = 0.0                             # d(offset)/d(our time)
         self._ts_best = (0, 0, 0)
         self._ts_sent: dict[int, int] = {}
+        self._ts_reply_by = 0.0                         # monotonic s: a TIMESYNC reply may come until then
         self._queue: asyncio.Queue | None = None
         self._queue_size = queue_size
         self._tasks: list[asyncio.Task] = []
@@ -851,8 +860,15 @@ class MavlinkLink:
         self._sink: Callable | None = None  # deliver_to's consumer, called instead of queueing
         self._sink_done: asyncio.Future | None = None
         # called after each receive callback: periodic work that rides on a wake-up the process
-        # has anyway (the SERIAL_CONTROL poll, serial_control.run_every)
+        # has anyway (the SERIAL_CONTROL poll, serial_control.run_every); a hook's ``next_due()``
+        # (monotonic s or None), when it has one, is kept while the reader sleeps (rx_pause)
         self.rx_hooks: list[Callable[[], None]] = []
+        # after each read of the descriptor: how long the reader may sleep (seconds; 0 = read on
+        # arrival).  What arrives meanwhile waits in the socket and is read in one go: fewer
+        # wake-ups (companion.io.rx_pacing).  Never while our TIMESYNC request is out.
+        self.rx_pause: Callable[[], float] | None = None
+        self._rx_resume: asyncio.TimerHandle | None = None
+        self._hooks_timer: asyncio.TimerHandle | None = None
         self._timer: asyncio.TimerHandle | None = None    # the periodic work (_arm)
         self._timer_when = 0.0
         self._next_hb = self._next_ts = 0.0
@@ -892,6 +908,10 @@ class MavlinkLink:
 
     async def close(self) -> None:
         self._closed = True
+        for h in (self._rx_resume, self._hooks_timer):
+            if h is not None:
+                h.cancel()
+        self._rx_resume = self._hooks_timer = None
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
@@ -1001,12 +1021,90 @@ class MavlinkLink:
 
     # -- receiving ---------------------------------------------------------------------------
     def _drain(self) -> None:
+        c = self.counters
+        n0 = c["rx_messages"] + c["bad_data"]
         if self._fast is not None:
             self._drain_datagrams()
         else:
             self._drain_messages()
         for hook in self.rx_hooks:
             hook()
+        if self.rx_pause is not None and self._fd is not None:
+            if c["rx_messages"] + c["bad_data"] - n0 > RX_BUSY_MESSAGES:
+                c["rx_busy_reads"] += 1                   # a burst or a flood: keep reading
+            else:
+                self._maybe_pause()
+
+    # -- paced reading (rx_pause) ------------------------------------------------------------
+    def _maybe_pause(self) -> None:
+        """Stop reading for ``rx_pause()`` seconds; not while our TIMESYNC request waits for its
+        reply (its round trip would count the sleep)."""
+        now = time.monotonic()
+        if now < self._ts_reply_by:
+            return
+        pause = self.rx_pause()
+        if pause < MIN_RX_PAUSE_S:
+            return
+        self._loop.remove_reader(self._fd)
+        self._rx_resume = self._loop.call_later(pause, self._resume_reading)
+        self.counters["rx_pauses"] += 1
+        self._arm_paused_hooks(now)
+
+    def _arm_paused_hooks(self, now: float) -> None:
+        """While the reader sleeps, the hooks due before it wakes (the SERIAL_CONTROL poll keeps its
+        grid: the autopilot's GPS port buffers ~22 ms) run from a timer of their own, without a
+        read: a read then would cost a wake-up's worth of datagrams.  A hook due just after the
+        reader wakes, while it waits for the next output slot's sample, runs ``HOOK_EARLY_S``
+        before instead (``run_early``, when it has one): its reply then comes with the batch
+        rather than as a wake-up of its own."""
+        if self._rx_resume is None:
+            return
+        resume = now + (self._rx_resume.when() - self._loop.time())
+        when = None
+        for hook in self.rx_hooks:
+            plan = self._hook_time(hook, resume)
+            if plan is not None and (when is None or plan[0] < when):
+                when = plan[0]
+        if when is not None:
+            self._hooks_timer = self._loop.call_later(max(0.0, when - now), self._paused_hooks)
+
+    @staticmethod
+    def _hook_time(hook, resume: float) -> tuple[float, bool] | None:
+        """When the paused reader's timer runs ``hook`` (monotonic s) and whether early, or None
+        (at the next read)."""
+        next_due = getattr(hook, "next_due", None)
+        due = next_due() if next_due is not None else None
+        if due is None:
+            return None
+        if due + DEADLINE_SLACK_S < resume - HOOK_EARLY_S:
+            return due + DEADLINE_SLACK_S, False    # just after: the hook finds itself due
+        if due < resume + HOOK_WINDOW_S and getattr(hook, "run_early", None) is not None:
+            return resume - HOOK_EARLY_S, True
+        return None
+
+    def _paused_hooks(self) -> None:
+        self._hooks_timer = None
+        if self._rx_resume is None:
+            return                       # reading again: the hooks ride on the reads
+        now = time.monotonic()
+        resume = now + (self._rx_resume.when() - self._loop.time())
+        for hook in self.rx_hooks:
+            plan = self._hook_time(hook, resume)
+            if plan is not None and plan[1] and now >= plan[0]:
+                hook.run_early()
+            else:
+                hook()                   # runs only when due
+        self._arm_paused_hooks(time.monotonic())
+
+    def _resume_reading(self) -> None:
+        self._rx_resume = None
+        if self._hooks_timer is not None:
+            self._hooks_timer.cancel()
+            self._hooks_timer = None
+        if self._closed or self._fd is None:
+            return
+        self._loop.add_reader(self._fd, self._drain)
+        self._drain()                    # what arrived meanwhile, at once
 
     def _drain_messages(self) -> None:
         conn = self.conn
@@ -1134,6 +1232,7 @@ class MavlinkLink:
         sent = self._ts_sent.pop(int(msg.ts1), None)
         if sent is None:
             return
+        self._ts_reply_by = 0.0
         rtt = t_ns - sent
         self.counters["timesync_replies"] += 1
         # autopilot time tc1 (ns since its boot) corresponds to our mid-point
@@ -1274,6 +1373,7 @@ class MavlinkLink:
         if self.timesync_interval_s > 0 and now >= self._next_ts and self.connected:
             ts1 = time.monotonic_ns()
             self._ts_sent[ts1] = ts1
+            self._ts_reply_by = now + TIMESYNC_REPLY_WAIT_S     # read it on arrival: its RTT counts
             if len(self._ts_sent) > 32:
                 self._ts_sent.pop(next(iter(self._ts_sent)))
             req = _ENC.timesync_encode(0, ts1)

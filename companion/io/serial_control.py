@@ -128,6 +128,14 @@ async def run_every(fn: Callable[[], object], delay_s: Callable[[], float], link
         if state["period"] > 0 and loop.time() >= state["due"]:
             fire()
 
+    def early() -> None:
+        if state["period"] > 0:
+            state["due"] = loop.time()   # the grid restarts now: no gap longer than a period
+            fire()
+
+    # a paced reader (MavlinkLink.rx_pause) calls it by then, or a little early (run_early)
+    on_rx.next_due = lambda: state["due"] if state["period"] > 0 else None
+    on_rx.run_early = early
     if link is not None:
         link.rx_hooks.append(on_rx)
     handle = loop.call_soon(fire)
