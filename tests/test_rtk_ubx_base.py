@@ -80,3 +80,20 @@ def test_ubx_base_in_dgps(rinex, tmp_path, with_nav):
     summary = json.loads(out.read_text())
     assert summary["solved"] == 36 and summary["rms_3d_m"] < 0.01              # measured 0.000 m
     assert set(summary["satellites_by_system"]) == set("GECJ")
+
+
+def test_ubx_base_brings_glonass_from_its_strings(rinex, tmp_path, capsys):
+    """GLONASS asked for (`--sys G,R,E,C,J`), no --nav: its orbits and channels come from the base
+    capture's RXM-SFRBX strings (tests/test_glonass_sfrbx.py), and it joins as a float (the
+    capture has no MON-VER: the model, hence the inter-channel biases, unknown)."""
+    obs, _ = rinex
+    out = tmp_path / "zb_r.json"
+    assert main(["gnss", "--rover", str(obs), "--base", str(CAPTURE), "--mode", "rtk", "--base-xyz", "spp",
+                 "--sys", "G,R,E,C,J", "--json", str(out)]) == 0
+    assert "GLONASS integers: off" in capsys.readouterr().out
+    summary = json.loads(out.read_text())
+    assert summary["satellites_by_system"]["R"]["min"] >= 8                    # measured 9
+    assert summary["solved"] == summary["fixed"] >= 35                         # measured 36 of 36
+    base = np.array(summary["base_antenna_e"])
+    r = np.array([s["r_e"] for s in summary["solutions"]])
+    assert np.max(np.linalg.norm(r - base, axis=1)) < 0.002

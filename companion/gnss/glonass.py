@@ -76,6 +76,13 @@ class GlonassEphemeris:
     age_days: int = 0               # E_n, days since the data were uploaded (RTCM 1020)
 
 
+def t_b_gps(t_b_units: int, ref_gps: float, leap_seconds: int) -> float:
+    """t_b (15-min units of the Moscow day: UTC + 3 h) -> continuous GPS seconds, on the day
+    nearest ``ref_gps`` (a receive time)."""
+    tod_gps = (int(t_b_units) * 900.0 - 3 * 3600.0 + leap_seconds) % 86400.0
+    return tod_gps + 86400.0 * round((ref_gps - tod_gps) / 86400.0)
+
+
 def carrier_hz(signal: str, channel: int) -> float:
     """Carrier frequency of a GLONASS signal ('L1C', 'L2P', 'L3Q') on frequency channel ``channel``;
     NaN for a band GLONASS does not have."""
@@ -152,5 +159,5 @@ def ephemeris_from_rinex(sat: str, t_b_utc_as_gps: float, leap_s: int, fields: l
                             health=int(round(fields[6])), iode=slot)
 
 
-__all__ = ["GlonassEphemeris", "carrier_hz", "wavelength_m", "satellite_state", "satellite_clock",
+__all__ = ["GlonassEphemeris", "t_b_gps", "carrier_hz", "wavelength_m", "satellite_state", "satellite_clock",
            "ephemeris_from_rinex", "gps_minus_utc_s", "STEP_S"]

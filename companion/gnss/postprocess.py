@@ -180,11 +180,13 @@ def epochs_of(msgs, systems: str, source: str) -> list:
 
 def load_ubx_capture(path: str, wanted: str | None, store: EphemerisStore, source: str = "rover"):
     """Observations (RXM-RAWX) and broadcast ephemerides (RXM-SFRBX: GPS/QZSS LNAV, Galileo I/NAV,
-    BeiDou D1/D2, added to ``store``) of a u-blox capture, decoded as the service decodes its
-    receiver's stream; the epochs tagged as ``source`` ('rover' or 'base').  Returns (header-like
-    dict without a marker position or antenna delta, epochs, Klobuchar)."""
+    BeiDou D1/D2, GLONASS strings when ``wanted`` names R; added to ``store``) of a u-blox capture,
+    decoded as the service decodes its receiver's stream; the epochs tagged as ``source`` ('rover'
+    or 'base').  Returns (header-like dict without a marker position or antenna delta, with the
+    receiver's model when the capture has UBX-MON-VER, epochs, Klobuchar)."""
     from ..io.ubx import decode_ubx_file
     from ..messages import GpsEphemeris
+    from .glonass import GlonassEphemeris
     try:
         msgs, dec = decode_ubx_file(str(path))
     except (ValueError, IndexError, struct_error) as exc:
@@ -192,13 +194,15 @@ def load_ubx_capture(path: str, wanted: str | None, store: EphemerisStore, sourc
     keep = wanted or SUPPORTED_SYSTEMS
     n_eph = 0
     for m in msgs:
-        if isinstance(m, GpsEphemeris) and m.sat[0] in keep:
+        if isinstance(m, (GpsEphemeris, GlonassEphemeris)) and m.sat[0] in keep:
             store.add(m)
             n_eph += 1
     epochs = epochs_of(msgs, keep, source)
     log.info("%s: %d RXM-RAWX epochs, %d ephemerides from RXM-SFRBX", path, len(epochs), n_eph)
     klob = getattr(getattr(dec, "ephemerides", None), "klobuchar", None)
-    return {"approx_position_e": None, "antenna_delta_hen_m": None}, epochs, klob
+    # the model decides GLONASS's integers (RTK's --glonass-ar auto: one model at both ends); a
+    # capture without MON-VER does not say it ('' = unknown: GLONASS stays float)
+    return {"approx_position_e": None, "antenna_delta_hen_m": None, "receiver": dec.receiver_model}, epochs, klob
 
 
 def _load(args):

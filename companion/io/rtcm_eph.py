@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..gnss.glonass import GlonassEphemeris
+from ..gnss.glonass import GlonassEphemeris, t_b_gps
 from ..gnss.lnav import URA_M, fit_interval_h, resolve_week
 from ..messages import SECONDS_PER_WEEK, SYSTEM_TO_GPS_S, SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris
 
@@ -148,11 +148,9 @@ def beidou_ephemeris(msg, ref_gps: float) -> GpsEphemeris:
 def glonass_ephemeris(msg, ref_gps: float, leap_seconds: int) -> GlonassEphemeris:
     """RTCM 1020.  t_b (DF110, 15-min units of Moscow time of day) resolved to the day nearest
     ``ref_gps``; km -> m."""
-    tod_gps = (int(msg.DF110) * 900.0 - 3 * 3600.0 + leap_seconds) % 86400.0
-    t_b = tod_gps + 86400.0 * round((ref_gps - tod_gps) / 86400.0)
     km = 1e3
     return GlonassEphemeris(
-        sat=f"R{int(msg.DF038):02d}", t_oe_gps=t_b,
+        sat=f"R{int(msg.DF038):02d}", t_oe_gps=t_b_gps(int(msg.DF110), ref_gps, leap_seconds),
         r_e=np.array([msg.DF112, msg.DF115, msg.DF118], float) * km,
         v_e=np.array([msg.DF111, msg.DF114, msg.DF117], float) * km,
         a_e=np.array([msg.DF113, msg.DF116, msg.DF119], float) * km,

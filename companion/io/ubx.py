@@ -5,14 +5,16 @@ serial port, a SERIAL_CONTROL tunnel, a file) and it returns the messages comple
 
 * ``RXM-RAWX``  -> :class:`~companion.messages.GnssEpoch` (rover raw observations)
 * ``RXM-SFRBX`` -> :class:`~companion.messages.GpsEphemeris` of GPS and QZSS (L1 C/A LNAV),
-  Galileo (E1-B/E5b I/NAV) and BeiDou (B1I/B2I D1 and D2), once per new consistent set per
-  satellite; see :mod:`companion.io.ubx_sfrbx`.  Counted: ``ephemerides`` and
-  ``ephemerides_<G|J|E|C>``; words of other messages ``sfrbx_not_decoded_<letter>``
+  Galileo (E1-B/E5b I/NAV) and BeiDou (B1I/B2I D1 and D2), and
+  :class:`~companion.gnss.glonass.GlonassEphemeris` (L1OF/L2OF strings 1-4), once per new
+  consistent set per satellite; see :mod:`companion.io.ubx_sfrbx`.  Counted: ``ephemerides`` and
+  ``ephemerides_<G|J|E|C|R>``; words of other messages ``sfrbx_not_decoded_<letter>``
 * ``NAV-PVT``   -> :class:`~companion.messages.GnssFix` (the receiver's own solution)
 * ``NAV-RELPOSNED`` (version 0, M8P; version 1, F9P) -> :class:`~companion.messages.GnssBaseline`
   (moving-baseline vector for dual-antenna heading) when ``gnssFixOK`` and ``relPosValid``;
   otherwise counted (``relposned_invalid``).  ``carrier_fixed`` = carrSoln 2.
-* ``NAV-TIMEGPS`` only updates the decoder's notion of the GPS week.
+* ``NAV-TIMEGPS`` only updates the decoder's notion of the GPS week; ``MON-VER`` sets
+  ``receiver_model``.
 
 Robustness contract: ``feed`` never raises on bad input.  Garbage between frames, bad checksums,
 impossible lengths and malformed payloads are skipped and counted in ``counters`` (a plain dict,
@@ -218,6 +220,7 @@ RXM_SFRBX = (0x02, 0x13)
 NAV_PVT = (0x01, 0x07)
 NAV_TIMEGPS = (0x01, 0x20)
 NAV_RELPOSNED = (0x01, 0x3C)
+MON_VER = (0x0A, 0x04)
 _RELPOS_V1 = struct.Struct("<BBHIiiiii4xbbbbIIIII4xI")     # 64 bytes (F9P)
 _RELPOS_V0 = struct.Struct("<BBHIiiibbbxIIII")             # 40 bytes (M8P)
 
@@ -242,6 +245,7 @@ class UbxDecoder:
         self._buf = bytearray()
         self.time_ref = TimeReference(week_hint)
         self.leap_seconds: int | None = None
+        self.receiver_model = ""                 # MON-VER's, e.g. 'u-blox ZED-F9P'
         self.sfrbx = SfrbxEphemerides(check_parity=check_parity)
         self.ephemerides = self.sfrbx.gps       # GPS LNAV (its ``klobuchar`` feeds the pipeline)
         self.counters: dict[str, int] = {}
@@ -334,6 +338,9 @@ class UbxDecoder:
         if key == NAV_RELPOSNED:
             m = self._nav_relposned(payload)
             return [m] if m is not None else []
+        if key == MON_VER:
+            self._mon_ver(payload)
+            return []
         self._count("ignored_frames")
         return []
 
@@ -395,7 +402,7 @@ class UbxDecoder:
         if len(p) < 8:
             self._reject("bad_payload", "RXM-SFRBX too short")
             return None
-        gnss_id, sv_id, sig_id, _freq, num_words, _chn, _ver = _SFRBX_HEAD.unpack_from(p, 0)
+        gnss_id, sv_id, sig_id, freq_id, num_words, _chn, _ver = _SFRBX_HEAD.unpack_from(p, 0)
         if len(p) != 8 + 4 * num_words:
             self._reject("bad_payload", f"RXM-SFRBX length {len(p)} for {num_words} words")
             return None
@@ -408,15 +415,30 @@ class UbxDecoder:
         ref_week = self.time_ref.week()
         if ref_week is None:
             ref_week = ERA_WEEK
-        eph, reason = self.sfrbx.add(sat[0], sat, sig_id, words, ref_week)
-        if reason == "not_decoded":
-            self._count(f"sfrbx_not_decoded_{sat[0]}")
+        eph, reason = self.sfrbx.add(sat[0], sat, sig_id, words, ref_week, freq_id=freq_id,
+                                     t_rx_gps=self.time_ref.t_last, leap_seconds=self.leap_seconds)
+        if reason in ("not_decoded", "glonass_no_time"):       # counted, not a fault of the data
+            self._count(f"sfrbx_{reason}_{sat[0]}" if reason == "not_decoded" else f"sfrbx_{reason}")
         elif reason:
             self._reject(f"sfrbx_{reason}", sat)
         if eph is not None:
             self._count("ephemerides")
             self._count(f"ephemerides_{sat[0]}")
         return eph
+
+    # -- MON-VER ---------------------------------------------------------------------------
+    def _mon_ver(self, p: bytes) -> None:
+        """The receiver's model: the 'MOD=' extension (F9: 'MOD=ZED-F9P'), else its hardware
+        version (the firmware is not part of it: the channel biases are the hardware's)."""
+        if len(p) < 40 or (len(p) - 40) % 30:
+            self._reject("bad_payload", f"MON-VER length {len(p)}")
+            return
+        def text(b: bytes) -> str:
+            return b.split(b"\0", 1)[0].decode("ascii", "replace").strip()
+        ext = [text(p[k:k + 30]) for k in range(40, len(p), 30)]
+        mod = next((e[4:] for e in ext if e.startswith("MOD=")), "") or f"hardware {text(p[30:40])}"
+        self.receiver_model = f"u-blox {mod}"
+        self._count("mon_ver")
 
     # -- NAV-TIMEGPS / NAV-PVT -------------------------------------------------------------
     def _nav_timegps(self, p: bytes) -> None:
