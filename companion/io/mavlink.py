@@ -50,6 +50,7 @@ import calendar
 import logging
 import math
 import os
+import socket
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -91,6 +92,7 @@ MIN_RX_PAUSE_S = 0.002         # a shorter sleep saves no wake-up (rx_pause)
 # brings ~10 at 200 Hz; a burst (a parameter download) or a flood would overflow the socket's
 # buffer (~200 small datagrams in Linux's default 208 KB) or a serial port's (4 KB) meanwhile
 RX_BUSY_MESSAGES = 48
+UDP_RX_BUFFER_BYTES = 1 << 20  # asked for the UDP socket (Linux's default 208 KB: ~200 small datagrams)
 HOOK_EARLY_S = 0.002           # a hook due as the paused reader wakes runs this much before (_arm_paused_hooks)
 HOOK_WINDOW_S = 0.008          # ... when due within this after the wake (the wait for the slot's sample)
 TIMESYNC_REPLY_WAIT_S = 0.1    # the reader does not pause this long after our TIMESYNC request (rx_pause)
@@ -883,6 +885,11 @@ class MavlinkLink:
         self.conn.mav.robust_parsing = True
         if self.signing is not None:
             self.signing.attach(self.conn)
+        if isinstance(self.conn, mavutil.mavudp):
+            try:      # room for what arrives while the reader sleeps (rx_pause) or the loop is busy
+                self.conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RX_BUFFER_BYTES)
+            except OSError:
+                pass                     # the kernel's default (Linux caps it at net.core.rmem_max)
         if isinstance(self.conn, mavutil.mavudp) and self.conn.udp_server:
             from .udp_peer import UdpPeerLock
             self.peer_lock = UdpPeerLock(self.conn, relock_after_s=max(5.0, 2 * self.link_timeout_s))
