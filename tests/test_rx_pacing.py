@@ -267,3 +267,16 @@ def test_a_burst_is_read_on_arrival_not_slept_across():
     link, got = asyncio.run(asyncio.wait_for(main(), 10))
     assert [lm.msg.time_usec for lm in got] == [1_000_000 + 5000 * k for k in range(1 + 2 * M.RX_BUSY_MESSAGES)]
     assert link.counters["rx_pauses"] == 1 and link.counters["rx_busy_reads"] == 1
+
+
+def test_timing_relearned_after_the_clock_goes_back_a_day():
+    """A reboot that puts GPS time back (or a replayed stream): the ratio is estimated again from
+    the new samples, not waited for until the old time comes round."""
+    pacer = OutputPacedReads()
+    for t_rx, g, _ in _stream(600):
+        pacer.observe(t_rx, g)
+    assert pacer.due_s(5003.0 + 0.02) is not None
+    for t_rx, g, _ in _stream(600, t_rx0=2000.0, t_gps0=5000.0 - 86400.0):
+        pacer.observe(t_rx, g)
+    due = pacer.due_s(5000.0 - 86400.0 + 3.0)
+    assert due is not None and abs(due - 2003.0) < 0.003

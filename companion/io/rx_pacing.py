@@ -1,7 +1,7 @@
 """When the MAVLink reader may sleep: fewer wake-ups for the same estimates, on time.
 
-A wake-up costs far more than its Python: the first datagram read after one took ~270 us in the
-live service, the fourth of the same read ~70 us (the caches and predictors were someone else's
+A wake-up costs far more than its Python: the first datagram read after one took 150-270 us in
+the live service, the fourth of the same read ~70 us (the caches and predictors were someone else's
 meanwhile).  A 200-Hz IMU stream woke the service ~270 times a second, one datagram each.
 
 Only the IMU sample that opens an output slot is urgent: the estimate is stamped with it and sent
@@ -24,6 +24,7 @@ mavlink.rx_pacing=false``.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 
 
@@ -42,14 +43,14 @@ class OutputPacedReads:
         self.min_samples = int(min_samples)
         self._recent: deque = deque()        # (t_rx_s, t_gps_s) of the last window_s
         self._ratio: float | None = None     # wall seconds per GPS second
-        self._ratio_t_gps = 0.0              # when it was last estimated
+        self._ratio_t_gps = -math.inf        # when it was last estimated
         self._lead: deque = deque()          # (t_gps_s, t_rx_s - ratio * t_gps_s), increasing: its
         #                                      first is the window's minimum (a sliding minimum)
 
     def reset(self) -> None:
         self._recent.clear()
         self._lead.clear()
-        self._ratio = None
+        self._ratio, self._ratio_t_gps = None, -math.inf
 
     def observe(self, t_rx_s: float, t_gps_s: float) -> None:
         r = self._recent
@@ -58,9 +59,9 @@ class OutputPacedReads:
         r.append((t_rx_s, t_gps_s))
         while t_gps_s - r[0][1] > self.window_s:
             r.popleft()
-        if self._ratio is None or t_gps_s - self._ratio_t_gps > 1.0:
+        if t_gps_s - self._ratio_t_gps > 1.0:
             self._estimate_ratio()
-        else:
+        elif self._ratio is not None:
             self._push_lead(t_gps_s, t_rx_s - self._ratio * t_gps_s)
         lead = self._lead
         while lead and t_gps_s - lead[0][0] > self.window_s:
@@ -80,8 +81,9 @@ class OutputPacedReads:
         self._lead.clear()
         g0, g1 = r[0][1], r[-1][1]
         if g1 - g0 < 0.5 * self.window_s:
-            self._ratio = None
+            self._ratio = None               # too little stream yet: again at the next sample
             return
+        self._ratio_t_gps = g1               # tried: again in a second, whatever the outcome
         quarter = 0.25 * (g1 - g0)
         first = [x for x in r if x[1] - g0 <= quarter]
         last = [x for x in r if g1 - x[1] <= quarter]
@@ -93,7 +95,7 @@ class OutputPacedReads:
         if not 0.05 < ratio < 20.0:
             self._ratio = None
             return
-        self._ratio, self._ratio_t_gps = ratio, g1
+        self._ratio = ratio
         for rx, g in r:
             self._push_lead(g, rx - ratio * g)
 

@@ -417,8 +417,10 @@ class UbxDecoder:
             ref_week = ERA_WEEK
         eph, reason = self.sfrbx.add(sat[0], sat, sig_id, words, ref_week, freq_id=freq_id,
                                      t_rx_gps=self.time_ref.t_last, leap_seconds=self.leap_seconds)
-        if reason in ("not_decoded", "glonass_no_time"):       # counted, not a fault of the data
-            self._count(f"sfrbx_{reason}_{sat[0]}" if reason == "not_decoded" else f"sfrbx_{reason}")
+        if reason == "not_decoded":
+            self._count(f"sfrbx_not_decoded_{sat[0]}")
+        elif reason == "glonass_no_time":
+            self._count("sfrbx_glonass_no_time")          # before the first RXM-RAWX: not the data's fault
         elif reason:
             self._reject(f"sfrbx_{reason}", sat)
         if eph is not None:
