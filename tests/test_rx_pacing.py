@@ -76,86 +76,88 @@ def _imu(k: int):
     return mav.MAVLink_highres_imu_message(1_000_000 + 5000 * k, 0, 0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
 
 
-def test_paused_link_delivers_everything_in_order_with_fewer_reads_and_hooks_on_their_grid():
-    """A real UDP link whose reader sleeps 60 ms after each read, a 200-Hz stream from a fake
-    autopilot: every message arrives, in order, in a fraction of the reads; a hook on a 20-ms
-    grid is still called on time while the reader sleeps (the SERIAL_CONTROL poll's case)."""
-    n = 200
+def _times_usec(n: int, first: int = 0) -> list[int]:
+    return [1_000_000 + 5000 * k for k in range(first, first + n)]
 
+
+def _run_paced(pause_s: float, scenario, protocol=FakeAutopilot, timeout_s: float = 20.0):
+    """A real UDP link whose reader sleeps ``pause_s`` after each read, a fake autopilot on
+    loopback, every received message collected: ``await scenario(link, ap, got)``; returns
+    (link, ap, got)."""
     async def main():
         port = free_udp_port()
         link = M.MavlinkLink(f"udpin:127.0.0.1:{port}", timesync_interval_s=0)
         await link.start()
         loop = asyncio.get_running_loop()
-        transport, ap = await loop.create_datagram_endpoint(FakeAutopilot, remote_addr=("127.0.0.1", port))
+        transport, ap = await loop.create_datagram_endpoint(protocol, remote_addr=("127.0.0.1", port))
+        link.rx_pause = lambda: pause_s
         got: list = []
-        grid = {"due": None, "late": []}
-
-        def hook():
-            now = time.monotonic()
-            if grid["due"] is None:
-                grid["due"] = now + 0.02
-            elif now >= grid["due"]:
-                grid["late"].append(now - grid["due"])
-                grid["due"] += 0.02
-        hook.next_due = lambda: grid["due"]
-        link.rx_hooks.append(hook)
-        link.rx_pause = lambda: 0.06
-        consumer = asyncio.create_task(link.deliver_to(lambda lm: got.append(lm)))
+        consumer = asyncio.create_task(link.deliver_to(got.append))
         try:
-            ap.send(mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
-            t_next = time.monotonic()
-            for k in range(n):
-                ap.send(_imu(k))
-                t_next += IMU_DT_S
-                await asyncio.sleep(max(0.0, t_next - time.monotonic()))
-            t_end = time.monotonic() + 2.0
-            while sum(lm.msg.get_type() == "HIGHRES_IMU" for lm in got) < n and time.monotonic() < t_end:
-                await asyncio.sleep(0.01)
+            await scenario(link, ap, got)
         finally:
             transport.close()
             await link.close()
             consumer.cancel()
-        return link, got, grid["late"]
+        return link, ap, got
+    return asyncio.run(asyncio.wait_for(main(), timeout_s))
 
-    link, got, late = asyncio.run(asyncio.wait_for(main(), 20))
-    imu = [lm for lm in got if lm.msg.get_type() == "HIGHRES_IMU"]
-    assert [lm.msg.time_usec for lm in imu] == [1_000_000 + 5000 * k for k in range(n)]
+
+async def _stream_imu(ap, n: int, first: int = 0) -> None:
+    """``n`` HIGHRES_IMU at 200 Hz, on a fixed grid."""
+    t_next = time.monotonic()
+    for k in range(first, first + n):
+        ap.send(_imu(k))
+        t_next += IMU_DT_S
+        await asyncio.sleep(max(0.0, t_next - time.monotonic()))
+
+
+def _imu_of(got) -> list:
+    return [lm for lm in got if lm.msg.get_type() == "HIGHRES_IMU"]
+
+
+def test_paused_link_delivers_everything_in_order_with_fewer_reads_and_hooks_on_their_grid():
+    """The reader sleeps 60 ms after each read, a 200-Hz stream: every message arrives, in order,
+    in a fraction of the reads; a hook on a 20-ms grid is still called on time while the reader
+    sleeps (the SERIAL_CONTROL poll's case)."""
+    n = 200
+    grid = {"due": None, "late": []}
+
+    def hook():
+        now = time.monotonic()
+        if grid["due"] is None:
+            grid["due"] = now + 0.02
+        elif now >= grid["due"]:
+            grid["late"].append(now - grid["due"])
+            grid["due"] += 0.02
+    hook.next_due = lambda: grid["due"]
+
+    async def scenario(link, ap, got):
+        link.rx_hooks.append(hook)
+        ap.send(mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
+        await _stream_imu(ap, n)
+        await _wait(lambda: len(_imu_of(got)) >= n, timeout=2.0)
+
+    link, _, got = _run_paced(0.06, scenario)
+    imu = _imu_of(got)
+    assert [lm.msg.time_usec for lm in imu] == _times_usec(n)
     stamps = [lm.t_mono_ns for lm in imu]       # one read stamps its datagrams microseconds apart
     reads = 1 + sum(b - a > 1_000_000 for a, b in zip(stamps, stamps[1:]))
     assert link.counters["rx_pauses"] >= 5
     assert reads < n / 3, f"{reads} reads for {n} datagrams"
-    assert len(late) >= 30
-    late_ms = sorted(x * 1e3 for x in late)
+    late_ms = sorted(x * 1e3 for x in grid["late"])
+    assert len(late_ms) >= 30
     # on time while the reader sleeps 60 ms; riding on the reads alone they would be ~30 ms late
     assert late_ms[len(late_ms) // 2] < 5.0 and late_ms[-1] < 40.0, late_ms
 
 
 def test_no_pause_while_our_timesync_request_waits_for_its_reply():
-    async def main():
-        port = free_udp_port()
-        link = M.MavlinkLink(f"udpin:127.0.0.1:{port}", timesync_interval_s=0)
-        await link.start()
-        loop = asyncio.get_running_loop()
-        transport, ap = await loop.create_datagram_endpoint(FakeAutopilot, remote_addr=("127.0.0.1", port))
-        got: list = []
-        link.rx_pause = lambda: 0.06
+    async def scenario(link, ap, got):
         link._ts_reply_by = time.monotonic() + 60.0           # a request just went out
-        consumer = asyncio.create_task(link.deliver_to(got.append))
-        try:
-            for k in range(20):
-                ap.send(_imu(k))
-                await asyncio.sleep(IMU_DT_S)
-            t_end = time.monotonic() + 2.0
-            while len(got) < 20 and time.monotonic() < t_end:
-                await asyncio.sleep(0.01)
-        finally:
-            transport.close()
-            await link.close()
-            consumer.cancel()
-        return link, got
+        await _stream_imu(ap, 20)
+        await _wait(lambda: len(got) >= 20, timeout=2.0)
 
-    link, got = asyncio.run(asyncio.wait_for(main(), 10))
+    link, _, got = _run_paced(0.06, scenario)
     assert len(got) == 20 and link.counters["rx_pauses"] == 0
 
 
@@ -179,32 +181,16 @@ def test_serial_control_poll_keeps_its_period_through_a_paced_reader():
     rate kept."""
     period = 0.02
 
-    async def main():
-        port = free_udp_port()
-        link = M.MavlinkLink(f"udpin:127.0.0.1:{port}", timesync_interval_s=0)
-        await link.start()
-        loop = asyncio.get_running_loop()
-        transport, ap = await loop.create_datagram_endpoint(_TimedAutopilot, remote_addr=("127.0.0.1", port))
+    async def scenario(link, ap, got):
         tunnel = M.SerialControlTunnel(link, M.SERIAL_CONTROL_DEV_GPS1, poll_interval_s=period)
-        link.rx_pause = lambda: 0.035
-        consumer = asyncio.create_task(link.deliver_to(lambda lm: None))
-        try:
-            ap.send(mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
-            assert await _wait(lambda: link.connected)
-            poller = asyncio.create_task(tunnel.run())
-            t_next = time.monotonic()
-            for k in range(300):                     # 1.5 s of a 200-Hz stream
-                ap.send(_imu(k))
-                t_next += IMU_DT_S
-                await asyncio.sleep(max(0.0, t_next - time.monotonic()))
-            poller.cancel()
-        finally:
-            transport.close()
-            await link.close()
-            consumer.cancel()
-        return link, ap.poll_times
+        ap.send(mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
+        assert await _wait(lambda: link.connected)
+        poller = asyncio.create_task(tunnel.run())
+        await _stream_imu(ap, 300)                  # 1.5 s of a 200-Hz stream
+        poller.cancel()
 
-    link, times = asyncio.run(asyncio.wait_for(main(), 20))
+    link, ap, _ = _run_paced(0.035, scenario, protocol=_TimedAutopilot)
+    times = ap.poll_times
     assert link.counters["rx_pauses"] >= 20
     gaps_ms = sorted((b - a) * 1e3 for a, b in zip(times[5:], times[6:]))
     assert len(gaps_ms) >= 50
@@ -213,7 +199,6 @@ def test_serial_control_poll_keeps_its_period_through_a_paced_reader():
     assert gaps_ms[int(0.9 * len(gaps_ms))] < period * 1e3 + 10.0, gaps_ms
     span = times[-1] - times[5]
     assert len(times) - 6 >= 0.9 * span / period
-
 
 
 def test_paused_reader_runs_a_hook_on_time_or_early_never_into_the_wait():
@@ -241,31 +226,17 @@ def test_paused_reader_runs_a_hook_on_time_or_early_never_into_the_wait():
 def test_a_burst_is_read_on_arrival_not_slept_across():
     """A read that brings more than RX_BUSY_MESSAGES (a parameter download, a flood) is not
     followed by a sleep: the socket's buffer would overflow meanwhile."""
-    async def main():
-        port = free_udp_port()
-        link = M.MavlinkLink(f"udpin:127.0.0.1:{port}", timesync_interval_s=0)
-        await link.start()
-        loop = asyncio.get_running_loop()
-        transport, ap = await loop.create_datagram_endpoint(FakeAutopilot, remote_addr=("127.0.0.1", port))
-        got: list = []
-        link.rx_pause = lambda: 0.05
-        consumer = asyncio.create_task(link.deliver_to(got.append))
-        try:
-            ap.send(_imu(0))                         # read on arrival, then a 50-ms sleep
-            await asyncio.sleep(0.01)
-            for k in range(1, 1 + 2 * M.RX_BUSY_MESSAGES):   # a burst while the reader sleeps
-                ap.send(_imu(k))
-            t_end = time.monotonic() + 2.0
-            while len(got) < 1 + 2 * M.RX_BUSY_MESSAGES and time.monotonic() < t_end:
-                await asyncio.sleep(0.005)
-        finally:
-            transport.close()
-            await link.close()
-            consumer.cancel()
-        return link, got
+    n = 1 + 2 * M.RX_BUSY_MESSAGES
 
-    link, got = asyncio.run(asyncio.wait_for(main(), 10))
-    assert [lm.msg.time_usec for lm in got] == [1_000_000 + 5000 * k for k in range(1 + 2 * M.RX_BUSY_MESSAGES)]
+    async def scenario(link, ap, got):
+        ap.send(_imu(0))                         # read on arrival, then a 50-ms sleep
+        await asyncio.sleep(0.01)
+        for k in range(1, n):                    # a burst while the reader sleeps
+            ap.send(_imu(k))
+        await _wait(lambda: len(got) >= n, timeout=2.0)
+
+    link, _, got = _run_paced(0.05, scenario)
+    assert [lm.msg.time_usec for lm in got] == _times_usec(n)
     assert link.counters["rx_pauses"] == 1 and link.counters["rx_busy_reads"] == 1
 
 
