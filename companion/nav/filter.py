@@ -42,7 +42,7 @@ from scipy.linalg.lapack import dpotrf as _potrf, dtrtri as _trtri, dtrtrs as _t
 from .chi2 import chi2_ppf
 
 from . import imu_kernel
-from .imu_fused import FILTER_BUFFER_SCRATCH
+from .imu_fused import new_filter_buffer, unpack_filter_buffer
 from .earth import OMEGA_IE_RADPS, skew
 from .state_layout import DEFAULT_LAYOUT, DT_IMU, StateLayout, delete_block, insert_block, isb_block_name
 
@@ -154,22 +154,11 @@ class ErrorStateKalmanFilter:
         nd = L.n if L.n <= self.DENSE_MAX_STATES else L.n_core
         self._n_dense = nd
         # the compiled step's matrices in one buffer (numba unboxes every array argument, ~0.1 us
-        # each, at every IMU sample): nd, then Phi, Qd (nd x nd), the identity tail's noise
-        # (n - nd), a work buffer (nd x n) and another (nd x nd), each a view below, and the step's
-        # scratch (companion.nav.imu_fused.unpack_filter_buffer reads the same layout)
-        n = L.n
-        buf = self._kernel_buf = np.zeros(1 + 3 * nd * nd + (n - nd) + nd * n + FILTER_BUFFER_SCRATCH)
-        buf[0] = nd
-        o = 1
-        self._phi = buf[o:o + nd * nd].reshape(nd, nd)
-        o += nd * nd
-        self._Qd = buf[o:o + nd * nd].reshape(nd, nd)
-        o += nd * nd
-        self._kernel_tail_q = buf[o:o + n - nd]
-        o += n - nd
-        self._kernel_work = buf[o:o + nd * n].reshape(nd, n)
-        o += nd * n
-        self._kernel_work_cc = buf[o:o + nd * nd].reshape(nd, nd)
+        # each, at every IMU sample): Phi, Qd (nd x nd), the identity tail's noise (n - nd), a
+        # work buffer (nd x n) and another (nd x nd), views of it here as in the kernel
+        self._kernel_buf = new_filter_buffer(nd, L.n)
+        (self._phi, self._Qd, self._kernel_tail_q, self._kernel_work, self._kernel_work_cc,
+         _scratch) = unpack_filter_buffer(self._kernel_buf, L.n)
         self._phi[...] = np.eye(nd)     # constant entries stay; the rest is rewritten every step
         self._phi_T = self._phi.T                   # a view: follows every in-place write to Phi
         self._phi_att_att = self._phi[L.att, L.att]

@@ -41,6 +41,13 @@ _strapdown = _propagate = _screen_quick = _screen_commit = _unpack = _imu_step =
 _compiled = None
 
 
+def new_filter_buffer(nd: int, n: int) -> np.ndarray:
+    """A zeroed buffer in the layout :func:`unpack_filter_buffer` reads, ``nd`` in its first element."""
+    buf = np.zeros(1 + 3 * nd * nd + (n - nd) + nd * n + FILTER_BUFFER_SCRATCH)
+    buf[0] = nd
+    return buf
+
+
 def unpack_filter_buffer(kbuf, n):
     """Views of the filter's buffer (companion.nav.filter.ErrorStateKalmanFilter._kernel_buf) for a
     state of ``n``: Phi, Qd (nd x nd), the identity tail's noise (n - nd), work (nd x n), work_cc
