@@ -41,8 +41,9 @@ def _add_gnss(sub) -> None:
     p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
     p.add_argument("--sys", default="auto",
                    help="constellations, e.g. G,E,C,J (GPS, Galileo, BeiDou, QZSS) or 'all'; default: every one "
-                        "with observations and ephemerides in the files.  GLONASS (R) with --mode rtk only: by "
-                        "default when its integers can be fixed (see --glonass-ar), or when asked (G,R,E,C,J, all)")
+                        "of G,E,C,J with observations and ephemerides in the files.  GLONASS (R) when asked "
+                        "(G,R,E,C,J, all; its code inter-channel biases vary with the receiver), and with --mode rtk "
+                        "also by default when its integers can be fixed (see --glonass-ar)")
     p.add_argument("--freq", choices=["l1", "if"], default="l1",
                    help="spp/dgps: l1 = each system's single-frequency code (GPS/QZSS L1 C/A, Galileo E1, "
                         "BeiDou B1I) with Klobuchar; if = dual-frequency iono-free per system")

@@ -297,9 +297,11 @@ class FilterConfig:
     use_doppler: bool = _f(False)
     use_loose: bool = _f(False)
     elevation_mask_deg: float = _f(10.0, min=0.0, max=90.0)
-    systems: tuple[str, ...] = _f(("G", "E", "C", "J"), choices=("G", "E", "C", "J"),
-                                  doc="constellations fused: G GPS, E Galileo, C BeiDou, J QZSS (one receiver "
-                                  "clock plus a bias state per other system; GLONASS is not supported yet). "
+    systems: tuple[str, ...] = _f(("G", "E", "C", "J"), choices=("G", "R", "E", "C", "J"),
+                                  doc="constellations fused: G GPS, R GLONASS, E Galileo, C BeiDou, J QZSS (one "
+                                  "receiver clock plus a bias state per other system). GLONASS only when named: its "
+                                  "code carries receiver inter-channel biases (its code sigma x1.5) and its RTK "
+                                  "ambiguities stay float (FDMA: the receivers' inter-channel phase biases). "
                                   "With rtk_enabled, the systems double-differenced too, each within itself "
                                   "(a reference satellite per system and signal, no inter-system bias)")
     pseudorange_signal: str = _f("L1C", choices=("L1C", "IF"),

@@ -91,6 +91,7 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
+from .gnss.glonass import GlonassEphemeris  # noqa: E402
 from .gnss.spp import spp_epoch  # noqa: E402
 from .io.mavlink import BootToGpsTime, ImuDecoder, gps_fix_from_gps_raw_int, parse_imu_stream  # noqa: E402
 from .io.mavlink_fast import DatagramParser  # noqa: E402
@@ -532,7 +533,7 @@ class NavPipeline:
                     self._release_held()
                 else:
                     self._rover_epoch(msg)
-            elif isinstance(msg, (GpsEphemeris, BaseStationPosition)):
+            elif isinstance(msg, (GpsEphemeris, GlonassEphemeris, BaseStationPosition)):
                 self.engine.process(msg)
             elif isinstance(msg, GnssFix):
                 self.counters["receiver fixes (NAV-PVT, not fused)"] += 1
@@ -548,13 +549,13 @@ class NavPipeline:
         """With RTK on: GPS tracking families renamed to one code on both receivers (a u-blox
         rover's L2L pairs with a base's 2X; with its 2W only when the base has no 2X, in a group of
         its own: companion.rtk_signals), and a base epoch cut to the systems the engine positions
-        with (no GPS-Galileo double differences on the shared 'L1C' name: their inter-system phase
-        bias is not modelled)."""
+        with (``[filter] systems``; each is double-differenced within itself)."""
         out = rtk_epoch(epoch)
         if out is not epoch:
             self.counters[f"rtk: {epoch.source} epochs with signals renamed to their family"] += 1
         if out.source == "base":
-            kept = tuple(o for o in out.observations if o.sat[:1] in RTK_SYSTEMS)
+            systems = self.engine.cfg.systems
+            kept = tuple(o for o in out.observations if o.sat[:1] in RTK_SYSTEMS and o.sat[:1] in systems)
             if len(kept) != len(out.observations):
                 out = dataclasses.replace(out, observations=kept)
         return out

@@ -62,7 +62,10 @@ GPS_WEEK_ROLLOVER = 1024
 def _week_of(eph, t_gps_obs: float):
     """The ephemeris in the 1024-week era of the observations: LNAV broadcasts its week in 10 bits
     and a converter that resolves them against its own clock writes old data 1024 weeks late
-    (RTKLIB 2.4.3's convbin on a 2005 capture: week 2340 for 1316)."""
+    (RTKLIB 2.4.3's convbin on a 2005 capture: week 2340 for 1316).  A GLONASS record has no
+    week (its t_b is a time of day, resolved on reading)."""
+    if not hasattr(eph, "week"):
+        return eph
     obs_week = int(t_gps_obs // SECONDS_PER_WEEK)
     k = round((eph.week - obs_week) / GPS_WEEK_ROLLOVER)
     return dataclasses.replace(eph, week=eph.week - k * GPS_WEEK_ROLLOVER) if k else eph
@@ -71,19 +74,23 @@ def _week_of(eph, t_gps_obs: float):
 def _rinex_stream(obs_path, nav_path, base_path):
     """(receiver GPS time, [decoded messages]) of RINEX rover (and base) observations; the
     ephemerides and the base position go with the first epoch."""
+    from .gnss.glonass import frequency_channels, with_fdma_wavelengths
     from .gnss.rinex import read_rinex_nav, read_rinex_obs
-    from .gnss.signals import SUPPORTED_SYSTEMS
+    from .gnss.signals import PREPARED_SYSTEMS
     from .gnss.rtk_post import antenna_delta_e
     from .messages import BaseStationPosition
     if nav_path is None:
         raise ValueError("RINEX observations need --nav (a RINEX navigation file)")
-    _, rover = read_rinex_obs(obs_path, SUPPORTED_SYSTEMS)       # the filter keeps its filter.systems
-    ephs = read_rinex_nav(nav_path, SUPPORTED_SYSTEMS)
+    _, rover = read_rinex_obs(obs_path, PREPARED_SYSTEMS)       # the filter keeps its filter.systems
+    ephs = read_rinex_nav(nav_path, PREPARED_SYSTEMS)
+    channels = frequency_channels(ephs)              # RINEX leaves GLONASS FDMA wavelengths out
+    rover = with_fdma_wavelengths(rover, channels)
     first = [_week_of(e, rover[0].t_gps) for e in ephs] if rover else []
     shifted = sum(1 for a, b in zip(ephs, first) if a is not b)
     items = [(e.t_gps, [e]) for e in rover]
     if base_path is not None:
-        hdr, base = read_rinex_obs(base_path, SUPPORTED_SYSTEMS)
+        hdr, base = read_rinex_obs(base_path, PREPARED_SYSTEMS)
+        base = with_fdma_wavelengths(base, channels)
         r_b = hdr["approx_position_e"]
         if r_b is None:
             raise ValueError(f"{base_path}: no APPROX POSITION XYZ in the header: the base position is unknown")

@@ -93,9 +93,9 @@ RTK_CROSS_PAIRS_BY_SYSTEM: dict[str, dict[tuple[str, str], str]] = {
 #: GPS's families (kept under their old name)
 RTK_FAMILIES: dict[str, tuple[str, ...]] = RTK_FAMILIES_BY_SYSTEM["G"]
 
-#: systems whose observations the engine may RTK-pair (those of ``[filter] systems`` among them);
-#: GLONASS only in post-processing (companion.gnss.rtk), which has its ephemerides
-RTK_SYSTEMS = "GECJ"
+#: systems whose observations the engine may RTK-pair (those of ``[filter] systems`` among them;
+#: GLONASS's ambiguities stay float in the engine: companion.nav.rtk_update)
+RTK_SYSTEMS = "GRECJ"
 
 #: per system, the engine's RTK signal list: the first one is the code whose pseudorange places the
 #: satellite (receiver_sats), the rest in order of preference

@@ -15,18 +15,19 @@ from companion.nav.filter import ProcessNoise
 from companion.rtk_signals import RTK_SIGNALS
 
 
-def engine_at_rest(ephemerides, base_r_e, base_epochs, rover_epochs, r_true_e, *, seed: int = 1):
+def engine_at_rest(ephemerides, base_r_e, base_epochs, rover_epochs, r_true_e, *, seed: int = 1,
+                   systems: str = "GECJ"):
     """(EpochReport per rover epoch, 3-D error of the engine's position after each).  The engine
     starts from the first rover epoch's SPP position half a second before it; the IMU (200 Hz,
     white noise) senses the earth's rotation and gravity at ``r_true_e``, the antenna there (no
-    lever arm).  ``base_epochs`` and ``rover_epochs`` pair one to one."""
+    lever arm).  ``base_epochs`` and ``rover_epochs`` pair one to one; ``systems``: the engine's."""
     r_true_e = np.asarray(r_true_e, float)
-    eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), systems="GECJ", rtk_enabled=True,
+    eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), systems=systems, rtk_enabled=True,
                                  rtk_signals=RTK_SIGNALS, elevation_mask_deg=10.0))
     for e in ephemerides:
         eng.process(e)
     eng.process(BaseStationPosition(0, np.asarray(base_r_e, float).copy(), 0.0))
-    sol = spp_epoch(rover_epochs[0], eng.ephemerides, systems="GECJ")
+    sol = spp_epoch(rover_epochs[0], eng.ephemerides, systems=systems)
     C_b_e = C_n_e(*ecef_to_geodetic(r_true_e)[:2])
     t = rover_epochs[0].t_gps - 0.5
     eng.initialize(t, sol.r_e, np.zeros(3), C_b_e, dict(pos_m=5.0, vel_mps=0.1, tilt_rad=0.01, heading_rad=0.05,

@@ -84,7 +84,7 @@ def test_tracking_families_pair_like_with_like():
 
 def test_pipeline_renames_both_sides_and_cuts_other_systems_from_the_base():
     pipe = NavPipeline(config_from_dict(RTK_ON))
-    # Galileo is RTK-paired within Galileo (issue 12); GLONASS (FDMA, not modelled) is cut
+    # Galileo is RTK-paired within Galileo (issue 12); GLONASS, not in [filter] systems here, is cut
     base = GnssEpoch(100.0, (_obs("G05", "L1C"), _obs("G05", "L2X"), _obs("E11", "L1X"), _obs("R01", "L1C")),
                      source="base")
     out = pipe._rtk_epoch(base)

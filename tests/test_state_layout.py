@@ -38,8 +38,9 @@ def test_inter_system_biases_are_configured_and_found_by_name():
     assert L.n == 20 and L.index("isb_E") == 18 and L.index("isb_C") == 19
     assert L.clock_columns("E") == (15, 18) and L.clock_columns("G") == (15,) and L.clock_columns("J") == (15,)
     assert [b.name for b in L.extra_blocks()] == ["isb_E", "isb_C"]
-    with pytest.raises(ValueError, match="expected one of E, C, J"):
-        StateLayout.standard(("R",))
+    assert StateLayout.standard(("R",)).index("isb_R") == 18         # GLONASS, when fused
+    with pytest.raises(ValueError, match="expected one of R, E, C, J"):
+        StateLayout.standard(("S",))
     with pytest.raises(ValueError, match="twice"):
         StateLayout.standard(("E", "E"))
 

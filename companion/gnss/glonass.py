@@ -5,7 +5,11 @@ A GLONASS ephemeris is not Keplerian: it is the satellite's PZ-90 position, velo
 lunisolar acceleration at ``t_b`` (every 30 min), valid about 15 min either side.  The state at
 another time comes from integrating the equations of motion in the rotating earth frame (central
 field, J2, centrifugal and Coriolis terms, the broadcast acceleration held constant) by
-fourth-order Runge-Kutta in steps of at most :data:`STEP_S` (RTKLIB's ``glorbit``, 60 s).
+fourth-order Runge-Kutta as RTKLIB's ``geph2pos``: whole steps of :data:`STEP_S` (60 s) from
+``t_b``, then one step of the remainder.  The states on that 60-s grid are kept with the
+ephemeris, so a state costs one step once the grid reaches it (a receiver asks for each
+satellite at every epoch, for the rover and for the base: the integration from ``t_b`` was
+most of the cost of a GLONASS satellite).
 PZ-90.11 and WGS-84 (G1762) agree to centimetres, so no frame transformation is applied.
 
 Time: the RINEX record's epoch is ``t_b`` in UTC(SU) - 3 h read as UTC; it becomes GPS time by the
@@ -20,7 +24,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -74,6 +78,11 @@ class GlonassEphemeris:
     fit_interval_h: float = 2.0 * VALIDITY_H
     delta_tau_n_s: float = 0.0      # L2 - L1 group delay (RTCM 1020; not in RINEX 3.04)
     age_days: int = 0               # E_n, days since the data were uploaded (RTCM 1020)
+    # the broadcast orbit's error for the code weights (m): RINEX and RTCM 1020 carry no URA;
+    # RTKLIB's ERREPH_GLO
+    ura_m: float = 5.0
+    # the integrated states at t_b + k STEP_S (k -> (x, y, z, vx, vy, vz)), filled on demand
+    _grid: dict = field(default_factory=dict, init=False, repr=False)
 
 
 def t_b_gps(t_b_units: int, ref_gps: float, leap_seconds: int) -> float:
@@ -130,19 +139,61 @@ def satellite_clock(eph: GlonassEphemeris, t_gps: float) -> tuple[float, float]:
     return eph.clock_bias_s + eph.clock_rate * (t_gps - eph.t_oe_gps), eph.clock_rate
 
 
+def _grid_state(eph: GlonassEphemeris, k: int, acc: tuple) -> tuple:
+    """The state at ``t_b + k STEP_S``, integrated step by step from the nearest one kept."""
+    grid = eph._grid
+    if not grid:
+        grid[0] = (*eph.r_e.tolist(), *eph.v_e.tolist())
+    x = grid.get(k)
+    if x is None:
+        step = 1 if k > 0 else -1
+        j = k
+        while j not in grid:
+            j -= step
+        x = grid[j]
+        while j != k:
+            x = _rk4(x, acc, step * STEP_S)
+            j += step
+            grid[j] = x
+    return x
+
+
 def satellite_state(eph: GlonassEphemeris, t_gps: float):
     """Satellite (r_e m, v_e m/s, clock bias s, clock drift s/s) at GPS time ``t_gps``: the
-    broadcast state integrated from ``t_b`` in equal steps of at most :data:`STEP_S`."""
+    broadcast state integrated from ``t_b`` in whole steps of :data:`STEP_S`, then the remainder."""
     dt = t_gps - eph.t_oe_gps
-    x = (*eph.r_e.tolist(), *eph.v_e.tolist())
     acc = tuple(eph.a_e.tolist())
-    n = max(1, math.ceil(abs(dt) / STEP_S))
-    h = dt / n
-    if dt != 0.0:
-        for _ in range(n):
-            x = _rk4(x, acc, h)
+    k = int(abs(dt) // STEP_S) * (1 if dt >= 0.0 else -1)
+    x = _grid_state(eph, k, acc)
+    rest = dt - k * STEP_S
+    if rest != 0.0:
+        x = _rk4(x, acc, rest)
     bias, drift = satellite_clock(eph, t_gps)
     return np.array(x[:3]), np.array(x[3:]), bias, drift
+
+
+def frequency_channels(ephemerides) -> dict[str, int]:
+    """GLONASS satellite -> broadcast frequency channel, from its ephemerides (the last one's)."""
+    return {e.sat: e.frequency_channel for e in ephemerides if isinstance(e, GlonassEphemeris)}
+
+
+def with_fdma_wavelengths(epochs, channels: dict[str, int]) -> list:
+    """``epochs`` (:class:`~companion.messages.GnssEpoch`) with each GLONASS FDMA observation's
+    wavelength from its satellite's channel where it has none: RINEX gives none (a receiver's
+    stream does), and the carrier-phase users (smoothing, TDCP, RTK) need it.  Satellites without a
+    channel keep NaN (their phase stays unused)."""
+    from dataclasses import replace
+
+    def missing(o) -> bool:
+        return o.sat[0] == "R" and o.wavelength_m != o.wavelength_m and o.sat in channels
+
+    out = []
+    for ep in epochs:
+        if any(missing(o) for o in ep.observations):
+            ep = replace(ep, observations=tuple(replace(o, wavelength_m=wavelength_m(o.signal, channels[o.sat]))
+                                                if missing(o) else o for o in ep.observations))
+        out.append(ep)
+    return out
 
 
 def ephemeris_from_rinex(sat: str, t_b_utc_as_gps: float, leap_s: int, fields: list[float]) -> GlonassEphemeris:
@@ -159,5 +210,5 @@ def ephemeris_from_rinex(sat: str, t_b_utc_as_gps: float, leap_s: int, fields: l
                             health=int(round(fields[6])), iode=slot)
 
 
-__all__ = ["GlonassEphemeris", "t_b_gps", "carrier_hz", "wavelength_m", "satellite_state", "satellite_clock",
+__all__ = ["GlonassEphemeris", "t_b_gps", "frequency_channels", "with_fdma_wavelengths", "carrier_hz", "wavelength_m", "satellite_state", "satellite_clock",
            "ephemeris_from_rinex", "gps_minus_utc_s", "STEP_S"]

@@ -46,7 +46,8 @@ from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, write_pos
 from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
 from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
-from .signals import SUPPORTED_SYSTEMS
+from .glonass import frequency_channels, with_fdma_wavelengths
+from .signals import GLONASS, PREPARED_SYSTEMS, SUPPORTED_SYSTEMS
 from .rtk_post import RTK_POST_SYSTEMS, antenna_delta_e
 from .spp import SppSolution, spp_epoch
 
@@ -209,7 +210,7 @@ def _load(args):
     for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
-    wanted = parse_systems(getattr(args, "sys", None))
+    wanted = parse_systems(getattr(args, "sys", None), PREPARED_SYSTEMS)   # GLONASS when asked
     store = EphemerisStore()
     klob = None
     ubx_rover = ubx_base = None
@@ -278,6 +279,10 @@ def _load(args):
         t_r = {round(e.t_gps) for e in rover}
         if not t_r & {round(e.t_gps) for e in base_epochs}:
             raise GnssProcessingError("no epochs in common between rover and base observations")
+    if GLONASS in systems:       # RINEX gives its FDMA observations no wavelength: the channels do
+        channels = frequency_channels(e for sat in store.sats if sat[0] == GLONASS for e in store.all(sat))
+        rover = with_fdma_wavelengths(rover, channels)
+        base_epochs = with_fdma_wavelengths(base_epochs, channels) if base_epochs else base_epochs
     t0, t1 = rover[0].t_gps, rover[-1].t_gps
     if not any(store.select_with_reason(s, 0.5 * (t0 + t1))[0] for s in store.sats) and \
             not any(store.select_with_reason(s, t0)[0] for s in store.sats):

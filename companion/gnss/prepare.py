@@ -57,8 +57,11 @@ from .sat_state import state as sat_state
 from .sat_state import transmit_time as sat_transmit_time
 from .sat_state_kernel import compiled as compiled_state
 from .ephemeris_store import EphemerisStore
-from .signals import (IF_FIRST_SIGNALS, IF_SECOND_SIGNALS, PRIMARY_SIGNALS, SUPPORTED_SYSTEMS, frequency_hz,
-                      group_delay_m, iono_free_noise_factor, is_transmitted)
+from .glonass import GlonassEphemeris
+from .glonass import satellite_state as glonass_state
+from .glonass import wavelength_m as glonass_wavelength_m
+from .signals import (GLONASS, GLONASS_CODE_SIGMA_FACTOR, IF_FIRST_SIGNALS, IF_SECOND_SIGNALS, PRIMARY_SIGNALS,
+                      PREPARED_SYSTEMS, group_delay_m, iono_free_noise_factor, is_transmitted, pair_frequencies_hz)
 
 if TYPE_CHECKING:  # pragma: no cover
     from .dgps import DgpsCorrector
@@ -170,7 +173,7 @@ def form_pseudorange(sig: dict[str, SatObservation], signal: str, system: str = 
             g1, g2 = GPS_L1_HZ * GPS_L1_HZ, GPS_L2_HZ * GPS_L2_HZ
             noise = IF_NOISE_FACTOR
         else:
-            f1, f2 = frequency_hz(o1.sat, code1), frequency_hz(o1.sat, code2)
+            f1, f2 = pair_frequencies_hz(o1.sat, code1, code2)
             g1, g2 = f1 * f1, f2 * f2
             noise = iono_free_noise_factor(f1, f2)
         p = (g1 * p1 - g2 * p2) / (g1 - g2)
@@ -204,15 +207,65 @@ def _empty(t_rx, signal, r0, rejected) -> PreparedEpoch:
         iode=np.zeros(0, int), dgps_age_s=z, iono_m=z, tropo_m=z, rejected=rejected)
 
 
+def _with_glonass_wavelengths(sig: dict[str, SatObservation], channel: int) -> dict[str, SatObservation]:
+    """``sig`` with the FDMA wavelength of ``channel`` where an observation has none (RINEX)."""
+    from dataclasses import replace
+    return {c: replace(o, wavelength_m=glonass_wavelength_m(c, channel)) if o.wavelength_m != o.wavelength_m else o
+            for c, o in sig.items()}
+
+
+def _glonass_at_transmit(eph: GlonassEphemeris, t_rx: float, pseudorange_m: float | None, rx_clock_bias_m: float,
+                         r_approx_e: tuple | None) -> tuple:
+    """(x, y, z, vx, vy, vz, clock bias s, drift s/s) of a GLONASS satellite at its transmit time
+    (GPS time) for a signal received at ``t_rx``: from the pseudorange and the satellite clock as
+    for the Keplerian systems, or without one from the geometric range (phase only)."""
+    if pseudorange_m is not None:
+        t_tx = t_rx - pseudorange_m / C
+        t_tx -= eph.clock_bias_s + eph.clock_rate * (t_tx - eph.t_oe_gps)
+    else:
+        t_tx = t_rx - rx_clock_bias_m / C - 0.075
+        if r_approx_e is not None:
+            r, _, _, _ = glonass_state(eph, t_tx)
+            t_tx = t_rx - rx_clock_bias_m / C - math.dist(r.tolist(), r_approx_e) / C
+    r, v, dts, ddts = glonass_state(eph, t_tx)
+    return (*r.tolist(), *v.tolist(), dts, ddts)
+
+
+def _keplerian_at_transmit(eph, t_rx: float, pseudorange_m: float | None, rx_clock_bias_m: float,
+                           r_approx_e: tuple | None, kern) -> tuple:
+    """The same for a Keplerian ephemeris (:mod:`.sat_state`; compiled by ``kern`` when given, the
+    same numbers): the transmit time from the pseudorange, or without one from the geometric
+    range (GPS time: no satellite clock term)."""
+    k = orbit_constants(eph)
+    t_guess = t_rx - rx_clock_bias_m / C - 0.075
+    if kern is not None and not k.geo:
+        if pseudorange_m is not None:
+            return kern(k.vec, t_rx, pseudorange_m, math.nan)[1:]
+        s0 = kern(k.vec, t_rx, 0.0, t_guess)
+        tau = math.dist(s0[1:4], r_approx_e) / C if r_approx_e is not None else 0.075
+        return kern(k.vec, t_rx, 0.0, t_rx - rx_clock_bias_m / C - tau)[1:]
+    if pseudorange_m is not None:
+        t_tx = sat_transmit_time(k, t_rx, pseudorange_m)
+    else:
+        s0 = sat_state(k, t_guess)
+        tau = math.dist(s0[:3], r_approx_e) / C if r_approx_e is not None else 0.075
+        t_tx = t_rx - rx_clock_bias_m / C - tau
+    return sat_state(k, t_tx)
+
+
 def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
                   dgps: "DgpsCorrector | None" = None, elevation_mask_rad: float = math.radians(10.0),
                   klobuchar=None, signal: str = "L1C", rx_clock_bias_m: float = 0.0,
                   apply_models: bool = True, tropo: bool = True, systems: str = "G") -> PreparedEpoch:
     """Corrected measurements of one epoch (see module docstring for the model and conventions).
 
-    ``systems``: the constellations used, letters of :data:`SUPPORTED_SYSTEMS` ('G' by default:
-    GPS only, as the single-clock filter needs; 'GECJ' for all four).  Satellites of other systems
-    are rejected as 'system not selected' ('unsupported system' for GLONASS, SBAS, NavIC).  The
+    ``systems``: the constellations used, letters of :data:`PREPARED_SYSTEMS` ('G' by default:
+    GPS only, as the single-clock filter needs; 'GECJ' for the four CDMA systems, R for GLONASS).
+    Satellites of other systems are rejected as 'system not selected' ('unsupported system' for
+    SBAS, NavIC).  GLONASS: the integrated orbit (:mod:`.glonass`), the FDMA wavelengths from the
+    ephemeris's frequency channel where the observations have none, no group delay (its clock
+    refers to L1), its code sigma x :data:`~.signals.GLONASS_CODE_SIGMA_FACTOR` and its broadcast
+    orbit's ``ura_m``.  The
     pseudorange model is the same for all; each system has its own clock offset, estimated by
     :func:`companion.gnss.spp.solve_spp` as an inter-system bias.
 
@@ -254,9 +307,18 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
     kern = compiled_state()
     for sat, sig in group_by_sat(epoch).items():
         sys_ = sat[0]
-        if sys_ not in systems or sys_ not in SUPPORTED_SYSTEMS:
-            rejected[sat] = "system not selected" if sys_ in SUPPORTED_SYSTEMS else "unsupported system"
+        if sys_ not in systems or sys_ not in PREPARED_SYSTEMS:
+            rejected[sat] = "system not selected" if sys_ in PREPARED_SYSTEMS else "unsupported system"
             continue
+        glo_eph = None
+        if sys_ == GLONASS:
+            # the ephemeris first: its frequency channel gives the FDMA wavelengths a RINEX file
+            # leaves out (NaN), which the iono scaling and the phase need
+            glo_eph, reason = select(sat, t_rx)
+            if glo_eph is None:
+                rejected[sat] = "no ephemeris" if reason == "outside fit interval" else reason
+                continue
+            sig = _with_glonass_wavelengths(sig, glo_eph.frequency_channel)
         p, o, codes, tgd_fac, iono_fac, code_scale = form_pseudorange(sig, signal, sys_)
         if o is None:
             rejected[sat] = "no pseudorange"
@@ -266,7 +328,7 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
         if not has_p and not has_l:
             rejected[sat] = "no pseudorange"
             continue
-        eph, reason = select(sat, t_rx)
+        eph, reason = (glo_eph, "") if glo_eph is not None else select(sat, t_rx)
         if eph is None:
             rejected[sat] = "no ephemeris" if reason == "outside fit interval" else reason
             continue
@@ -287,22 +349,13 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
             if why:
                 rejected[sat] = why
                 continue
-        k = orbit_constants(eph)
-        if kern is not None and not k.geo:     # the same numbers, compiled
-            if has_p:
-                _, x, y, z, vx, vy, vz, dts, ddts = kern(k.vec, t_rx, p, nan)
-            else:
-                s0 = kern(k.vec, t_rx, 0.0, t_rx - rx_clock_bias_m / C - 0.075)
-                tau = dist(s0[1:4], r0_t) / C if known else 0.075
-                _, x, y, z, vx, vy, vz, dts, ddts = kern(k.vec, t_rx, 0.0, t_rx - rx_clock_bias_m / C - tau)
+        if glo_eph is not None:
+            x, y, z, vx, vy, vz, dts, ddts = _glonass_at_transmit(eph, t_rx, p if has_p else None,
+                                                                 rx_clock_bias_m, r0_t if known else None)
+            code_scale *= GLONASS_CODE_SIGMA_FACTOR
         else:
-            if has_p:
-                t_tx = sat_transmit_time(k, t_rx, p)
-            else:  # phase only: transmit time from the geometric range (GPS time: no satellite clock term)
-                s0 = sat_state(k, t_rx - rx_clock_bias_m / C - 0.075)
-                tau = dist(s0[:3], r0_t) / C if known else 0.075
-                t_tx = t_rx - rx_clock_bias_m / C - tau
-            x, y, z, vx, vy, vz, dts, ddts = sat_state(k, t_tx)
+            x, y, z, vx, vy, vz, dts, ddts = _keplerian_at_transmit(eph, t_rx, p if has_p else None,
+                                                                   rx_clock_bias_m, r0_t if known else None, kern)
         # geometric travel time, two iterations (the first from the unrotated position)
         a = w_ie * (dist((x, y, z), r0_t) / C)
         c, s = cos(a), sin(a)
@@ -429,7 +482,8 @@ class CarrierSmoother:
             if o2 is None or (sys_ == "G" and o2.signal[1] == "2"):
                 g = GAMMA_L1_L2
             else:
-                g = (frequency_hz(sat, o1.signal if o1 is not None else "L1") / frequency_hz(sat, o2.signal)) ** 2
+                f1, f2 = pair_frequencies_hz(sat, o1.signal if o1 is not None else "L1", o2.signal)
+                g = (f1 / f2) ** 2
             if o1 is None or o1.carrier_cycles != o1.carrier_cycles or o1.pseudorange_m != o1.pseudorange_m:
                 self._state.pop(sat, None)
                 out.extend(sig.values())

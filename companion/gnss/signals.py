@@ -1,4 +1,4 @@
-"""Signals of GPS, Galileo, BeiDou and QZSS: carrier frequencies, which code each system uses for
+"""Signals of GPS, GLONASS, Galileo, BeiDou and QZSS: carrier frequencies, which code each system uses for
 single-frequency and dual-frequency positioning, and the broadcast group delay a code needs.
 
 Signals are named as in :class:`companion.messages.SatObservation`: 'L' + RINEX 3 band + attribute
@@ -8,13 +8,18 @@ has with a pseudorange is used.
 Broadcast clocks refer to: GPS/QZSS LNAV the L1 P(Y)/L2 P(Y) iono-free combination (an L1 C/A user
 subtracts TGD, IS-GPS-200 20.3.3.3.3.2); Galileo I/NAV E1/E5b, F/NAV E1/E5a (an E1 user subtracts
 BGD(E1,E5b) resp. BGD(E1,E5a), Galileo OS SIS ICD 5.1.5); BeiDou D1/D2 the B3I code (a B1I user
-subtracts TGD1, a B2I user TGD2, BeiDou B1I ICD 5.2.4.10).
+subtracts TGD1, a B2I user TGD2, BeiDou B1I ICD 5.2.4.10); GLONASS the L1 signals (tau_n,
+ICD GLONASS 5.1 table 4.5; RTKLIB applies no group delay to L1 or to the L1/L2 iono-free pair).
+GLONASS's FDMA carriers depend on the satellite's frequency channel
+(:func:`companion.gnss.glonass.carrier_hz`), but L1 and L2 are 9/7 of each other on every
+channel, so an iono-free pair needs no channel (:func:`pair_frequencies_hz`).
 """
 from __future__ import annotations
 
 import math
 
 from ..messages import GPS_L1_HZ, GPS_L2_HZ, SPEED_OF_LIGHT_MPS, GpsEphemeris
+from .glonass import carrier_hz as glonass_carrier_hz
 
 #: carrier frequency, Hz, by system and RINEX 3 band number
 FREQUENCY_HZ: dict[str, dict[str, float]] = {
@@ -30,6 +35,17 @@ FREQUENCY_HZ: dict[str, dict[str, float]] = {
 #: systems whose Keplerian broadcast ephemerides and signals are modelled, in the order used to
 #: pick the reference clock of a multi-system solution
 SUPPORTED_SYSTEMS = "GECJ"
+
+#: GLONASS: its ephemerides are integrated (:mod:`companion.gnss.glonass`), not Keplerian.  Its
+#: pseudoranges carry receiver inter-channel biases that differ with the receiver's make (up to
+#: metres between makes), so it joins a solution only when asked (``--sys`` with R, ``[filter]
+#: systems``), never by default
+GLONASS = "R"
+#: the systems :func:`companion.gnss.prepare.prepare_epoch` models, in reference-clock order
+PREPARED_SYSTEMS = SUPPORTED_SYSTEMS + GLONASS
+#: standard deviation factor of a GLONASS code against the same model for the CDMA systems: its
+#: inter-channel biases (RTKLIB's EFACT_GLO)
+GLONASS_CODE_SIGMA_FACTOR = 1.5
 
 #: systems whose pseudoranges share another system's receiver clock.  QZSS transmits the same L1 C/A
 #: and L2C signals as GPS, on a time steered to GPS time (a few ns), so the receiver sees no
@@ -52,6 +68,7 @@ PRIMARY_SIGNALS: dict[str, tuple[str, ...]] = {
     "E": ("L1C", "L1X", "L1B"),
     "C": ("L2I", "L2X"),
     "J": ("L1C",),
+    "R": ("L1C", "L1P"),
 }
 #: first code of the dual-frequency (iono-free) pair; GPS accepts P(Y) on L1 as before
 IF_FIRST_SIGNALS: dict[str, tuple[str, ...]] = {
@@ -59,6 +76,7 @@ IF_FIRST_SIGNALS: dict[str, tuple[str, ...]] = {
     "E": PRIMARY_SIGNALS["E"],
     "C": PRIMARY_SIGNALS["C"],
     "J": PRIMARY_SIGNALS["J"],
+    "R": PRIMARY_SIGNALS["R"],
 }
 #: second code of the pair.  Galileo prefers E5b: the I/NAV clock (the one read by default) refers
 #: to E1/E5b, so that combination needs no group delay; E5a follows.  BeiDou B3I first (the clock's
@@ -68,6 +86,7 @@ IF_SECOND_SIGNALS: dict[str, tuple[str, ...]] = {
     "E": ("L7Q", "L7X", "L7I", "L5Q", "L5X", "L5I"),
     "C": ("L6I", "L6X", "L7I", "L7X"),
     "J": ("L2L", "L2S", "L2X", "L5Q", "L5X", "L5I"),
+    "R": ("L2C", "L2P"),                  # FDMA L2 (its L3 CDMA carrier is not 9/7 of L1's)
 }
 
 
@@ -94,6 +113,15 @@ def frequency_hz(sat: str, signal: str) -> float:
     return FREQUENCY_HZ.get(sat[0], {}).get(signal[1:2], float("nan"))
 
 
+def pair_frequencies_hz(sat: str, signal1: str, signal2: str) -> tuple[float, float]:
+    """The carrier frequencies of two signals of ``sat`` in their true ratio, which is all an
+    iono-free or divergence-free combination needs: exact for the CDMA systems; GLONASS FDMA L1/L2
+    are 9/7 of each other on every frequency channel, so channel 0's are returned."""
+    if sat[0] == GLONASS:
+        return glonass_carrier_hz(signal1, 0), glonass_carrier_hz(signal2, 0)
+    return frequency_hz(sat, signal1), frequency_hz(sat, signal2)
+
+
 def iono_free_noise_factor(f1_hz: float, f2_hz: float) -> float:
     """Noise amplification of the iono-free combination of two equally noisy codes."""
     g1, g2 = f1_hz * f1_hz, f2_hz * f2_hz
@@ -111,6 +139,8 @@ def group_delay_m(eph: GpsEphemeris, codes: tuple[str, ...], tgd_factor: float) 
     on B1C/B2a (their ISCs are not in D1/D2 records); an iono-free pair carries
     (f1^2 d1 - f2^2 d2) / (f1^2 - f2^2).
     """
+    if eph.sat[0] == GLONASS:
+        return 0.0
     if eph.sat[0] != "C":
         return SPEED_OF_LIGHT_MPS * eph.tgd_s * tgd_factor
 

@@ -18,9 +18,10 @@
   - :class:`~companion.messages.GpsEphemeris` from 1019 (GPS), 1044 (QZSS), 1042 (BeiDou) and
     1045/1046 (Galileo F/NAV, I/NAV; ``galileo_nav`` chooses), once per new issue per satellite
     (:mod:`companion.io.rtcm_eph`: the field scaling, checked against convbin).
-  - 1020 (GLONASS ephemeris) gives the satellites' FDMA frequency channels and
-    ``glonass_ephemerides`` / ``glonass_history`` (held, not emitted: the engine does not model
-    GLONASS; the post-processing RTK takes them from a base capture).
+  - 1020 (GLONASS ephemeris) gives the satellites' FDMA frequency channels, a
+    :class:`~companion.gnss.glonass.GlonassEphemeris` once per new issue per satellite (the
+    engine fuses GLONASS when ``[filter] systems`` names R), and ``glonass_ephemerides`` /
+    ``glonass_history`` (the post-processing RTK takes them from a base capture).
 
 Times: RTCM carries time of week (GPS, Galileo, QZSS, SBAS, NavIC: GPS TOW in ms; BeiDou: BDT =
 GPS - 14 s; GLONASS: day of week + Moscow time of day, converted with ``leap_seconds``; once the
@@ -447,9 +448,12 @@ class RtcmDecoder:
             if ref is not None:
                 eph = glonass_ephemeris(msg, ref, self.leap_seconds)
                 self.glonass_ephemerides[eph.sat] = eph
+                new = (eph.sat, eph.t_oe_gps) not in self.glonass_history
                 self.glonass_history.setdefault((eph.sat, eph.t_oe_gps), eph)
                 if len(self.glonass_history) > MAX_GLONASS_HISTORY:
                     self.glonass_history.pop(next(iter(self.glonass_history)))     # the oldest
+                if new:
+                    return [eph]
             return []
         self._count(f"ignored_{mtype}")
         return []

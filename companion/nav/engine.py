@@ -46,6 +46,7 @@ import numpy as np
 from ..gnss.ephemeris_store import EphemerisStore
 from ..gnss.phase import BaseCarrierBook, RoverCarrierBook
 from ..gnss.prepare import prepare_epoch
+from ..gnss.glonass import GlonassEphemeris
 from ..gnss.signals import clock_group
 from ..messages import (SPEED_OF_LIGHT_MPS, BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
                         ImuSample, NavSolution)
@@ -383,7 +384,7 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
             return self.process_imu(msg)
         if isinstance(msg, GnssEpoch):
             return self.process_base(msg) if msg.source == "base" else self.process_gnss(msg)
-        if isinstance(msg, GpsEphemeris):
+        if isinstance(msg, (GpsEphemeris, GlonassEphemeris)):
             self.ephemerides.add(msg)
             return None
         if isinstance(msg, BaseStationPosition):

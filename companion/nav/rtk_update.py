@@ -19,8 +19,8 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   mapping) and dropped with its last; ``-(f_L1/f)^2`` of it on a phase row, ``+`` on a code row.
   Without it a few millimetres of rover-only ionosphere bias the float ambiguities of a
   dual-frequency rover, whose covariance keeps shrinking, and the ratio test fails for a minute.
-* **Systems**: the satellites of ``systems`` (the engine's ``[filter] systems``: GPS, Galileo,
-  BeiDou, QZSS), each on its own signals (:data:`companion.rtk_signals.RTK_SIGNALS_BY_SYSTEM`
+* **Systems**: the satellites of ``systems`` (the engine's ``[filter] systems``: GPS, GLONASS,
+  Galileo, BeiDou, QZSS), each on its own signals (:data:`companion.rtk_signals.RTK_SIGNALS_BY_SYSTEM`
   among ``signals``) and differenced **within its system only**: a reference per (system,
   signal), so no inter-system phase or code bias enters (receiver-make dependent, and between
   different frequencies not even defined).  QZSS has its own reference too (RTKLIB differences
@@ -49,7 +49,7 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   (seed 004's innovation test, on single differences).  A slipped ambiguity is re-initialised
   before the rows are built.
 * **Integers**: after the float update, LAMBDA (:func:`~companion.gnss.lambda_ils.lambda_ils`) on
-  the DD ambiguities with the ratio test; partial fixing drops the least certain DD ambiguity and
+  the DD ambiguities (but GLONASS's: ``float_only_systems``) with the ratio test; partial fixing drops the least certain DD ambiguity and
   tries again down to ``min_fix_ambiguities``.  A candidate is validated against the phase
   residuals it leaves (``fixed_residual_sigma``) and against the INS prediction (the position it
   implies, chi-square with 3 dof against the predicted covariance); accepted, it is **held**: fed
@@ -85,6 +85,10 @@ FIX_NONE, FIX_FLOAT, FIX_FIXED = "none", "float", "fixed"
 class RtkUpdateConfig:
     signals: tuple[str, ...] = ("L1C", "L2W")
     systems: str = "G"                        # each differenced within itself (signals_for_system)
+    # systems whose DD ambiguities stay float (RTKLIB's gloarmode off): GLONASS FDMA, whose
+    # receivers' inter-channel phase biases do not cancel between makes (the base's make is not
+    # known live); its rows still constrain the position through the float ambiguities
+    float_only_systems: str = "R"
     elevation_mask_deg: float = 10.0
     sigma_phase_a_m: float = 0.003            # SD variance 2 (a^2 + b^2 / sin^2 el) per receiver pair
     sigma_phase_b_m: float = 0.003
@@ -437,7 +441,7 @@ class RtkUpdate:
         sa, sb_, ratio = cfg.sigma_phase_a_m, cfg.sigma_phase_b_m, cfg.code_phase_ratio
         var_ph = {q: sd_variance_m2(sr[q].elevation_rad, "phase", sa, sb_, ratio) for q in common}
         refs, pairs, cols, iono_cols = {}, [], [], []
-        z_ph, z_co, lab_ph, lab_co, lam_ph, du = [], [], [], [], [], []
+        z_ph, z_co, lab_ph, lab_co, lam_ph, lam_ref_ph, du = [], [], [], [], [], [], []
         iono = self.iono
         ion = self._iono_values(eng)
         col = {b.name: b.start for b in L.extra_blocks()}     # the one-state blocks' columns
@@ -458,6 +462,7 @@ class RtkUpdate:
             n_ref = float(bs[ar.name][0])
             col_ref = col[ar.name]
             i_ref = ion.get(ref, 0.0)
+            lam_ref = ar.wavelength_m
             own = []
             for sat in sats:
                 if sat == ref:
@@ -467,15 +472,18 @@ class RtkUpdate:
                 lam = a.wavelength_m
                 q, qb = sr[sat], sb[sat]
                 dd_rho = (model_r[sat][0] - model_b[sat][0]) - rho_ref
+                # GLONASS FDMA: the reference's carrier differs (k = 1 for the CDMA systems, exactly)
+                k_ref = lam_ref / lam
                 # the ionosphere advances the phase and delays the code
-                dd_iono = _iono_factor(lam) * (ion.get(sat, 0.0) - i_ref) if iono else 0.0
-                z_ph.append(lam * ((q.phase_cyc[s] - qb.phase_cyc[s]) - sd_phi_ref) - dd_rho
-                            - lam * (float(bs[a.name][0]) - n_ref) + dd_iono)
+                dd_iono = _iono_factor(lam) * (ion.get(sat, 0.0) - i_ref * k_ref * k_ref) if iono else 0.0
+                z_ph.append(lam * ((q.phase_cyc[s] - qb.phase_cyc[s]) - sd_phi_ref * k_ref) - dd_rho
+                            - lam * (float(bs[a.name][0]) - n_ref * k_ref) + dd_iono)
                 z_co.append(((q.code_m[s] - qb.code_m[s]) - sd_code_ref) - dd_rho - dd_iono)
                 if iono:
                     iono_cols.append((col[iono[sat]], col[iono[ref]]))
                 du.append(model_r[sat][1] - u_ref)
                 lam_ph.append(lam)
+                lam_ref_ph.append(lam_ref)
                 cols.append((col[a.name], col_ref))
                 pairs.append((key, kref))
                 lab_ph.append(f"{sat}-{ref} {s} phase")
@@ -495,15 +503,16 @@ class RtkUpdate:
         c = np.array(cols)
         lam = np.array(lam_ph)
         rk = np.arange(k)
+        lam_ref = np.array(lam_ref_ph)
         H[rk, c[:, 0]] = lam
-        H[rk, c[:, 1]] = -lam
+        H[rk, c[:, 1]] = -lam_ref
         if iono_cols:
             ci = np.array(iono_cols)
-            mu = _iono_factor(lam)
+            mu, mu_ref = _iono_factor(lam), _iono_factor(lam_ref)
             H[rk, ci[:, 0]] = -mu
-            H[rk, ci[:, 1]] = mu
+            H[rk, ci[:, 1]] = mu_ref
             H[k + rk, ci[:, 0]] = mu
-            H[k + rk, ci[:, 1]] = -mu
+            H[k + rk, ci[:, 1]] = -mu_ref
         # the DD covariance: phase runs, then the same runs for the code (x ratio^2 x factor)
         R = np.zeros((2 * k, 2 * k))
         code_f = ratio ** 2
@@ -619,11 +628,12 @@ class RtkUpdate:
         cfg = self.cfg
         L = eng.layout
         keep = rows.keep if rows.keep is not None else np.ones(len(rows.z), bool)
-        pairs = [rows.amb_pairs[i] for i, k in enumerate(rows.kinds) if k == "phase" and keep[i]]
+        ph = [i for i, k in enumerate(rows.kinds) if k == "phase" and keep[i]
+              and rows.amb_pairs[i][0][0][:1] not in cfg.float_only_systems]
+        pairs = [rows.amb_pairs[i] for i in ph]
         n_dd = len(pairs)
         if n_dd < cfg.min_fix_ambiguities:
             return self._set_status(rows.t_gps, FIX_FLOAT, math.nan, 0, n_dd)
-        ph = [i for i, k in enumerate(rows.kinds) if k == "phase" and keep[i]]
         if rows.amb_cols is not None:
             ac = rows.amb_cols[ph]
         else:

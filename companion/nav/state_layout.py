@@ -39,7 +39,7 @@ CLOCK = "clock"                # receiver clock bias (GPS time), m
 CLOCK_DRIFT = "clock_drift"    # its rate, m/s
 DT_IMU = "dt_imu"              # IMU time-tag offset, s
 REFERENCE_SYSTEM = "G"         # the receiver clock state is GPS's; other systems add a bias
-ISB_SYSTEMS = ("E", "C", "J")  # systems that may have an inter-system bias block
+ISB_SYSTEMS = ("R", "E", "C", "J")  # systems that may have an inter-system bias block
 
 
 def isb_block_name(system: str) -> str:
