@@ -190,10 +190,18 @@ def with_fdma_wavelengths(epochs, channels: dict[str, int]) -> list:
     out = []
     for ep in epochs:
         if any(missing(o) for o in ep.observations):
-            ep = replace(ep, observations=tuple(replace(o, wavelength_m=wavelength_m(o.signal, channels[o.sat]))
-                                                if missing(o) else o for o in ep.observations))
+            ep = replace(ep, observations=tuple(with_channel_wavelength(o, channels[o.sat]) if missing(o) else o
+                                                for o in ep.observations))
         out.append(ep)
     return out
+
+
+def with_channel_wavelength(obs, channel: int):
+    """A GLONASS observation with the FDMA wavelength of ``channel`` if it has none (else itself)."""
+    if obs.wavelength_m == obs.wavelength_m:
+        return obs
+    from dataclasses import replace
+    return replace(obs, wavelength_m=wavelength_m(obs.signal, channel))
 
 
 def ephemeris_from_rinex(sat: str, t_b_utc_as_gps: float, leap_s: int, fields: list[float]) -> GlonassEphemeris:
@@ -210,5 +218,6 @@ def ephemeris_from_rinex(sat: str, t_b_utc_as_gps: float, leap_s: int, fields: l
                             health=int(round(fields[6])), iode=slot)
 
 
-__all__ = ["GlonassEphemeris", "t_b_gps", "frequency_channels", "with_fdma_wavelengths", "carrier_hz", "wavelength_m", "satellite_state", "satellite_clock",
-           "ephemeris_from_rinex", "gps_minus_utc_s", "STEP_S"]
+__all__ = ["GlonassEphemeris", "t_b_gps", "frequency_channels", "with_fdma_wavelengths", "with_channel_wavelength",
+           "carrier_hz", "wavelength_m", "satellite_state", "satellite_clock", "ephemeris_from_rinex", "gps_minus_utc_s",
+           "STEP_S"]

@@ -59,7 +59,7 @@ from .sat_state_kernel import compiled as compiled_state
 from .ephemeris_store import EphemerisStore
 from .glonass import GlonassEphemeris
 from .glonass import satellite_state as glonass_state
-from .glonass import wavelength_m as glonass_wavelength_m
+from .glonass import with_channel_wavelength
 from .signals import (GLONASS, GLONASS_CODE_SIGMA_FACTOR, IF_FIRST_SIGNALS, IF_SECOND_SIGNALS, PRIMARY_SIGNALS,
                       PREPARED_SYSTEMS, group_delay_m, iono_free_noise_factor, is_transmitted, pair_frequencies_hz)
 
@@ -207,13 +207,6 @@ def _empty(t_rx, signal, r0, rejected) -> PreparedEpoch:
         iode=np.zeros(0, int), dgps_age_s=z, iono_m=z, tropo_m=z, rejected=rejected)
 
 
-def _with_glonass_wavelengths(sig: dict[str, SatObservation], channel: int) -> dict[str, SatObservation]:
-    """``sig`` with the FDMA wavelength of ``channel`` where an observation has none (RINEX)."""
-    from dataclasses import replace
-    return {c: replace(o, wavelength_m=glonass_wavelength_m(c, channel)) if o.wavelength_m != o.wavelength_m else o
-            for c, o in sig.items()}
-
-
 def _glonass_at_transmit(eph: GlonassEphemeris, t_rx: float, pseudorange_m: float | None, rx_clock_bias_m: float,
                          r_approx_e: tuple | None) -> tuple:
     """(x, y, z, vx, vy, vz, clock bias s, drift s/s) of a GLONASS satellite at its transmit time
@@ -318,7 +311,7 @@ def prepare_epoch(epoch: GnssEpoch, store: EphemerisStore, r_approx_e, *,
             if glo_eph is None:
                 rejected[sat] = "no ephemeris" if reason == "outside fit interval" else reason
                 continue
-            sig = _with_glonass_wavelengths(sig, glo_eph.frequency_channel)
+            sig = {c: with_channel_wavelength(o, glo_eph.frequency_channel) for c, o in sig.items()}
         p, o, codes, tgd_fac, iono_fac, code_scale = form_pseudorange(sig, signal, sys_)
         if o is None:
             rejected[sat] = "no pseudorange"

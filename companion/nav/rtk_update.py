@@ -29,7 +29,9 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   only as L2C and the base only as P(Y) forms its own group (``"amb G05 L2X~W"``,
   :func:`~companion.gnss.double_difference.cross_pair`).
 * **Rows** per (system, signal) against its highest satellite ``j`` (``d`` = rover - base):
-  ``lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j)`` and ``dP_i - dP_j = DD rho``,
+  ``lambda (dphi_i - dphi_j) = DD rho + lambda (N_i - N_j)`` and ``dP_i - dP_j = DD rho``
+  (GLONASS, each satellite on its own carrier: ``lambda_i dphi_i - lambda_j dphi_j`` and
+  ``lambda_i N_i - lambda_j N_j``),
   rho modelled at the **INS-predicted antenna position** (the linearisation point) for the rover
   and at the surveyed position for the base.  Jacobians: ``-(u_i - u_j)`` on the antenna position
   (chain rule to the IMU position, attitude through the lever arm, ``dt_imu`` through the antenna
@@ -49,8 +51,8 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   (seed 004's innovation test, on single differences).  A slipped ambiguity is re-initialised
   before the rows are built.
 * **Integers**: after the float update, LAMBDA (:func:`~companion.gnss.lambda_ils.lambda_ils`) on
-  the DD ambiguities (but GLONASS's: ``float_only_systems``) with the ratio test; partial fixing drops the least certain DD ambiguity and
-  tries again down to ``min_fix_ambiguities``.  A candidate is validated against the phase
+  the DD ambiguities (but GLONASS's: ``float_only_systems``) with the ratio test; partial fixing
+  drops the least certain DD ambiguity and tries again down to ``min_fix_ambiguities``.  A candidate is validated against the phase
   residuals it leaves (``fixed_residual_sigma``) and against the INS prediction (the position it
   implies, chi-square with 3 dof against the predicted covariance); accepted, it is **held**: fed
   to the filter as a measurement of the DD ambiguities (``hold_sigma_cycles``), so the whole state
