@@ -133,3 +133,26 @@ def test_rtcm_1020_is_emitted_once_per_issue():
                                  week_hint=2240)
     emitted = [(m.sat, m.t_oe_gps) for m in msgs if isinstance(m, GlonassEphemeris)]
     assert emitted and len(emitted) == len(set(emitted)) == len(dec.glonass_history)
+
+
+def test_engine_takes_glonass_from_a_real_rtcm_base_stream():
+    """The live path's inputs: the real Hiroshima base stream (MSM7 of six systems, 1005, 1019 /
+    1020 ...) decoded as the service decodes it, its GLONASS wavelengths from the MSM7 channels and
+    its orbits from the 1020 issues, as the base and, relabelled, as the rover (a zero baseline):
+    the engine forms GLONASS DD phase rows beside the others and stays at the station."""
+    from companion.io.rtcm import decode_rtcm_file
+    from companion.messages import BaseStationPosition, GnssEpoch, GpsEphemeris
+    from companion.gnss.glonass import GlonassEphemeris
+    msgs, _ = decode_rtcm_file(str(data_path("qzsl6tool-hiroshima-rtcm3-ubx") / "20221213-010900.rtcm"),
+                               week_hint=2240)
+    ephs = [m for m in msgs if isinstance(m, (GpsEphemeris, GlonassEphemeris))]
+    station = next(m for m in msgs if isinstance(m, BaseStationPosition)).r_e
+    base = [dataclasses.replace(rtk_epoch(m), source="base") for m in msgs if isinstance(m, GnssEpoch)]
+    base = [b for b in base if any(o.sat[0] == "R" for o in b.observations)]
+    rover = [dataclasses.replace(b, source="rover") for b in base]
+    reps, err = engine_at_rest(ephs, station, base, rover, station, systems="GRECJ")
+    made, accepted = _rows_of(reps, "rtk_phase", "R")
+    print(f"RTCM base, zero baseline: {len(rover)} epochs, GLONASS phase rows {accepted}/{made}, "
+          f"fixed {[rp.fix_state for rp in reps].count('fixed')}, last error {err[-1]:.4f} m")
+    assert len(rover) >= 30 and made >= 4 * len(rover) and accepted == made
+    assert err[-1] < 0.01
