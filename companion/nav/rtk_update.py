@@ -72,6 +72,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..gnss.atmosphere import saastamoinen_zenith_m
+from ..gnss.differential_iono import iono_factor, random_walk_psd
+from ..gnss.differential_iono import prior_sigma_m as iono_prior_sigma_m
 from ..gnss.double_difference import cross_pair, place_at, receiver_sats, sd_variance_m2, transmit_states
 from ..rtk_signals import base_signal, signals_for_system
 from ..gnss.lambda_kernel import lambda_ils      # compiled when numba is there, same results
@@ -247,11 +249,9 @@ class RtkUpdate:
         if not cfg.iono_states or sat in self.iono:
             return
         base_m = float(np.linalg.norm(eng.r_e - eng.base.r_e)) if eng.base is not None else 0.0
-        m = _iono_mapping(elevation_rad)
-        sigma_z = cfg.iono_sigma_zenith_m + cfg.iono_sigma_ppm * 1e-6 * base_m
+        sigma = iono_prior_sigma_m(elevation_rad, base_m, cfg.iono_sigma_zenith_m, cfg.iono_sigma_ppm)
         name = f"iono {sat}"
-        psd = 2.0 * (sigma_z * m) ** 2 / cfg.iono_correlation_time_s
-        eng.add_state_block(name, 1, sigma_z * m, psd)
+        eng.add_state_block(name, 1, sigma, random_walk_psd(sigma, cfg.iono_correlation_time_s))
         self.iono[sat] = name
 
     def _prune_iono(self, eng) -> None:
@@ -391,7 +391,7 @@ class RtkUpdate:
         lam = a.wavelength_m
         sd_phi = lam * (sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s])
         return (sd_phi - (model_r[sat][0] - model_b[sat][0]) - lam * float(eng.block_states[a.name][0])
-                + _iono_factor(lam) * ion.get(sat, 0.0))
+                + iono_factor(lam) * ion.get(sat, 0.0))
 
     def _slip_test(self, eng, t, common, sr, sb, model_r, model_b) -> None:
         """INS-predicted phase: per ambiguity, the change of its SD residual since the last epoch,
@@ -477,7 +477,7 @@ class RtkUpdate:
                 # GLONASS FDMA: the reference's carrier differs (k = 1 for the CDMA systems, exactly)
                 k_ref = lam_ref / lam
                 # the ionosphere advances the phase and delays the code
-                dd_iono = _iono_factor(lam) * (ion.get(sat, 0.0) - i_ref * k_ref * k_ref) if iono else 0.0
+                dd_iono = iono_factor(lam) * (ion.get(sat, 0.0) - i_ref * k_ref * k_ref) if iono else 0.0
                 z_ph.append(lam * ((q.phase_cyc[s] - qb.phase_cyc[s]) - sd_phi_ref * k_ref) - dd_rho
                             - lam * (float(bs[a.name][0]) - n_ref * k_ref) + dd_iono)
                 z_co.append(((q.code_m[s] - qb.code_m[s]) - sd_code_ref) - dd_rho - dd_iono)
@@ -510,7 +510,7 @@ class RtkUpdate:
         H[rk, c[:, 1]] = -lam_ref
         if iono_cols:
             ci = np.array(iono_cols)
-            mu, mu_ref = _iono_factor(lam), _iono_factor(lam_ref)
+            mu, mu_ref = iono_factor(lam), iono_factor(lam_ref)
             H[rk, ci[:, 0]] = -mu
             H[rk, ci[:, 1]] = mu_ref
             H[k + rk, ci[:, 0]] = mu
@@ -755,7 +755,7 @@ class RtkUpdate:
             n_post = float(eng.block_states[a.name][0])
             i_post = ion.get(key[0], 0.0)
             self._resid[key] = (rows.t_gps, e_pre + float(u @ dr) - a.wavelength_m * (n_post - n_pre)
-                                + _iono_factor(a.wavelength_m) * (i_post - i_pre))
+                                + iono_factor(a.wavelength_m) * (i_post - i_pre))
 
 
 def _median(x: list) -> float:
@@ -793,16 +793,3 @@ def _model_ranges_m(r_rx_e: np.ndarray, sats: list):
 
 
 _ONE_DEG_RAD = math.radians(1.0)
-_L1_WAVELENGTH_M = SPEED_OF_LIGHT_MPS / 1575.42e6
-_EARTH_RADIUS_M, _IONO_SHELL_M = 6371e3, 350e3
-
-
-def _iono_factor(wavelength_m):
-    """The ionospheric delay on a carrier of ``wavelength_m`` per metre of it on L1's: (f_L1/f)^2."""
-    return (wavelength_m / _L1_WAVELENGTH_M) ** 2
-
-
-def _iono_mapping(elevation_rad: float) -> float:
-    """Slant over vertical delay of the single-layer ionosphere (shell at 350 km)."""
-    x = _EARTH_RADIUS_M / (_EARTH_RADIUS_M + _IONO_SHELL_M) * math.cos(elevation_rad)
-    return 1.0 / math.sqrt(1.0 - x * x)
