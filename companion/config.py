@@ -411,6 +411,10 @@ class FilterConfig:
     rtk_iono_sigma_ppm: float = _f(1.0, min=0.0, max=1000.0,
                                    doc="... plus this per metre of baseline, x 1e-6 (RTKLIB: 3 ppm; on a real "
                                        "5.3-km car 3 ppm delayed the first fix by 82 s, 1 ppm fixed at once)")
+    rtk_glonass_integers: bool = _f(False, doc="with R in filter.systems: fix GLONASS's ambiguities too (RTKLIB's "
+                                    "gloarmode on). Only when the base is the rover's receiver model (two ZED-F9P): "
+                                    "each make has its own GLONASS inter-channel phase biases, which cancel only "
+                                    "between two receivers of one model; otherwise GLONASS stays float")
 
     def process_noise(self):
         from .nav.filter import ProcessNoise

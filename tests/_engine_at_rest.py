@@ -16,13 +16,15 @@ from companion.rtk_signals import RTK_SIGNALS
 
 
 def engine_at_rest(ephemerides, base_r_e, base_epochs, rover_epochs, r_true_e, *, seed: int = 1,
-                   systems: str = "GECJ"):
+                   systems: str = "GECJ", glonass_integers: bool = False):
     """(EpochReport per rover epoch, 3-D error of the engine's position after each).  The engine
     starts from the first rover epoch's SPP position half a second before it; the IMU (200 Hz,
     white noise) senses the earth's rotation and gravity at ``r_true_e``, the antenna there (no
-    lever arm).  ``base_epochs`` and ``rover_epochs`` pair one to one; ``systems``: the engine's."""
+    lever arm).  ``base_epochs`` and ``rover_epochs`` pair one to one; ``systems``,
+    ``glonass_integers``: the engine's."""
     r_true_e = np.asarray(r_true_e, float)
     eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), systems=systems, rtk_enabled=True,
+                                 rtk_glonass_integers=glonass_integers,
                                  rtk_signals=RTK_SIGNALS, elevation_mask_deg=10.0))
     for e in ephemerides:
         eng.process(e)

@@ -197,6 +197,7 @@ class EngineConfig:
     rtk_iono_states: bool = True
     rtk_iono_sigma_zenith_m: float = 0.001
     rtk_iono_sigma_ppm: float = 1.0
+    rtk_glonass_integers: bool = False        # GLONASS fixed too: one receiver model at both ends
 
     def bias_systems(self) -> tuple[str, ...]:
         """Systems with an inter-system bias state: the configured ones, else every clock group
@@ -216,7 +217,8 @@ class EngineConfig:
                                min_fix_ambiguities=self.rtk_min_fix_ambiguities,
                                hold_sigma_cycles=self.rtk_hold_sigma_cycles, gate_probability=self.gate_probability,
                                iono_states=self.rtk_iono_states, iono_sigma_zenith_m=self.rtk_iono_sigma_zenith_m,
-                               iono_sigma_ppm=self.rtk_iono_sigma_ppm)
+                               iono_sigma_ppm=self.rtk_iono_sigma_ppm,
+                               float_only_systems="" if self.rtk_glonass_integers else "R")
 
 
 @dataclass

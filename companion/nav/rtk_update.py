@@ -91,7 +91,8 @@ class RtkUpdateConfig:
     systems: str = "G"                        # each differenced within itself (signals_for_system)
     # systems whose DD ambiguities stay float (RTKLIB's gloarmode off): GLONASS FDMA, whose
     # receivers' inter-channel phase biases do not cancel between makes (the base's make is not
-    # known live); its rows still constrain the position through the float ambiguities
+    # known live: '' when the user says it is the rover's, [filter] rtk_glonass_integers); its
+    # rows still constrain the position through the float ambiguities
     float_only_systems: str = "R"
     elevation_mask_deg: float = 10.0
     sigma_phase_a_m: float = 0.003            # SD variance 2 (a^2 + b^2 / sin^2 el) per receiver pair
