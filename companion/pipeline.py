@@ -1329,7 +1329,10 @@ class NavPipeline:
             if "imu_time_offset_s" in sol.extras:     # dt_imu: GPS time of an IMU sample = tag + this
                 filt.update({"imu_time_offset_s": round(float(sol.extras["imu_time_offset_s"]), 5),
                              "imu_time_offset_sigma_s": round(float(sol.extras["imu_time_offset_sigma_s"]), 5)})
-        return {"filter": filt, "pipeline": dict(self.counters), "engine": dict(self.engine.counters),
+        engine_counters = dict(self.engine.counters)
+        for why, n in self.engine.ephemerides.rejections.items():   # duplicates, implausible records
+            engine_counters[f"ephemerides rejected: {why}"] = n
+        return {"filter": filt, "pipeline": dict(self.counters), "engine": engine_counters,
                 "aid_sources": self.engine.aid.snapshot(),
                 "yaw_gsf": {**self.gsf.snapshot(), "heading_resets": self.gsf_heading_resets,
                             "attitude_yaw_trusted": self.attitude_yaw_trusted,

@@ -16,6 +16,8 @@ from collections import Counter
 from typing import Iterable
 
 from ..messages import GpsEphemeris
+from .glonass import GlonassEphemeris
+from .glonass import implausible as glonass_implausible
 
 #: extra margin beyond half the fit interval, s (0 = strict IS-GPS-200 fit interval)
 FIT_MARGIN_S = 0.0
@@ -47,7 +49,13 @@ class EphemerisStore:
             self.add(e)
 
     def add(self, eph: GpsEphemeris) -> bool:
-        """Add an ephemeris; False (and counted as 'duplicate') if sat+IODE+toe is already held."""
+        """Add an ephemeris; False (and counted as 'duplicate') if sat+IODE+toe is already held, or
+        (counted as 'implausible GLONASS state: <why>') a GLONASS record no satellite can have."""
+        if isinstance(eph, GlonassEphemeris):
+            why = glonass_implausible(eph)
+            if why:
+                self.rejections[f"implausible GLONASS state: {why}"] += 1
+                return False
         lst = self._by_sat.setdefault(eph.sat, [])
         t_oe = eph.t_oe_gps
         for e in lst:

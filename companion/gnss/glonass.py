@@ -85,6 +85,31 @@ class GlonassEphemeris:
     _grid: dict = field(default_factory=dict, init=False, repr=False)
 
 
+#: bounds of a broadcast state a GLONASS satellite can have (orbit radius 25,510 km, speed 3.95 km/s,
+#: lunisolar acceleration under 1e-5 m/s^2; RINEX frequency numbers -7..+13): a record outside
+#: them (a hostile or corrupt 1020 / string set) would be integrated into nonsense, or divide by a
+#: zero radius
+_RADIUS_RANGE_M = (2.4e7, 2.7e7)
+_MAX_SPEED_MPS = 5.0e3
+_MAX_ACCELERATION_MPS2 = 1.0e-4
+_CHANNEL_RANGE = (-7, 13)
+
+
+def implausible(eph: GlonassEphemeris) -> str:
+    """Why a GLONASS ephemeris cannot be a satellite's, or '' when it can."""
+    values = (*eph.r_e.tolist(), *eph.v_e.tolist(), *eph.a_e.tolist(), eph.clock_bias_s, eph.clock_rate,
+              eph.t_oe_gps)
+    if not all(math.isfinite(v) for v in values):
+        return "non-finite"
+    if not _RADIUS_RANGE_M[0] <= float(np.linalg.norm(eph.r_e)) <= _RADIUS_RANGE_M[1]:
+        return "orbit radius"
+    if float(np.linalg.norm(eph.v_e)) > _MAX_SPEED_MPS or float(np.linalg.norm(eph.a_e)) > _MAX_ACCELERATION_MPS2:
+        return "velocity or acceleration"
+    if not _CHANNEL_RANGE[0] <= eph.frequency_channel <= _CHANNEL_RANGE[1]:
+        return "frequency channel"
+    return ""
+
+
 def t_b_gps(t_b_units: int, ref_gps: float, leap_seconds: int) -> float:
     """t_b (15-min units of the Moscow day: UTC + 3 h) -> continuous GPS seconds, on the day
     nearest ``ref_gps`` (a receive time)."""
@@ -218,6 +243,6 @@ def ephemeris_from_rinex(sat: str, t_b_utc_as_gps: float, leap_s: int, fields: l
                             health=int(round(fields[6])), iode=slot)
 
 
-__all__ = ["GlonassEphemeris", "t_b_gps", "frequency_channels", "with_fdma_wavelengths", "with_channel_wavelength",
+__all__ = ["GlonassEphemeris", "implausible", "t_b_gps", "frequency_channels", "with_fdma_wavelengths", "with_channel_wavelength",
            "carrier_hz", "wavelength_m", "satellite_state", "satellite_clock", "ephemeris_from_rinex", "gps_minus_utc_s",
            "STEP_S"]
