@@ -40,6 +40,29 @@ def is_beidou_geo(sat: str) -> bool:
     return prn <= 5 or 59 <= prn <= 63
 
 
+#: bounds of a broadcast orbit a satellite of these systems can have: sqrt(A) of GPS 5154, Galileo
+#: 5440, BeiDou MEO 5282 and IGSO/GEO 6493, QZSS 6493 sqrt(m); eccentricity up to QZSS's 0.075.
+#: A record outside them (a hostile or corrupt 1019 / subframe set with a valid CRC) would divide
+#: by zero or leave the domain of the anomaly's functions at every epoch of its fit interval
+_SQRT_A_RANGE = (4000.0, 7000.0)
+_MAX_ECCENTRICITY = 0.5
+
+
+def implausible(eph: GpsEphemeris) -> str:
+    """Why a Keplerian ephemeris cannot be a satellite's, or '' when it can."""
+    values = [getattr(eph, f) for f in ("sqrt_a", "e", "i0_rad", "omega0_rad", "omega_rad", "m0_rad",
+                                         "delta_n_radps", "idot_radps", "omega_dot_radps", "cuc_rad", "cus_rad",
+                                         "crc_m", "crs_m", "cic_rad", "cis_rad", "af0_s", "af1_sps", "af2_sps2",
+                                         "tgd_s", "toe_s", "toc_s")]
+    if not all(math.isfinite(v) for v in values):
+        return "non-finite"
+    if not _SQRT_A_RANGE[0] <= eph.sqrt_a <= _SQRT_A_RANGE[1]:
+        return "semi-major axis"
+    if not 0.0 <= eph.e <= _MAX_ECCENTRICITY:
+        return "eccentricity"
+    return ""
+
+
 def _wrap_week(dt_s: float) -> float:
     """Time difference folded into [-half week, half week] (the spec's week-crossover rule)."""
     if dt_s > 302400.0:

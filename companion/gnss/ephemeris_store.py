@@ -17,6 +17,7 @@ from typing import Iterable
 
 from ..messages import GpsEphemeris
 from .glonass import GlonassEphemeris
+from .ephemeris import implausible as keplerian_implausible
 from .glonass import implausible as glonass_implausible
 
 #: extra margin beyond half the fit interval, s (0 = strict IS-GPS-200 fit interval)
@@ -50,12 +51,13 @@ class EphemerisStore:
 
     def add(self, eph: GpsEphemeris) -> bool:
         """Add an ephemeris; False (and counted as 'duplicate') if sat+IODE+toe is already held, or
-        (counted as 'implausible GLONASS state: <why>') a GLONASS record no satellite can have."""
-        if isinstance(eph, GlonassEphemeris):
-            why = glonass_implausible(eph)
-            if why:
-                self.rejections[f"implausible GLONASS state: {why}"] += 1
-                return False
+        (counted as 'implausible orbit: <why>' / 'implausible GLONASS state: <why>') a record no
+        satellite can have (:func:`.ephemeris.implausible`, :func:`.glonass.implausible`)."""
+        why = glonass_implausible(eph) if isinstance(eph, GlonassEphemeris) else keplerian_implausible(eph)
+        if why:
+            kind = "GLONASS state" if isinstance(eph, GlonassEphemeris) else "orbit"
+            self.rejections[f"implausible {kind}: {why}"] += 1
+            return False
         lst = self._by_sat.setdefault(eph.sat, [])
         t_oe = eph.t_oe_gps
         for e in lst:
