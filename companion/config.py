@@ -301,7 +301,8 @@ class FilterConfig:
                                   doc="constellations fused: G GPS, R GLONASS, E Galileo, C BeiDou, J QZSS (one "
                                   "receiver clock plus a bias state per other system). GLONASS only when named: its "
                                   "code carries receiver inter-channel biases (its code sigma x1.5) and its RTK "
-                                  "ambiguities stay float (FDMA: the receivers' inter-channel phase biases). "
+                                  "ambiguities stay float (FDMA: the receivers' inter-channel phase biases) unless "
+                                  "rtk_glonass_integers. "
                                   "With rtk_enabled, the systems double-differenced too, each within itself "
                                   "(a reference satellite per system and signal, no inter-system bias)")
     pseudorange_signal: str = _f("L1C", choices=("L1C", "IF"),

@@ -237,7 +237,7 @@ def test_rtk_with_glonass_float_fixes_every_epoch_and_glonass_helps_the_float():
     assert err["GR"] < err["G"]                          # measured 0.30 against 0.35 m
 
 
-def test_cli_uses_glonass_when_asked_and_says_where_it_cannot(tmp_path, capsys):
+def test_cli_uses_glonass_when_asked_and_where_its_integers_can_be_fixed(tmp_path, capsys):
     from companion.cli import main
     out, pos = tmp_path / "rtk.json", tmp_path / "rtk.pos"
     xyz = "--base-xyz=" + ",".join(map(str, BASE_XYZ))
@@ -259,7 +259,7 @@ def test_cli_uses_glonass_when_asked_and_says_where_it_cannot(tmp_path, capsys):
                  "--json", str(out)]) == 0
     summary = json.loads(out.read_text())
     assert set(summary["satellites_by_system"]) == set("GEC") and not summary["glonass_ar"]
-    # SPP / DGPS take GLONASS when asked (tests/test_glonass_spp.py), never by default
+    # SPP / DGPS take GLONASS when asked (tests/test_glonass_fused.py), never by default
     assert main(["gnss", *files, "--json", str(out)]) == 0
     assert "R" not in json.loads(out.read_text())["satellites_by_system"]
 

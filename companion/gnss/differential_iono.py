@@ -1,7 +1,8 @@
 """The differential ionosphere of a rover-base pair as states: one between-receiver
 single-difference slant delay per satellite, in metres on GPS L1's frequency (RTKLIB's
-``IONOOPT_EST``), shared by the engine's RTK (:mod:`companion.nav.rtk_update`) and the
-post-processing RTK (:mod:`.rtk`).
+``IONOOPT_EST``), the model of the engine's RTK (:mod:`companion.nav.rtk_update`).  Tried in
+the post-processing RTK (:mod:`.rtk`) on 2026-12-05 and not kept there (README: GEONET 0.0228 m
+against 0.0110 m, no fix on the 15-km car).
 
 * On a carrier of wavelength ``lambda`` the delay is ``(lambda / lambda_L1)^2`` of it
   (:func:`iono_factor`): subtracted from the phase (it advances), added to the code.
