@@ -10,8 +10,9 @@ most significant bit on (the third's 11 low bits unused), the fourth the frame a
 numbers the receiver inferred (the F9 interface description's RXM-SFRBX section).  The
 frequency channel is not in strings 1-4: SFRBX's ``freqId`` (k + 7) gives it.
 
-Strings 1-4 make an ephemeris when all four came within one frame's first 8 s (2 s a string):
-older strings of another t_b never mix in.  Every string passes the Hamming check first.
+Strings 1-4 make an ephemeris when each came at most 10 s after the one before (one frame sends
+them 2 s apart): older strings of another t_b never mix in.  Every string passes the Hamming check
+first.
 """
 from __future__ import annotations
 
