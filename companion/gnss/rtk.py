@@ -61,6 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
+from ..nav.earth import ecef_to_geodetic
 from ..rtk_signals import RTK_SIGNALS, signals_for_system
 from .double_difference import (ReceiverSat, cross_pair, dd_covariance, elevation_rad, model_range_m,
                                 receiver_sats, sd_variance_m2)
@@ -171,6 +172,8 @@ class RtkFilter:
         self._rover_flags_ahead: set[str] = set()
         self._base_flags_ahead: set[str] = set()
         self.base_r_e = np.asarray(base_r_e, dtype=float)
+        self._base_llh = ecef_to_geodetic(self.base_r_e)
+        self._base_models: tuple = (None, {})     # (the epoch's base satellites, sat -> model)
         self.store = store
         self.x = np.zeros(3)
         self.P = np.eye(3) * config.position_sigma_m ** 2
@@ -322,10 +325,25 @@ class RtkFilter:
     def _dd_rows(self, x: np.ndarray, common, sr, sb, *, fixed: dict | None = None):
         """(innovation z - h(x), H, R, keys) of every DD phase and code row at state ``x``."""
         r = x[:3]
-        model_r = {sat: _model_m(r, sr[sat]) for sat in common}
-        model_b = {sat: _model_m(self.base_r_e, sb[sat]) for sat in common}
+        llh_r = ecef_to_geodetic(r)
+        model_r = {sat: _model_m(r, sr[sat], llh_r) for sat in common}
+        # the base's side is the same at every iteration of an epoch: computed once
+        if self._base_models[0] is not sb:
+            self._base_models = (sb, {})
+        model_b = self._base_models[1]
+        for sat in common:
+            if sat not in model_b:
+                model_b[sat] = _model_m(self.base_r_e, sb[sat], self._base_llh)
         rows_v, rows_H, var_sd, groups, keys = [], [], [], [], []
         n = len(x)
+        sd_vars: dict[tuple[str, str], float] = {}
+
+        def sd_var(sat: str, kind: str) -> float:
+            v = sd_vars.get((sat, kind))
+            if v is None:
+                v = sd_vars[(sat, kind)] = self._sd_var(sr[sat].elevation_rad, kind)
+            return v
+
         for sys, s in self._groups:
             sats = [sat for sat in common if sat[:1] == sys and (sat, s) in self.amb]
             if len(sats) < 2:
@@ -360,7 +378,7 @@ class RtkFilter:
                         h = dd_rho
                     rows_v.append(obs - h)
                     rows_H.append(H)
-                    var_sd.append((self._sd_var(sr[sat].elevation_rad, kind), self._sd_var(sr[ref].elevation_rad, kind)))
+                    var_sd.append((sd_var(sat, kind), sd_var(ref, kind)))
                     grp.append(len(rows_v) - 1)
                     keys.append((kind, s, sat, ref))
                 groups.append(grp)
