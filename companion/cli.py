@@ -39,6 +39,10 @@ def _add_gnss(sub) -> None:
                    help="rtk with GLONASS (--sys with R): fix its integers too (on), keep them float (off), or auto: "
                         "on when both RINEX headers name the same receiver model (inter-channel biases cancel)")
     p.add_argument("--truth-xyz", help="true rover ECEF X,Y,Z in metres: enables error statistics")
+    p.add_argument("--against-demo5", action="store_true",
+                   help="rtk with RINEX files: run RTKLIB demo5 on the same files with the same options and "
+                        "compare epoch by epoch (fixed epochs, how far apart, with --truth-xyz both RMS); "
+                        "with --pos its solutions go to NAME.demo5.pos (needs the [rtklib] extra, x86_64)")
     p.add_argument("--sys", default="auto",
                    help="constellations, e.g. G,E,C,J (GPS, Galileo, BeiDou, QZSS) or 'all'; default: every one "
                         "of G,E,C,J with observations and ephemerides in the files.  GLONASS (R) when asked "

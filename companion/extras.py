@@ -7,6 +7,7 @@ the simulator are extras (``pyproject.toml``)::
     sitl = the simulator (pyubx2, plots)  rinex = hatanaka (compressed RINEX)
     ulog = pyulog (PX4 .ulg replay)      receiver = pyubx2 (companion gnss configure)
     kernels = numba (compiled IMU-rate and LAMBDA kernels)
+    rtklib = pyrtklib5 (RTKLIB demo5 beside companion gnss --mode rtk: --against-demo5)
     test = everything the test suite needs
 
 ``require("aiomqtt", "mqtt", "MQTT telemetry")`` returns the module, or raises :class:`MissingExtra`
@@ -20,7 +21,8 @@ import importlib.util
 from types import ModuleType
 
 # module -> extra that installs it (pyproject.toml [project.optional-dependencies])
-EXTRA_OF = {"matplotlib": "plot", "aiomqtt": "mqtt", "pyubx2": "sitl", "georinex": "test", "hatanaka": "rinex", "pyulog": "ulog", "numba": "kernels"}
+EXTRA_OF = {"matplotlib": "plot", "aiomqtt": "mqtt", "pyubx2": "sitl", "georinex": "test", "hatanaka": "rinex", "pyulog": "ulog", "numba": "kernels",
+            "pyrtklib5": "rtklib"}
 
 
 class MissingExtra(ImportError):

@@ -1,19 +1,21 @@
 """Our post-processed RTK against RTKLIB demo5 (the branch the issue measures us against) on the
 same real files, in the same run: kinematic, L1+L2, forward, fix-and-hold, ratio 3, 10-degree mask
-on both sides (tests/_demo5.py).
+on both sides (companion.gnss.demo5_reference, what ``companion gnss --against-demo5`` runs).
 
 Where a centimetre truth exists (GEONET 0759, the Septentrio pair) both are measured against it on
 the epochs both fixed; elsewhere (the cars) the two are independent implementations, so a fix of
 either more than 0.1 m from the other's would be a wrong fix in one of them."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
+from companion.gnss.demo5_reference import Comparison, compare, demo5_available, run_demo5
 from companion.gnss.rtk import RtkConfig
 from companion.gnss.rtk_post import solve_rtk_rinex
 from tests._data import data_path
-from tests._demo5 import demo5_available, demo5_version, run_demo5
 
 pytestmark = [pytest.mark.real_data,
               pytest.mark.skipif(not demo5_available(), reason="pyrtklib5 (RTKLIB demo5) not installed: "
@@ -40,37 +42,23 @@ SETS = {
 }
 
 
-def _compare(name: str, systems: str, tmp_path, glonass_ar: str = "off") -> dict:
+def _compare(name: str, systems: str, tmp_path, glonass_ar: str = "off") -> Comparison:
     """``glonass_ar`` demo5's (ours decides it from the two receivers' types: 'auto')."""
     rover, base, navs, base_xyz, truth = SETS[name]
-    work = tmp_path / f"demo5-{systems}"
-    theirs = {t: r for t, (r, q) in run_demo5(rover, base, navs, base_xyz, work, systems=systems,
-                                              glonass_ar=glonass_ar).items() if q == 1}
-    sols, _ = solve_rtk_rinex(rover, base, navs, base_xyz=base_xyz, config=RtkConfig(systems=systems))
-    ours = {round(s.t_gps): s.r_e for s in sols if s.quality == 1}
-    both = sorted(set(ours) & set(theirs))
-    apart = np.array([np.linalg.norm(ours[t] - theirs[t]) for t in both])
-    out = {"ours": len(ours), "demo5": len(theirs), "both": len(both), "apart": apart, "version": demo5_version(work)}
-    line = (f"{name} {systems}: fixed ours {len(ours)}, demo5 {len(theirs)} ({out['version']}); on the {len(both)} "
-            f"both fixed {np.median(apart) if len(both) else float('nan'):.4f} m apart (median), "
-            f"{apart.max() if len(both) else float('nan'):.4f} m at most")
-    if truth is not None:
-        def rms(points):
-            return float(np.sqrt(np.mean([np.sum((p - truth) ** 2) for p in points])))
-        out["rms_ours"], out["rms_demo5"] = rms([ours[t] for t in both]), rms([theirs[t] for t in both])
-        out["rms_ours_all"] = rms(list(ours.values()))
-        line += (f"; RMS 3-D against the truth on them: ours {out['rms_ours']:.4f} m, demo5 {out['rms_demo5']:.4f} m "
-                 f"(ours on all its fixes {out['rms_ours_all']:.4f} m)")
-    print(line)
-    return out
+    sols, info = solve_rtk_rinex(rover, base, navs, base_xyz=base_xyz, config=RtkConfig(systems=systems))
+    theirs = run_demo5(rover, base, navs, info["base_antenna_e"], systems=systems, glonass_ar=glonass_ar,
+                       work=tmp_path / f"demo5-{systems}")
+    c = compare({round(s.t_gps): (s.r_e, s.quality) for s in sols}, theirs, truth)
+    print(f"{name} {systems}: {c.line()}")
+    return c
 
 
 @pytest.mark.parametrize("systems", ["GEJ", "G"])
 def test_the_moving_car_fixes_more_than_demo5_and_agrees_with_it(systems, tmp_path):
     """The issue's own reference: demo5 fixes 348 of this car's 360 epochs with GPS + Galileo + QZSS."""
     c = _compare("car 5.3 km", systems, tmp_path)
-    assert c["ours"] > c["demo5"] and c["both"] >= 0.95 * c["demo5"]       # measured GEJ 358 / 348 / 346
-    assert np.median(c["apart"]) < 0.01 and c["apart"].max() < 0.1           # measured 0.006 and 0.046 m
+    assert c.ours_fixed > c.demo5_fixed and c.both_fixed >= 0.95 * c.demo5_fixed   # measured GEJ 358 / 348 / 346
+    assert np.median(c.apart_m) < 0.01 and c.apart_m.max() < 0.1                    # measured 0.006 and 0.046 m
 
 
 @pytest.mark.parametrize("name,systems,glonass_ar", [
@@ -79,14 +67,35 @@ def test_the_moving_car_fixes_more_than_demo5_and_agrees_with_it(systems, tmp_pa
     ("Septentrio pair", "GRECJ", "on")])
 def test_against_the_truth_as_accurate_as_demo5_where_both_fix(name, systems, glonass_ar, tmp_path):
     c = _compare(name, systems, tmp_path, glonass_ar)
-    assert c["ours"] >= c["demo5"] and c["both"] >= 0.95 * c["demo5"]
+    assert c.ours_fixed >= c.demo5_fixed and c.both_fixed >= 0.95 * c.demo5_fixed
     # centimetre RTK both: within a millimetre of demo5's RMS or better, on the same epochs
-    assert c["rms_ours"] <= c["rms_demo5"] + 0.001
-    assert c["apart"].max() < 0.02
+    assert c.rms_ours_m <= c.rms_demo5_m + 0.001
+    assert c.apart_m.max() < 0.02
 
 
 def test_the_15_km_car_fixes_more_than_demo5_and_no_fix_is_a_decimetre_from_it(tmp_path):
     """14-15 km, hundreds of slips, an ionosphere neither models: demo5 fixes a few epochs."""
     c = _compare("car 15 km", "G", tmp_path)
-    assert c["ours"] > 2 * c["demo5"]                                      # measured 138 / 39
-    assert np.median(c["apart"]) < 0.05                                     # measured 0.025 m, 0.10 at most
+    assert c.ours_fixed > 2 * c.demo5_fixed                                 # measured 138 / 39
+    assert np.median(c.apart_m) < 0.05                                      # measured 0.025 m, 0.10 at most
+
+
+def test_the_command_line_runs_demo5_beside_ours_and_says_where_they_differ(tmp_path, capsys):
+    """``companion gnss --mode rtk --against-demo5``: the comparison printed, in the JSON summary, and
+    demo5's solutions beside ours; a capture demo5 cannot read is refused before any processing."""
+    from companion.cli import main
+    rover, base, navs, _, truth = SETS["GEONET 0759/3040"]
+    out, pos = tmp_path / "rtk.json", tmp_path / "rtk.pos"
+    code = main(["gnss", "--rover", str(rover), "--base", str(base), "--nav", str(navs[0]), "--mode", "rtk",
+                 "--truth-xyz=" + ",".join(map(str, truth)), "--against-demo5", "--json", str(out), "--pos", str(pos)])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "RTKLIB ver.EX" in printed and "on the 116 epochs both fixed" in printed
+    got = json.loads(out.read_text())["against_demo5"]
+    assert got["fixed_ours"] == 120 and got["fixed_demo5"] == got["both_fixed"] == 116
+    assert got["rms_3d_both_fixed_ours_m"] < 0.012 and got["apart_median_m"] < 0.002
+    demo5_pos = tmp_path / "rtk.demo5.pos"
+    assert sum(1 for ln in demo5_pos.read_text().splitlines() if ln and not ln.startswith("%")) == 120
+    ubx = data_path("qzsl6tool-hiroshima-rtcm3-ubx") / "20230919-114418.ubx"
+    code = main(["gnss", "--rover", str(ubx), "--base", str(base), "--mode", "rtk", "--against-demo5"])
+    assert code == 2 and "needs RINEX rover and base files" in capsys.readouterr().err

@@ -90,6 +90,37 @@ def _auto_rtk_systems(cfg, hr: dict, hb: dict) -> str:
         else cfg.systems
 
 
+def _check_demo5_inputs(args) -> None:
+    """``--against-demo5`` before any processing: demo5 installed, and RINEX files for it to read."""
+    from .demo5_reference import require_demo5
+    require_demo5()
+    captures = [p for p in (args.rover, args.base) if is_ubx_capture(p) or is_rtcm_capture(p)]
+    if captures or not args.nav:
+        raise GnssProcessingError("--against-demo5 needs RINEX rover and base files and --nav (demo5 is given the "
+                                  "same files; " + (f"{', '.join(captures)} is a capture" if captures
+                                                    else "no --nav given") + ")")
+
+
+def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth) -> dict:
+    """RTKLIB demo5 on the same files with this run's options, compared epoch by epoch; printed,
+    returned for the JSON summary, its solutions beside ``--pos``."""
+    from .demo5_reference import compare, run_demo5
+    print("running RTKLIB demo5 on the same files ...", flush=True)
+    try:
+        theirs = run_demo5(args.rover, args.base, args.nav, info["base_antenna_e"], systems=cfg.systems,
+                           mask_deg=args.elevation_mask_deg, direction=direction,
+                           glonass_ar="on" if info["glonass_ar"].startswith("on") else "off")
+    except RuntimeError as exc:
+        raise GnssProcessingError(str(exc)) from exc
+    c = compare({round(s.t_gps): (s.r_e, s.quality) for s in sols}, theirs, truth)
+    print(c.line())
+    if args.pos:
+        demo5_pos = Path(args.pos).with_suffix(".demo5.pos")
+        demo5_pos.write_text(theirs.pos_text)
+        print(f"demo5's solutions: {demo5_pos}")
+    return c.summary()
+
+
 def run_rtk(args) -> int:
     """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
     for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
@@ -101,6 +132,9 @@ def run_rtk(args) -> int:
                                   "ephemerides)")
     if not args.base:
         raise GnssProcessingError("--mode rtk needs --base")
+    against_demo5 = getattr(args, "against_demo5", False)
+    if against_demo5:
+        _check_demo5_inputs(args)
     base_spp = (args.base_xyz or "").strip().lower() == "spp"
     base_xyz = parse_xyz(args.base_xyz, "--base-xyz") if args.base_xyz and not base_spp else None
     truth = parse_xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
@@ -157,6 +191,8 @@ def run_rtk(args) -> int:
           + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
     if info["glonass_ar"]:
         print(f"GLONASS integers: {info['glonass_ar']}")
+    if against_demo5:
+        summary["against_demo5"] = _against_demo5(args, sols, info, cfg, direction, truth)
     if args.json:
         rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
                  "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,

@@ -1,0 +1,190 @@
+"""RTKLIB demo5 on the same RINEX files as ``companion gnss --mode rtk``, and the comparison of the two
+(``--against-demo5``; the tests' reference, tests/test_rtk_vs_demo5.py).
+
+demo5 is rtklibexplorer's branch of RTKLIB ("RTKLIB ver.EX 2.5.0"), reached through the pyrtklib5
+binding (the ``[rtklib]`` extra; wheels for x86_64 only).  It runs in a child process, so a crash
+of the C library cannot take ours with it, from a configuration written here with our run's
+options: kinematic, L1+L2, the same systems, elevation mask and solution direction, fix-and-hold,
+ratio 3, GLONASS integers as ours decided them, the base antenna where ours put it, the rover's
+antenna height from its header (both programs then solve the rover's marker); every other option
+is demo5's own default.  Compressed RINEX (Hatanaka, gzip) is expanded first: RTKLIB would call
+external tools for it.
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..extras import MissingExtra, available, install_hint
+from ..messages import SECONDS_PER_WEEK
+
+#: RTKLIB's navsys bits (pos1-navsys)
+_NAVSYS_BITS = {"G": 1, "S": 2, "R": 4, "E": 8, "J": 16, "C": 32}
+#: our solution directions -> RTKLIB's pos1-soltype
+_SOLTYPE = {"forward": "forward", "backward": "backward", "combined": "combined"}
+
+_RUNNER = """
+import sys, pyrtklib5 as r
+conf, out, *files = sys.argv[1:]
+r.resetsysopts()
+if not r.loadopts(conf, r.sysopts[0]):
+    sys.exit("demo5 could not read its configuration")
+popt, sopt, fopt = r.prcopt_t(), r.solopt_t(), r.filopt_t()
+r.getsysopts(popt, sopt, fopt)
+sys.exit(r.postpos(r.gtime_t(), r.gtime_t(), 0.0, 0.0, popt, sopt, fopt, files, len(files), out, "", ""))
+"""
+
+
+def demo5_available() -> bool:
+    """pyrtklib5 installed (found, not loaded: only the child process loads the C library)."""
+    return available("pyrtklib5")
+
+
+def require_demo5() -> None:
+    """Raise :class:`~companion.extras.MissingExtra` naming the ``[rtklib]`` extra when demo5 is absent."""
+    if not demo5_available():
+        raise MissingExtra(f"comparing with RTKLIB demo5 needs pyrtklib5, which is not installed: "
+                           f"{install_hint('pyrtklib5', 'rtklib')} (wheels for x86_64 Linux)")
+
+
+@dataclass
+class Demo5Run:
+    """demo5's solutions: GPS time (s, rounded to the second) -> (ECEF position, Q: 1 fixed, 2 float)."""
+
+    solutions: dict[int, tuple[np.ndarray, int]]
+    version: str                           # the program line of its solution file
+    pos_text: str = ""                     # its solution file as written
+
+    @property
+    def fixed(self) -> dict[int, np.ndarray]:
+        return {t: r for t, (r, q) in self.solutions.items() if q == 1}
+
+
+def _plain(src, work: Path, index: int) -> str:
+    """``src`` as plain RINEX in ``work`` (hatanaka expands Hatanaka and gzip and leaves plain RINEX
+    as it is)."""
+    from ..extras import require
+    hatanaka = require("hatanaka", "rinex", "reading compressed RINEX for demo5")
+    out = work / f"{index}_{Path(src).name.split('.')[0]}"
+    out.write_bytes(hatanaka.decompress(Path(src).read_bytes()))
+    return str(out)
+
+
+def _antenna_delta_hen(rinex_obs: str) -> tuple[float, float, float]:
+    """A RINEX observation header's ANTENNA: DELTA H/E/N (zeros when absent)."""
+    with open(rinex_obs, errors="replace") as f:
+        for ln in f:
+            if "ANTENNA: DELTA H/E/N" in ln[60:]:
+                return tuple(float(v) for v in ln[:42].split())
+            if "END OF HEADER" in ln[60:]:
+                break
+    return (0.0, 0.0, 0.0)
+
+
+def run_demo5(rover, base, navs, base_antenna_e, *, systems: str = "GEJ", mask_deg: float = 10.0,
+              glonass_ar: str = "off", direction: str = "forward", work: Path | None = None) -> Demo5Run:
+    """demo5's kinematic RTK of ``rover`` against ``base`` (RINEX observation files) with the
+    navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m); ``work``: where its
+    files go (a temporary folder when None)."""
+    require_demo5()
+    if direction not in _SOLTYPE:
+        raise ValueError(f"direction must be one of {', '.join(_SOLTYPE)}, not {direction!r}")
+    with tempfile.TemporaryDirectory(prefix="companion-demo5-") as tmp:
+        work = Path(work or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        files = [_plain(f, work, i) for i, f in enumerate([rover, base, *navs])]
+        up, east, north = _antenna_delta_hen(files[0])
+        conf = work / "demo5.conf"
+        conf.write_text("\n".join([
+            "pos1-posmode       =kinematic",
+            "pos1-frequency     =l1+l2",
+            f"pos1-soltype       ={_SOLTYPE[direction]}",
+            f"pos1-elmask        ={mask_deg:g}",
+            f"pos1-navsys        ={sum(_NAVSYS_BITS[s] for s in dict.fromkeys(systems))}",
+            "pos1-ionoopt       =brdc",
+            "pos1-tropopt       =saas",
+            "pos1-sateph        =brdc",
+            "pos2-armode        =fix-and-hold",
+            f"pos2-gloarmode     ={'on' if glonass_ar == 'on' else 'off'}",
+            "pos2-arthres       =3",
+            "pos2-maxage        =30",
+            f"ant1-antdele       ={east!r}",
+            f"ant1-antdeln       ={north!r}",
+            f"ant1-antdelu       ={up!r}",
+            "ant2-postype       =xyz",
+            *(f"ant2-pos{i + 1}          ={float(v)!r}" for i, v in enumerate(base_antenna_e)),
+            "out-solformat      =xyz",
+            "out-timeform       =tow",
+            "",
+        ]))
+        out = work / "demo5.pos"
+        proc = subprocess.run([sys.executable, "-c", _RUNNER, str(conf), str(out), *files],
+                              capture_output=True, text=True, timeout=3600)
+        if proc.returncode != 0 or not out.exists():
+            raise RuntimeError(f"RTKLIB demo5 failed (exit {proc.returncode}): {proc.stderr.strip()[-500:]}")
+        text = out.read_text()
+    sols, version = {}, "RTKLIB demo5"
+    for ln in text.splitlines():
+        f = ln.split()
+        if ln.startswith("% program"):
+            version = ln.split(":", 1)[1].strip()
+        if ln.startswith("%") or len(f) < 6:
+            continue
+        sols[round(int(f[0]) * SECONDS_PER_WEEK + float(f[1]))] = (np.array([float(v) for v in f[2:5]]), int(f[5]))
+    return Demo5Run(sols, version, text)
+
+
+@dataclass
+class Comparison:
+    ours_fixed: int
+    demo5_fixed: int
+    demo5_solved: int
+    both_fixed: int
+    apart_m: np.ndarray = field(repr=False)          # per epoch both fixed: |ours - demo5|
+    rms_ours_m: float | None = None                  # against the truth, on the epochs both fixed
+    rms_demo5_m: float | None = None
+    version: str = ""
+
+    def summary(self) -> dict:
+        out = {"demo5": self.version, "fixed_ours": self.ours_fixed, "fixed_demo5": self.demo5_fixed,
+               "solved_demo5": self.demo5_solved, "both_fixed": self.both_fixed}
+        if self.both_fixed:
+            out.update(apart_median_m=float(np.median(self.apart_m)), apart_max_m=float(self.apart_m.max()))
+        if self.rms_ours_m is not None:
+            out.update(rms_3d_both_fixed_ours_m=self.rms_ours_m, rms_3d_both_fixed_demo5_m=self.rms_demo5_m)
+        return out
+
+    def line(self) -> str:
+        s = (f"{self.version} on the same files: {self.demo5_fixed} fixed of {self.demo5_solved} "
+             f"(ours {self.ours_fixed}); on the {self.both_fixed} epochs both fixed")
+        if not self.both_fixed:
+            return s + ": none"
+        s += f" {np.median(self.apart_m):.4f} m apart (median), {self.apart_m.max():.4f} m at most"
+        if self.rms_ours_m is not None:
+            s += f"; RMS 3-D against the truth there: ours {self.rms_ours_m:.4f} m, demo5 {self.rms_demo5_m:.4f} m"
+        return s
+
+
+def compare(ours: dict[int, tuple[np.ndarray, int]], theirs: Demo5Run, truth_e=None) -> Comparison:
+    """Ours (GPS second -> (ECEF position, Q)) against demo5's run, epoch by epoch."""
+    ours_fixed = {t: r for t, (r, q) in ours.items() if q == 1}
+    theirs_fixed = theirs.fixed
+    both = sorted(set(ours_fixed) & set(theirs_fixed))
+    apart = np.array([np.linalg.norm(ours_fixed[t] - theirs_fixed[t]) for t in both])
+    c = Comparison(len(ours_fixed), len(theirs_fixed), len(theirs.solutions), len(both), apart, version=theirs.version)
+    if truth_e is not None and both:
+        truth_e = np.asarray(truth_e, float)
+
+        def rms(points) -> float:
+            return float(np.sqrt(np.mean([np.sum((p - truth_e) ** 2) for p in points])))
+        c.rms_ours_m = rms([ours_fixed[t] for t in both])
+        c.rms_demo5_m = rms([theirs_fixed[t] for t in both])
+    return c
+
+
+__all__ = ["Comparison", "Demo5Run", "compare", "demo5_available", "require_demo5", "run_demo5"]
