@@ -81,13 +81,15 @@ def test_the_15_km_car_fixes_more_than_demo5_and_no_fix_is_a_decimetre_from_it(t
 
 
 def test_the_command_line_runs_demo5_beside_ours_and_says_where_they_differ(tmp_path, capsys):
-    """``companion gnss --mode rtk --against-demo5``: the comparison printed, in the JSON summary, and
-    demo5's solutions beside ours; a capture demo5 cannot read is refused before any processing."""
+    """``companion gnss --mode rtk --against-demo5``: the comparison printed, in the JSON summary,
+    demo5's solutions beside ours (a .pos file, the plot); a capture demo5 cannot read is refused
+    before any processing."""
     from companion.cli import main
     rover, base, navs, _, truth = SETS["GEONET 0759/3040"]
     out, pos = tmp_path / "rtk.json", tmp_path / "rtk.pos"
     code = main(["gnss", "--rover", str(rover), "--base", str(base), "--nav", str(navs[0]), "--mode", "rtk",
-                 "--truth-xyz=" + ",".join(map(str, truth)), "--against-demo5", "--json", str(out), "--pos", str(pos)])
+                 "--truth-xyz=" + ",".join(map(str, truth)), "--against-demo5", "--json", str(out), "--pos", str(pos),
+                 "--plot", str(tmp_path / "rtk.png")])
     assert code == 0
     printed = capsys.readouterr().out
     assert "RTKLIB ver.EX" in printed and "on the 116 epochs both fixed" in printed
@@ -96,6 +98,7 @@ def test_the_command_line_runs_demo5_beside_ours_and_says_where_they_differ(tmp_
     assert got["rms_3d_both_fixed_ours_m"] < 0.012 and got["apart_median_m"] < 0.002
     demo5_pos = tmp_path / "rtk.demo5.pos"
     assert sum(1 for ln in demo5_pos.read_text().splitlines() if ln and not ln.startswith("%")) == 120
+    assert (tmp_path / "rtk.png").stat().st_size > 10_000        # demo5's fixes drawn beside ours
     ubx = data_path("qzsl6tool-hiroshima-rtcm3-ubx") / "20230919-114418.ubx"
     code = main(["gnss", "--rover", str(ubx), "--base", str(base), "--mode", "rtk", "--against-demo5"])
     assert code == 2 and "needs RINEX rover and base files" in capsys.readouterr().err

@@ -388,11 +388,12 @@ def _run(args) -> int:
     return 0
 
 
-def write_plot(args, records, name: str, truth) -> None:
-    """``--plot``: the run as one PNG (companion.gnss.solution_plot)."""
+def write_plot(args, records, name: str, truth, other=None) -> None:
+    """``--plot``: the run as one PNG (companion.gnss.solution_plot); ``other``: another program's
+    fixed solutions to draw beside ours (label, GPS times, ECEF positions)."""
     if getattr(args, "plot", None) and records:
         from .solution_plot import plot_solutions
-        plot_solutions(args.plot, records, name, truth_e=truth)
+        plot_solutions(args.plot, records, name, truth_e=truth, other=other)
 
 
 def write_tracks(args, records, name: str) -> None:

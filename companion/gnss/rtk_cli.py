@@ -101,9 +101,9 @@ def _check_demo5_inputs(args) -> None:
                                                     else "no --nav given") + ")")
 
 
-def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth) -> dict:
-    """RTKLIB demo5 on the same files with this run's options, compared epoch by epoch; printed,
-    returned for the JSON summary, its solutions beside ``--pos``."""
+def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth):
+    """RTKLIB demo5 on the same files with this run's options, compared epoch by epoch: printed,
+    returned (the JSON summary's entry, demo5's run), its solutions beside ``--pos``."""
     from .demo5_reference import compare, run_demo5
     print("running RTKLIB demo5 on the same files ...", flush=True)
     try:
@@ -118,7 +118,7 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
         demo5_pos = Path(args.pos).with_suffix(".demo5.pos")
         demo5_pos.write_text(theirs.pos_text)
         print(f"demo5's solutions: {demo5_pos}")
-    return c.summary()
+    return c.summary(), theirs
 
 
 def run_rtk(args) -> int:
@@ -191,8 +191,10 @@ def run_rtk(args) -> int:
           + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
     if info["glonass_ar"]:
         print(f"GLONASS integers: {info['glonass_ar']}")
+    demo5_fixed = None
     if against_demo5:
-        summary["against_demo5"] = _against_demo5(args, sols, info, cfg, direction, truth)
+        summary["against_demo5"], theirs = _against_demo5(args, sols, info, cfg, direction, truth)
+        demo5_fixed = ("demo5", sorted(theirs.fixed), [theirs.fixed[t] for t in sorted(theirs.fixed)])
     if args.json:
         rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
                  "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,
@@ -204,7 +206,7 @@ def run_rtk(args) -> int:
     records = pos_records(sols)
     write_tracks(args, records, f"companion gnss rtk: {Path(args.rover).name}")
     write_plot(args, records, f"companion gnss rtk ({','.join(by_sys) or ','.join(cfg.systems)}, {direction}): "
-                              f"{Path(args.rover).name}, {n_fix} of {len(sols)} fixed", truth)
+                              f"{Path(args.rover).name}, {n_fix} of {len(sols)} fixed", truth, other=demo5_fixed)
     if args.pos:
         write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
                   inputs=[args.rover, args.base, *(args.nav or [])],

@@ -1,7 +1,8 @@
 """``companion gnss --plot``: one PNG of a post-processed run, for a person to look at rather than
 read -- the track coloured by solution quality (RTKLIB's Q), the east / north / up offsets over time
 (from the truth when it is given, else from the median position) with the solutions' own
-3-sigma, and the satellites per epoch with the RTK ratio.  Needs the ``[plot]`` extra."""
+3-sigma, and the satellites per epoch with the RTK ratio; with ``--against-demo5`` demo5's fixed
+solutions beside ours.  Needs the ``[plot]`` extra."""
 from __future__ import annotations
 
 import math
@@ -27,7 +28,9 @@ def enu_offsets(records: list[PosRecord], ref_e) -> tuple[np.ndarray, np.ndarray
     return enu, sig
 
 
-def plot_solutions(path, records: list[PosRecord], title: str, truth_e=None) -> None:
+def plot_solutions(path, records: list[PosRecord], title: str, truth_e=None, other=None) -> None:
+    """``other``: (label, GPS times s, ECEF positions n x 3 m) of another program's fixed solutions
+    (``--against-demo5``), drawn beside ours in grey."""
     from ..extras import pyplot
     plt = pyplot("companion gnss --plot")
     ref = (np.asarray(truth_e, float) if truth_e is not None
@@ -43,6 +46,14 @@ def plot_solutions(path, records: list[PosRecord], title: str, truth_e=None) -> 
         sel = q == value
         if sel.any():
             track.plot(enu[sel, 0], enu[sel, 1], ".", ms=3, color=colour, label=f"{name} ({int(sel.sum())})")
+    other_enu = None
+    if other is not None and len(other[1]):
+        other_label, other_t, other_r = other
+        other_enu = enu_offsets([PosRecord(float(tt), np.asarray(rr, float), np.zeros((3, 3)), 1, 0)
+                                 for tt, rr in zip(other_t, other_r)], ref)[0]
+        other_t = np.asarray(other_t, float) - records[0].t_gps
+        track.plot(other_enu[:, 0], other_enu[:, 1], "x", ms=3, color="0.45",
+                   label=f"{other_label} fixed ({len(other_t)})")
     if truth_e is not None:
         track.plot([0.0], [0.0], "k+", ms=12, label="truth")
     track.set_xlabel("east [m]")
@@ -54,6 +65,9 @@ def plot_solutions(path, records: list[PosRecord], title: str, truth_e=None) -> 
         for i, name in names:
             ax.plot(t, enu[:, i], lw=0.8, label=name)
             ax.fill_between(t, enu[:, i] - 3 * sig[:, i], enu[:, i] + 3 * sig[:, i], alpha=0.15, lw=0)
+            if other_enu is not None:
+                ax.plot(other_t, other_enu[:, i], "x", ms=2.5, color="0.45",
+                        label=f"{other_label} fixed" if i in (0, 2) else None)
         ax.set_ylabel("error [m]" if truth_e is not None else "offset [m]")
         ax.legend(loc="upper right", fontsize=8)
         ax.grid(alpha=0.3)
