@@ -1339,7 +1339,9 @@ class NavPipeline:
                             "imu_screen": dict(self.gsf_screen_counters)},
                 "imu": dict(self.imu_dec.counters), "time_map": dict(self.time_map.counters),
                 **({"imu_cluster": self.cluster_health()} if self.cluster is not None else {}),
-                "ubx": dict(self.ubx.counters), "rtcm": dict(self.rtcm.counters)}
+                "ubx": dict(self.ubx.counters), "rtcm": dict(self.rtcm.counters),
+                # what the base says it is (RTCM 1007 / 1008 / 1033), when it says
+                **({"rtcm_base": self.rtcm.base_descriptor.as_dict()} if self.rtcm.base_descriptor else {})}
 
 
     def cluster_health(self) -> dict:

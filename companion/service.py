@@ -682,6 +682,8 @@ class Service:
                "time_map": ph["time_map"], "ubx": ph["ubx"], "rtcm": ph["rtcm"]}
         if "aid_sources" in ph:
             out["aid_sources"] = ph["aid_sources"]
+        if "rtcm_base" in ph:
+            out["rtcm_base"] = ph["rtcm_base"]
         if "imu_cluster" in ph:
             out["imu_cluster"] = ph["imu_cluster"]
         if self.link is not None:

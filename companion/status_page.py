@@ -86,7 +86,16 @@ class StatusBoard:
                 # per constellation, from the last rover epoch (the health report's)
                 "satellites_by_system": dict(f.get("satellites_by_system") or {}),
                 "history": list(self.solutions), "sources": sources, "events": list(self.events),
-                "filter": {k: f.get(k) for k in ("status", "mode", "reset_counter") if k in f}}
+                "filter": {k: f.get(k) for k in ("status", "mode", "reset_counter") if k in f},
+                # the base as its RTCM 1007 / 1008 / 1033 describe it (printable ASCII already)
+                "base": _base_text((self.health or {}).get("rtcm_base"))}
+
+
+def _base_text(desc: dict | None) -> str | None:
+    if not desc:
+        return None
+    parts = [desc.get("receiver") or "", desc.get("antenna") or ""]
+    return " / ".join(p for p in parts if p) or f"station {desc.get('station_id')}"
 
 
 def _page_html() -> bytes:

@@ -286,6 +286,10 @@ def test_rtcm_base_brings_glonass_ephemerides_and_channels(tmp_path, capsys):
     summary = json.loads(out.read_text())
     assert summary["satellites_by_system"]["R"]["min"] >= 6
     assert summary["fixed"] == summary["solved"] == 60 and summary["max_3d_m"] < 0.001     # measured 0.1 mm
+    # the capture's 1033 names the base's receiver as convbin's header names the rover's: one model,
+    # so 'auto' fixes GLONASS's integers (before the 1033 was read: float, the base 'unknown')
+    assert summary["base_descriptor"]["receiver"] == "NOV OEM729"
+    assert summary["glonass_ar"] == "on (both receivers NOV OEM729)"
 
 
 def test_glonass_integers_between_receivers_of_one_model():

@@ -27,7 +27,7 @@ def _rtk_base(path: str, systems: str, week: int):
     """(header, epochs, ephemerides, Klobuchar or None) of an RTK base: a RINEX observation file,
     a u-blox capture (as a rover's: no position in it), or an RTCM 3 capture (MSM4-7 or 1004/1012
     observations, the 1005/1006 antenna reference point as its position, broadcast ephemerides,
-    GLONASS's 1020 too) decoded as the service decodes its NTRIP stream; ``week``: the GPS week
+    GLONASS's 1020 too, the 1033 receiver type) decoded as the service decodes its NTRIP stream; ``week``: the GPS week
     of the rover's first epoch (MSM carries the time of week only)."""
     if is_ubx_capture(path):
         return _ubx_epochs(path, systems, "base")
@@ -44,8 +44,10 @@ def _rtk_base(path: str, systems: str, week: int):
     if not epochs:
         raise GnssProcessingError(f"no base observations of the selected systems ({systems}) in {path} "
                                   f"(MSM4-7 or 1004/1012 expected)")
+    # the receiver type a 1033 names decides GLONASS's integers as a RINEX header's would
+    desc = dec.base_descriptor
     hdr = {"approx_position_e": np.asarray(arp[-1], float) if arp else None, "antenna_delta_hen_m": None,
-           "obs_types": {}}
+           "obs_types": {}, "receiver": desc.receiver if desc else None, "rtcm_descriptor": desc}
     glonass = list(dec.glonass_history.values()) if "R" in systems else []
     return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass, None
 
@@ -191,6 +193,9 @@ def run_rtk(args) -> int:
           + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
     if info["glonass_ar"]:
         print(f"GLONASS integers: {info['glonass_ar']}")
+    if hb.get("rtcm_descriptor") is not None:
+        print(f"base: {hb['rtcm_descriptor'].line()}")
+        summary["base_descriptor"] = hb["rtcm_descriptor"].as_dict()
     demo5_fixed = None
     if against_demo5:
         summary["against_demo5"], theirs = _against_demo5(args, sols, info, cfg, direction, truth)

@@ -18,6 +18,8 @@
   - :class:`~companion.messages.GpsEphemeris` from 1019 (GPS), 1044 (QZSS), 1042 (BeiDou) and
     1045/1046 (Galileo F/NAV, I/NAV; ``galileo_nav`` chooses), once per new issue per satellite
     (:mod:`companion.io.rtcm_eph`: the field scaling, checked against convbin).
+  - 1007 / 1008 / 1033 (the base's antenna and receiver descriptors) are kept as
+    ``base_descriptor`` (:mod:`companion.io.rtcm_descriptor`), not emitted;
   - 1020 (GLONASS ephemeris) gives the satellites' FDMA frequency channels, a
     :class:`~companion.gnss.glonass.GlonassEphemeris` once per new issue per satellite (the
     engine fuses GLONASS when ``[filter] systems`` names R), and ``glonass_ephemerides`` /
@@ -48,6 +50,7 @@ from pyrtcm import RTCMReader
 
 from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GnssEpoch, GpsEphemeris, SatObservation
 from .crc24q import crc24q
+from .rtcm_descriptor import BaseDescriptor, base_descriptor, merged
 from .rtcm_epoch import EpochAssembler
 from .rtcm_eph import (GALILEO_FNAV, GALILEO_INAV, GlonassEphemeris, beidou_ephemeris, galileo_ephemeris,
                        glonass_ephemeris, gps_ephemeris, qzss_ephemeris)
@@ -359,6 +362,8 @@ class RtcmDecoder:
         self.glonass_ephemerides: dict[str, GlonassEphemeris] = {}
         # every issue, first copy kept (a post-processed capture needs the earlier ones too)
         self.glonass_history: dict[tuple[str, float], GlonassEphemeris] = {}
+        # what the base says it is (1007 / 1008 / 1033), the latest
+        self.base_descriptor: BaseDescriptor | None = None
         self._t_rx: float | None = None
 
     @property
@@ -421,6 +426,10 @@ class RtcmDecoder:
                 station_id=int(msg.DF003),
                 r_e=np.array([msg.DF025, msg.DF026, msg.DF027], float),
                 antenna_height_m=float(getattr(msg, "DF028", 0.0)))]
+        if mtype in (1007, 1008, 1033):
+            self.base_descriptor = merged(self.base_descriptor, base_descriptor(mtype, RTCMReader.parse(frame, validate=0)))
+            self._count("descriptor")
+            return []
         if mtype in (1002, 1004):
             msg = RTCMReader.parse(frame, validate=0)
             return self._legacy_gps(msg)

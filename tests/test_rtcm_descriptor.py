@@ -1,0 +1,74 @@
+"""RTCM 1007 / 1008 / 1033: what the base says it is, from a real stream and from hostile frames, in
+the health report, the status page and ``companion gnss --mode rtk``."""
+from __future__ import annotations
+
+import pytest
+
+from companion.io.rtcm import RtcmDecoder, decode_rtcm_file
+from companion.io.rtcm_descriptor import MAX_DESCRIPTOR_CHARS
+from companion.status_page import StatusBoard
+from tests._data import data_path
+from tests.fuzz_targets import rtcm_frame
+
+pytestmark = pytest.mark.real_data
+
+CAPTURE = data_path("qzsl6tool-hiroshima-rtcm3-ubx") / "20221213-010900.rtcm"
+
+
+def _descriptor_payload(mtype: int, station: int, antenna: bytes, serial: bytes = b"", receiver: bytes = b"",
+                        firmware: bytes = b"", receiver_serial: bytes = b"", counts=None) -> bytes:
+    """A 1007 / 1008 / 1033 payload: after the 24-bit header every field is whole bytes (DF029-DF232)."""
+    counts = counts or {}
+
+    def text(name, s):
+        return bytes([counts.get(name, len(s))]) + s
+    out = ((mtype << 12) | station).to_bytes(3, "big") + text("antenna", antenna) + bytes([0])
+    if mtype in (1008, 1033):
+        out += text("serial", serial)
+    if mtype == 1033:
+        out += text("receiver", receiver) + text("firmware", firmware) + text("receiver_serial", receiver_serial)
+    return out
+
+
+def test_the_real_novatel_base_says_what_it_is():
+    _, dec = decode_rtcm_file(str(CAPTURE), week_hint=2240)
+    d = dec.base_descriptor
+    assert (d.receiver, d.firmware, d.antenna, d.message) == ("NOV OEM729", "OM7MR0810RN0000", "JAVGRANT_G5T NONE", 1033)
+    assert dec.counters["descriptor"] == 54                     # every 1033 of the capture counted
+
+
+def test_a_hostile_descriptor_reaches_nobody_with_control_characters():
+    dec = RtcmDecoder(week_hint=2240)
+    evil = b"\x1b[2J\x1b]0;pwned\x07" + b"A" * 40
+    frame = rtcm_frame(_descriptor_payload(1033, 5, evil, receiver=b"REC\r\nFAKE", firmware=b"\x00\xff1.0"))
+    assert dec.feed(frame) == []                                  # kept, not emitted, no exception
+    d = dec.base_descriptor
+    assert all(" " <= c <= "~" for c in d.antenna + d.receiver + d.firmware)
+    assert len(d.antenna) <= MAX_DESCRIPTOR_CHARS and d.receiver == "RECFAKE" and d.firmware == "1.0"
+    # a count longer than the frame: a bad payload, counted, the last good descriptor stays
+    short = rtcm_frame(_descriptor_payload(1033, 5, b"AB", counts={"antenna": 200}))
+    dec.feed(short)
+    assert dec.counters.get("bad_payload", 0) == 1 and dec.base_descriptor == d
+
+
+def test_a_1007_between_1033s_keeps_the_receiver_type():
+    dec = RtcmDecoder(week_hint=2240)
+    dec.feed(rtcm_frame(_descriptor_payload(1033, 3, b"TRM59800.00 NONE", b"123", b"TRIMBLE NETR9", b"5.45")))
+    dec.feed(rtcm_frame(_descriptor_payload(1007, 3, b"TRM59800.00 NONE")))
+    d = dec.base_descriptor
+    assert (d.receiver, d.firmware, d.antenna, d.antenna_serial) == ("TRIMBLE NETR9", "5.45", "TRM59800.00 NONE", "123")
+    dec.feed(rtcm_frame(_descriptor_payload(1007, 4, b"LEIAR25.R4 LEIT")))       # another station: all new
+    assert (dec.base_descriptor.station_id, dec.base_descriptor.receiver) == (4, "")
+
+
+def test_the_health_report_and_the_status_page_name_the_base():
+    from companion.config import Config
+    from companion.pipeline import NavPipeline
+    pipe = NavPipeline(Config())
+    pipe.rtcm.feed(CAPTURE.read_bytes()[:200_000])
+    h = pipe.health()
+    assert h["rtcm_base"]["receiver"] == "NOV OEM729" and h["rtcm_base"]["antenna"] == "JAVGRANT_G5T NONE"
+    board = StatusBoard()
+    board.set_health(h)
+    assert board.snapshot()["base"] == "NOV OEM729 / JAVGRANT_G5T NONE"
+    assert h["rtcm"]["descriptor"] >= 1
