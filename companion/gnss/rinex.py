@@ -22,6 +22,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -349,7 +350,8 @@ def _build_obs(sat: str, codes: list[str], values: list[float], llis: list[int],
             d["S"] = val
     out = []
     nan = float("nan")
-    for key, d in sig.items():
+    sat = sys.intern(sat)          # one string per satellite and signal name for the whole file, not
+    for key, d in sig.items():     # per observation: a long file is held in memory whole
         if "P" not in d and "L" not in d and "D" not in d:
             continue
         lli = d.get("lli", 0)
@@ -357,7 +359,7 @@ def _build_obs(sat: str, codes: list[str], values: list[float], llis: list[int],
             sat=sat, pseudorange_m=d.get("P", nan), carrier_cycles=d.get("L", nan),
             doppler_hz=d.get("D", nan), cn0_dbhz=d.get("S", nan),
             loss_of_lock=bool(lli & 1), half_cycle_ambiguous=bool(lli & 2) if version >= 3 else False,
-            signal="L" + key, wavelength_m=_wavelength(sat[0], key[0])))
+            signal=sys.intern("L" + key), wavelength_m=_wavelength(sat[0], key[0])))
     return out
 
 
