@@ -48,7 +48,7 @@ def _compare(name: str, systems: str, tmp_path, glonass_ar: str = "off") -> Comp
     sols, info = solve_rtk_rinex(rover, base, navs, base_xyz=base_xyz, config=RtkConfig(systems=systems))
     theirs = run_demo5(rover, base, navs, info["base_antenna_e"], systems=systems, glonass_ar=glonass_ar,
                        work=tmp_path / f"demo5-{systems}")
-    c = compare({round(s.t_gps): (s.r_e, s.quality) for s in sols}, theirs, truth)
+    c = compare(sols, theirs, truth)
     print(f"{name} {systems}: {c.line()}")
     return c
 
@@ -102,3 +102,15 @@ def test_the_command_line_runs_demo5_beside_ours_and_says_where_they_differ(tmp_
     ubx = data_path("qzsl6tool-hiroshima-rtcm3-ubx") / "20230919-114418.ubx"
     code = main(["gnss", "--rover", str(ubx), "--base", str(base), "--mode", "rtk", "--against-demo5"])
     assert code == 2 and "needs RINEX rover and base files" in capsys.readouterr().err
+
+
+def test_epochs_of_a_5_hz_rover_are_matched_one_by_one():
+    """Solutions a fifth of a second apart stay apart (keyed to the centisecond, not the second)."""
+    from types import SimpleNamespace
+    from companion.gnss.demo5_reference import Demo5Run
+    t0, r0 = 1_300_000_000.0, np.array([1.0, 2.0, 3.0])
+    ours = [SimpleNamespace(t_gps=t0 + 0.2 * k, r_e=r0 + 0.001 * k, quality=1) for k in range(10)]
+    theirs = Demo5Run([(t0 + 0.2 * k, r0 + 0.001 * k + 0.002, 1 if k % 2 else 2) for k in range(10)], "demo5")
+    c = compare(ours, theirs, truth_e=r0)
+    assert (c.ours_fixed, c.demo5_fixed, c.both_fixed) == (10, 5, 5)
+    assert np.allclose(c.apart_m, 0.002 * np.sqrt(3))

@@ -25,8 +25,8 @@ from ..messages import SECONDS_PER_WEEK
 
 #: RTKLIB's navsys bits (pos1-navsys)
 _NAVSYS_BITS = {"G": 1, "S": 2, "R": 4, "E": 8, "J": 16, "C": 32}
-#: our solution directions -> RTKLIB's pos1-soltype
-_SOLTYPE = {"forward": "forward", "backward": "backward", "combined": "combined"}
+#: our solution directions, RTKLIB's pos1-soltype names too
+_DIRECTIONS = ("forward", "backward", "combined")
 
 _RUNNER = """
 import sys, pyrtklib5 as r
@@ -52,17 +52,23 @@ def require_demo5() -> None:
                            f"{install_hint('pyrtklib5', 'rtklib')} (wheels for x86_64 Linux)")
 
 
+def epoch_key(t_gps: float) -> int:
+    """An epoch's key for matching two programs' solutions: its GPS time in centiseconds (a 5-Hz or
+    10-Hz rover's epochs stay apart; .pos files print the time of week to the millisecond)."""
+    return round(t_gps * 100.0)
+
+
 @dataclass
 class Demo5Run:
-    """demo5's solutions: GPS time (s, rounded to the second) -> (ECEF position, Q: 1 fixed, 2 float)."""
+    """demo5's solutions: (GPS time s, ECEF position m, Q: 1 fixed, 2 float) per epoch."""
 
-    solutions: dict[int, tuple[np.ndarray, int]]
+    solutions: list[tuple[float, np.ndarray, int]]
     version: str                           # the program line of its solution file
     pos_text: str = ""                     # its solution file as written
 
     @property
-    def fixed(self) -> dict[int, np.ndarray]:
-        return {t: r for t, (r, q) in self.solutions.items() if q == 1}
+    def fixed(self) -> list[tuple[float, np.ndarray]]:
+        return [(t, r) for t, r, q in self.solutions if q == 1]
 
 
 def _plain(src, work: Path, index: int) -> str:
@@ -92,8 +98,8 @@ def run_demo5(rover, base, navs, base_antenna_e, *, systems: str = "GEJ", mask_d
     navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m); ``work``: where its
     files go (a temporary folder when None)."""
     require_demo5()
-    if direction not in _SOLTYPE:
-        raise ValueError(f"direction must be one of {', '.join(_SOLTYPE)}, not {direction!r}")
+    if direction not in _DIRECTIONS:
+        raise ValueError(f"direction must be one of {', '.join(_DIRECTIONS)}, not {direction!r}")
     with tempfile.TemporaryDirectory(prefix="companion-demo5-") as tmp:
         work = Path(work or tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -103,7 +109,7 @@ def run_demo5(rover, base, navs, base_antenna_e, *, systems: str = "GEJ", mask_d
         conf.write_text("\n".join([
             "pos1-posmode       =kinematic",
             "pos1-frequency     =l1+l2",
-            f"pos1-soltype       ={_SOLTYPE[direction]}",
+            f"pos1-soltype       ={direction}",
             f"pos1-elmask        ={mask_deg:g}",
             f"pos1-navsys        ={sum(_NAVSYS_BITS[s] for s in dict.fromkeys(systems))}",
             "pos1-ionoopt       =brdc",
@@ -128,14 +134,14 @@ def run_demo5(rover, base, navs, base_antenna_e, *, systems: str = "GEJ", mask_d
         if proc.returncode != 0 or not out.exists():
             raise RuntimeError(f"RTKLIB demo5 failed (exit {proc.returncode}): {proc.stderr.strip()[-500:]}")
         text = out.read_text()
-    sols, version = {}, "RTKLIB demo5"
+    sols, version = [], "RTKLIB demo5"
     for ln in text.splitlines():
         f = ln.split()
         if ln.startswith("% program"):
             version = ln.split(":", 1)[1].strip()
         if ln.startswith("%") or len(f) < 6:
             continue
-        sols[round(int(f[0]) * SECONDS_PER_WEEK + float(f[1]))] = (np.array([float(v) for v in f[2:5]]), int(f[5]))
+        sols.append((int(f[0]) * SECONDS_PER_WEEK + float(f[1]), np.array([float(v) for v in f[2:5]]), int(f[5])))
     return Demo5Run(sols, version, text)
 
 
@@ -170,10 +176,10 @@ class Comparison:
         return s
 
 
-def compare(ours: dict[int, tuple[np.ndarray, int]], theirs: Demo5Run, truth_e=None) -> Comparison:
-    """Ours (GPS second -> (ECEF position, Q)) against demo5's run, epoch by epoch."""
-    ours_fixed = {t: r for t, (r, q) in ours.items() if q == 1}
-    theirs_fixed = theirs.fixed
+def compare(ours, theirs: Demo5Run, truth_e=None) -> Comparison:
+    """Ours (solutions with ``t_gps``, ``r_e`` and ``quality``) against demo5's run, epoch by epoch."""
+    ours_fixed = {epoch_key(s.t_gps): s.r_e for s in ours if s.quality == 1}
+    theirs_fixed = {epoch_key(t): r for t, r in theirs.fixed}
     both = sorted(set(ours_fixed) & set(theirs_fixed))
     apart = np.array([np.linalg.norm(ours_fixed[t] - theirs_fixed[t]) for t in both])
     c = Comparison(len(ours_fixed), len(theirs_fixed), len(theirs.solutions), len(both), apart, version=theirs.version)
@@ -187,4 +193,4 @@ def compare(ours: dict[int, tuple[np.ndarray, int]], theirs: Demo5Run, truth_e=N
     return c
 
 
-__all__ = ["Comparison", "Demo5Run", "compare", "demo5_available", "require_demo5", "run_demo5"]
+__all__ = ["Comparison", "Demo5Run", "compare", "demo5_available", "epoch_key", "require_demo5", "run_demo5"]

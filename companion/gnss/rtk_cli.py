@@ -27,8 +27,8 @@ def _rtk_base(path: str, systems: str, week: int):
     """(header, epochs, ephemerides, Klobuchar or None) of an RTK base: a RINEX observation file,
     a u-blox capture (as a rover's: no position in it), or an RTCM 3 capture (MSM4-7 or 1004/1012
     observations, the 1005/1006 antenna reference point as its position, broadcast ephemerides,
-    GLONASS's 1020 too, the 1033 receiver type) decoded as the service decodes its NTRIP stream; ``week``: the GPS week
-    of the rover's first epoch (MSM carries the time of week only)."""
+    GLONASS's 1020 too, the 1033 receiver type) decoded as the service decodes its NTRIP stream;
+    ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only)."""
     if is_ubx_capture(path):
         return _ubx_epochs(path, systems, "base")
     if not is_rtcm_capture(path):
@@ -114,7 +114,7 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
                            glonass_ar="on" if info["glonass_ar"].startswith("on") else "off")
     except RuntimeError as exc:
         raise GnssProcessingError(str(exc)) from exc
-    c = compare({round(s.t_gps): (s.r_e, s.quality) for s in sols}, theirs, truth)
+    c = compare(sols, theirs, truth)
     print(c.line())
     if args.pos:
         demo5_pos = Path(args.pos).with_suffix(".demo5.pos")
@@ -199,7 +199,7 @@ def run_rtk(args) -> int:
     demo5_fixed = None
     if against_demo5:
         summary["against_demo5"], theirs = _against_demo5(args, sols, info, cfg, direction, truth)
-        demo5_fixed = ("demo5", sorted(theirs.fixed), [theirs.fixed[t] for t in sorted(theirs.fixed)])
+        demo5_fixed = ("demo5", [t for t, _ in theirs.fixed], [r for _, r in theirs.fixed])
     if args.json:
         rows = [{"t_gps": s.t_gps, "r_e": [float(x) for x in s.r_e], "q": s.quality, "ns": s.n_sats,
                  "ratio": s.ratio, "n_fixed": s.n_fixed, "n_ambiguities": s.n_ambiguities,
