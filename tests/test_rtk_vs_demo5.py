@@ -114,3 +114,15 @@ def test_epochs_of_a_5_hz_rover_are_matched_one_by_one():
     c = compare(ours, theirs, truth_e=r0)
     assert (c.ours_fixed, c.demo5_fixed, c.both_fixed) == (10, 5, 5)
     assert np.allclose(c.apart_m, 0.002 * np.sqrt(3))
+
+
+def test_without_pyrtklib5_the_command_says_which_extra_before_processing(monkeypatch, capsys):
+    import companion.gnss.demo5_reference as ref
+    from companion.cli import main
+    monkeypatch.setattr(ref, "available", lambda module: False)
+    rover, base, navs, _, _ = SETS["GEONET 0759/3040"]
+    code = main(["gnss", "--rover", str(rover), "--base", str(base), "--nav", str(navs[0]), "--mode", "rtk",
+                 "--against-demo5"])
+    captured = capsys.readouterr()
+    assert code == 2 and "pip install 'companion[rtklib]'" in captured.err
+    assert "epochs solved" not in captured.out                 # refused before the processing
