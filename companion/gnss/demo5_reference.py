@@ -4,7 +4,7 @@
 demo5 is rtklibexplorer's branch of RTKLIB ("RTKLIB ver.EX 2.5.0"), reached through the pyrtklib5
 binding (the ``[rtklib]`` extra; wheels for x86_64 only).  It runs in a child process, so a crash
 of the C library cannot take ours with it, from a configuration written here with our run's
-options: kinematic, L1+L2, the same systems, elevation mask and solution direction, fix-and-hold,
+options: kinematic, L1+L2 (or L1 alone), the same systems, elevation mask and solution direction, fix-and-hold,
 ratio 3, GLONASS integers as ours decided them, the base antenna where ours put it, the rover's
 antenna height from its header (both programs then solve the rover's marker); every other option
 is demo5's own default.  Compressed RINEX (Hatanaka, gzip) is expanded first: RTKLIB would call
@@ -93,13 +93,17 @@ def _antenna_delta_hen(rinex_obs: str) -> tuple[float, float, float]:
 
 
 def run_demo5(rover, base, navs, base_antenna_e, *, systems: str = "GEJ", mask_deg: float = 10.0,
-              glonass_ar: str = "off", direction: str = "forward", work: Path | None = None) -> Demo5Run:
+              glonass_ar: str = "off", direction: str = "forward", frequencies: str = "l1+l2",
+              work: Path | None = None) -> Demo5Run:
     """demo5's kinematic RTK of ``rover`` against ``base`` (RINEX observation files) with the
-    navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m); ``work``: where its
-    files go (a temporary folder when None)."""
+    navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m); ``frequencies``
+    RTKLIB's pos1-frequency ('l1' as a single-frequency receiver); ``work``: where its files go (a
+    temporary folder when None)."""
     require_demo5()
     if direction not in _DIRECTIONS:
         raise ValueError(f"direction must be one of {', '.join(_DIRECTIONS)}, not {direction!r}")
+    if frequencies not in ("l1", "l1+l2", "l1+l2+l3"):
+        raise ValueError(f"frequencies must be l1, l1+l2 or l1+l2+l3, not {frequencies!r}")
     with tempfile.TemporaryDirectory(prefix="companion-demo5-") as tmp:
         work = Path(work or tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -108,7 +112,7 @@ def run_demo5(rover, base, navs, base_antenna_e, *, systems: str = "GEJ", mask_d
         conf = work / "demo5.conf"
         conf.write_text("\n".join([
             "pos1-posmode       =kinematic",
-            "pos1-frequency     =l1+l2",
+            f"pos1-frequency     ={frequencies}",
             f"pos1-soltype       ={direction}",
             f"pos1-elmask        ={mask_deg:g}",
             f"pos1-navsys        ={sum(_NAVSYS_BITS[s] for s in dict.fromkeys(systems))}",
