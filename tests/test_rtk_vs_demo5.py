@@ -1,5 +1,5 @@
 """Our post-processed RTK against RTKLIB demo5 (the branch the issue measures us against) on the
-same real files, in the same run: kinematic, L1+L2, forward, fix-and-hold, ratio 3, 10-degree mask
+same real files, in the same run: kinematic, L1+L2 (one test L1 alone), forward, fix-and-hold, ratio 3, 10-degree mask
 on both sides (companion.gnss.demo5_reference, what ``companion gnss --against-demo5`` runs).
 
 Where a centimetre truth exists (GEONET 0759, the Septentrio pair) both are measured against it on
