@@ -46,7 +46,8 @@ def _compare(name: str, systems: str, tmp_path, glonass_ar: str = "off") -> Comp
     """``glonass_ar`` demo5's (ours decides it from the two receivers' types: 'auto')."""
     rover, base, navs, base_xyz, truth = SETS[name]
     sols, info = solve_rtk_rinex(rover, base, navs, base_xyz=base_xyz, config=RtkConfig(systems=systems))
-    theirs = run_demo5(rover, base, navs, info["base_antenna_e"], systems=systems, glonass_ar=glonass_ar,
+    theirs = run_demo5(rover, base, navs, info["base_antenna_e"], rover_antenna_delta_hen=info["rover_antenna_delta_hen_m"],
+                       systems=systems, glonass_ar=glonass_ar,
                        work=tmp_path / f"demo5-{systems}")
     c = compare(sols, theirs, truth)
     print(f"{name} {systems}: {c.line()}")
@@ -81,7 +82,8 @@ def test_single_frequency_on_the_moving_car_ours_stays_with_the_dual_frequency_f
     dual, info = solve_rtk_rinex(rover, base, navs, base_xyz=base_xyz, config=RtkConfig(systems="GEJ"))
     ref = {epoch_key(s.t_gps): s.r_e for s in dual if s.quality == 1}
     ours, _ = solve_rtk_rinex(rover, base, navs, base_xyz=base_xyz, config=RtkConfig(systems="GEJ", signals=("L1C",)))
-    theirs = run_demo5(rover, base, navs, info["base_antenna_e"], systems="GEJ", frequencies="l1",
+    theirs = run_demo5(rover, base, navs, info["base_antenna_e"], rover_antenna_delta_hen=info["rover_antenna_delta_hen_m"],
+                       systems="GEJ", frequencies="l1",
                        work=tmp_path / "demo5-l1")
     off = {}
     for name, fixed in (("ours", [(s.t_gps, s.r_e) for s in ours if s.quality == 1]), ("demo5", theirs.fixed)):

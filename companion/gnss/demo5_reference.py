@@ -6,7 +6,7 @@ binding (the ``[rtklib]`` extra; wheels for x86_64 only).  It runs in a child pr
 of the C library cannot take ours with it, from a configuration written here with our run's
 options: kinematic, L1+L2 (or L1 alone), the same systems, elevation mask and solution direction, fix-and-hold,
 ratio 3, GLONASS integers as ours decided them, the base antenna where ours put it, the rover's
-antenna height from its header (both programs then solve the rover's marker); every other option
+antenna height as ours read it from its header (both programs then solve the rover's marker); every other option
 is demo5's own default.  Compressed RINEX (Hatanaka, gzip) is expanded first: RTKLIB would call
 external tools for it.
 """
@@ -81,22 +81,13 @@ def _plain(src, work: Path, index: int) -> str:
     return str(out)
 
 
-def _antenna_delta_hen(rinex_obs: str) -> tuple[float, float, float]:
-    """A RINEX observation header's ANTENNA: DELTA H/E/N (zeros when absent)."""
-    with open(rinex_obs, errors="replace") as f:
-        for ln in f:
-            if "ANTENNA: DELTA H/E/N" in ln[60:]:
-                return tuple(float(v) for v in ln[:42].split())
-            if "END OF HEADER" in ln[60:]:
-                break
-    return (0.0, 0.0, 0.0)
-
-
-def run_demo5(rover, base, navs, base_antenna_e, *, systems: str = "GEJ", mask_deg: float = 10.0,
-              glonass_ar: str = "off", direction: str = "forward", frequencies: str = "l1+l2",
-              work: Path | None = None) -> Demo5Run:
+def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0, 0.0, 0.0), systems: str = "GEJ",
+              mask_deg: float = 10.0, glonass_ar: str = "off", direction: str = "forward",
+              frequencies: str = "l1+l2", work: Path | None = None) -> Demo5Run:
     """demo5's kinematic RTK of ``rover`` against ``base`` (RINEX observation files) with the
-    navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m); ``frequencies``
+    navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m), the rover's
+    antenna ``rover_antenna_delta_hen`` (up, east, north, m) above its marker (the RTK run's
+    ``info['rover_antenna_delta_hen_m']``, from the rover header); ``frequencies``
     RTKLIB's pos1-frequency ('l1' as a single-frequency receiver); ``work``: where its files go (a
     temporary folder when None)."""
     require_demo5()
@@ -108,7 +99,7 @@ def run_demo5(rover, base, navs, base_antenna_e, *, systems: str = "GEJ", mask_d
         work = Path(work or tmp)
         work.mkdir(parents=True, exist_ok=True)
         files = [_plain(f, work, i) for i, f in enumerate([rover, base, *navs])]
-        up, east, north = _antenna_delta_hen(files[0])
+        up, east, north = (float(v) for v in rover_antenna_delta_hen)
         conf = work / "demo5.conf"
         conf.write_text("\n".join([
             "pos1-posmode       =kinematic",

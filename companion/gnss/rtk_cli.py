@@ -109,7 +109,8 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
     from .demo5_reference import compare, run_demo5
     print("running RTKLIB demo5 on the same files ...", flush=True)
     try:
-        theirs = run_demo5(args.rover, args.base, args.nav, info["base_antenna_e"], systems=cfg.systems,
+        theirs = run_demo5(args.rover, args.base, args.nav, info["base_antenna_e"],
+                           rover_antenna_delta_hen=info["rover_antenna_delta_hen_m"], systems=cfg.systems,
                            mask_deg=args.elevation_mask_deg, direction=direction,
                            glonass_ar="on" if info["glonass_ar"].startswith("on") else "off")
     except RuntimeError as exc:

@@ -108,7 +108,9 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     info = {"rover_epochs": len(rover), "base_epochs": len(base), "paired_epochs": len(pairs),
             "max_base_age_s": max((abs(r.t_gps - b.t_gps) for r, b in pairs), default=0.0),
             "solutions": len(sols), "fixed": sum(1 for s in sols if s.quality == 1), "direction": direction,
-            "base_antenna_e": base_ant.tolist(), "counters": counters, "glonass_ar": glonass_ar}
+            "base_antenna_e": base_ant.tolist(),
+            "rover_antenna_delta_hen_m": [float(v) for v in (hr.get("antenna_delta_hen_m")
+                                                             if hr.get("antenna_delta_hen_m") is not None else (0, 0, 0))], "counters": counters, "glonass_ar": glonass_ar}
     return sols, info
 
 
