@@ -82,13 +82,19 @@ class StatusBoard:
         f = (self.health or {}).get("filter", {})
         return {"v": 1, "uptime_s": round(time.time() - self.t_start, 1),
                 "last": self.solutions[-1] if self.solutions else None,
-                "satellites_used": len({str(lab).split("-")[0].split(":")[0] for lab in used}),
+                "satellites_used": len({sat for lab in used for sat in _satellites_of(lab)}),
                 # per constellation, from the last rover epoch (the health report's)
                 "satellites_by_system": dict(f.get("satellites_by_system") or {}),
                 "history": list(self.solutions), "sources": sources, "events": list(self.events),
                 "filter": {k: f.get(k) for k in ("status", "mode", "reset_counter") if k in f},
                 # the base as its RTCM 1007 / 1008 / 1033 describe it (printable ASCII already)
                 "base": _base_text((self.health or {}).get("rtcm_base"))}
+
+
+def _satellites_of(label) -> list[str]:
+    """The satellites a row label names: 'G05', 'G05:L1C', or both of a double difference,
+    'G07-G11 L1C phase' (the reference satellite is used too)."""
+    return str(label).split(" ")[0].split(":")[0].split("-")
 
 
 def _base_text(desc: dict | None) -> str | None:

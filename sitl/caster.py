@@ -6,7 +6,8 @@ pyrtcm 1.2 only *parses* (``RTCMMessage(payload=...)``); it has no field-wise co
 messages are encoded here with a small MSB-first bit writer, straight from RTCM 10403.x, and
 cross-checked by decoding them back with :class:`companion.io.rtcm.RtcmDecoder` (tests):
 
-* **1005** station ARP (ECEF, 0.1 mm);
+* **1005** station ARP (ECEF, 0.1 mm), with **1033** the base's antenna and receiver descriptors
+  (what a CORS caster sends: the companion names its base on the health report and status page);
 * **1004** GPS L1 observations (extended: pseudorange modulo one light-millisecond at 2 cm,
   integer milliseconds, phase-range minus pseudorange at 0.5 mm, lock-time indicator, C/N0); L2
   fields are sent as "invalid" (the simulated receivers are single frequency).  The carrier is
@@ -100,6 +101,30 @@ def encode_1005(station_id: int, r_e) -> bytes:
     w.s(38, round(r_e[0] / 1e-4)).u(1, 0).u(1, 0)
     w.s(38, round(r_e[1] / 1e-4)).u(2, 0)
     w.s(38, round(r_e[2] / 1e-4))
+    return frame(w.to_bytes())
+
+
+#: what the simulated base says it is (1033): no IGS antenna, the simulator as the receiver
+SITL_BASE_ANTENNA = "NONE NONE"
+SITL_BASE_RECEIVER = "COMPANION SITL BASE"
+
+
+def encode_1033(station_id: int, antenna: str = SITL_BASE_ANTENNA, receiver: str = SITL_BASE_RECEIVER,
+                firmware: str = "", antenna_serial: str = "", receiver_serial: str = "") -> bytes:
+    """1033: antenna descriptor, setup ID 0 and serial, receiver type, firmware and serial (DF029-
+    DF232: after the 24-bit header every field is whole bytes, each string after its 8-bit count)."""
+    w = BitWriter()
+    w.u(12, 1033).u(12, station_id)
+    for text in (antenna, None, antenna_serial, receiver, firmware, receiver_serial):
+        if text is None:
+            w.u(8, 0)                                # DF031 antenna setup ID
+            continue
+        raw = text.encode("ascii")
+        if len(raw) > 31:
+            raise ValueError(f"RTCM descriptor longer than 31 characters: {text!r}")
+        w.u(8, len(raw))
+        for c in raw:
+            w.u(8, c)
     return frame(w.to_bytes())
 
 
@@ -298,8 +323,9 @@ class RtcmSource(RtcmServer):
             out = bytearray()
             if ep.t_gps - last_station >= self.station_interval_s:
                 out += encode_1005(self.base.station_id, self.base.r_e)
+                out += encode_1033(self.base.station_id)
                 last_station = ep.t_gps
-                self.counters["frames"] += 1
+                self.counters["frames"] += 2
             if ep.t_gps - last_eph >= self.ephemeris_interval_s:
                 for e in self.ephemerides:
                     fr = encode_ephemeris(e)
@@ -444,6 +470,6 @@ async def start_caster(source_port: int, *, mountpoint: str = "SITL", user: str 
     return Caster("mini", port, mountpoint, user, password, mini=mini)
 
 
-__all__ = ["BitWriter", "frame", "encode_1005", "encode_1019", "CarrierReference", "Rtcm1004Encoder",
+__all__ = ["BitWriter", "frame", "encode_1005", "encode_1033", "encode_1019", "CarrierReference", "Rtcm1004Encoder",
            "RtcmServer", "RtcmSource",
            "MiniNtripCaster", "start_caster", "Caster", "lock_indicator_df013"]

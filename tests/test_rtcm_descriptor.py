@@ -61,6 +61,22 @@ def test_a_1007_between_1033s_keeps_the_receiver_type():
     assert (dec.base_descriptor.station_id, dec.base_descriptor.receiver) == (4, "")
 
 
+def test_the_simulated_base_says_what_it_is_in_frames_pyrtcm_reads():
+    from pyrtcm import RTCMReader
+
+    from sitl.caster import SITL_BASE_RECEIVER, encode_1033
+    raw = encode_1033(7, receiver_serial="0001")
+    msg = RTCMReader.parse(raw)                                    # the reference parser agrees
+    assert (msg.identity, msg.DF003, msg.DF227, msg.DF231) == ("1033", 7, len(SITL_BASE_RECEIVER), 4)
+    dec = RtcmDecoder(week_hint=2240)
+    dec.feed(raw)
+    d = dec.base_descriptor
+    assert (d.station_id, d.receiver, d.antenna, d.receiver_serial, d.message) == (7, SITL_BASE_RECEIVER, "NONE NONE",
+                                                                                  "0001", 1033)
+    with pytest.raises(ValueError, match="31 characters"):
+        encode_1033(7, receiver="X" * 32)
+
+
 def test_the_health_report_and_the_status_page_name_the_base():
     from companion.config import Config
     from companion.pipeline import NavPipeline

@@ -35,7 +35,11 @@ def _board() -> StatusBoard:
                                                   "labels": ["G05", "G12", "G25", "G29", "G31"],
                                                   "test_ratio": [0.1, 0.3, 0.05, 0.7, 3.2],
                                                   "accepted": [True, True, True, True, False],
-                                                  "rows_fused": 4, "rows_rejected": 1}}})
+                                                  "rows_fused": 4, "rows_rejected": 1},
+                               # double differences name two satellites, the reference (G05) among them
+                               "rtk_phase": {"t_gps": 1.4e9 + 119, "fused": True,
+                                             "labels": ["E11-E05 L1C phase", "E12-E05 L1C phase"],
+                                             "test_ratio": [0.2, 0.1], "accepted": [True, True]}}})
     b.add_event(6, "CC: RTK fixed (ratio 7.5)")
     b.add_event(4, "CC: <script>alert(1)</script> escaped")
     b.set_health({"filter": {"status": "nav", "mode": "tight", "reset_counter": 0,
@@ -75,7 +79,7 @@ def test_status_json_and_routes(served):
     st = json.loads(_get(server, "/status.json").read())
     assert len(st["history"]) == 120                          # one point per second of GPS time
     assert st["last"]["fix_state"] == "fixed" and st["last"]["sigma_h_m"] == pytest.approx(0.0206, abs=1e-3)
-    assert st["satellites_used"] == 4                         # G31 was rejected
+    assert st["satellites_used"] == 7                         # G31 was rejected; E05 is the DDs' reference
     assert st["satellites_by_system"] == {"G": 4, "E": 6}
     assert st["sources"]["pseudorange"]["test_ratio"][-1] == 3.2
     assert json.loads(_get(server, "/health.json").read())["filter"]["mode"] == "tight"
@@ -111,7 +115,7 @@ def test_page_renders_in_headless_chromium(served, tmp_path):
         return m.group(1) if m else None
 
     assert text("status") == "nav" and text("fix") == "fixed" and text("inject") == "yes"
-    assert text("sigma_h") == "0.02 m" and text("hpl") == "0.10 m" and text("sats") == "4 (G 4, E 6)"
+    assert text("sigma_h") == "0.02 m" and text("hpl") == "0.10 m" and text("sats") == "7 of 10 tracked (G 4, E 6)"
     assert text("mode") == "tight" and text("ratio") == "7.5"
     assert ">G31<" in dom and "rejected" in dom
     assert "RTK fixed (ratio 7.5)" in dom
