@@ -676,8 +676,8 @@ def format_result(r: dict) -> str:
         f"  latency p50 {f(r['latency_ms_p50'], '.2f')} ms, p99 {f(r['latency_ms_p99'], '.2f')} ms",
         f"  companion CPU {f(r['companion_cpu_pct'], '.1f')} % of one core, RSS {f(r['companion_rss_mb'], '.1f')} MB",
     ] + ([] if not r.get("rtk") else [
-        "  RTK: first fix {} s, fixed {} of the estimates after it, RMS_h after the first fix {} m (fixed only {} m, "
-        "max {} m), re-fix after the outages {} s, wrong fixes {} (3-D {})".format(
+        "  RTK: first fix {} s; from it on, outside outages: fixed {} of the estimates, RMS_h {} m (fixed only {} m, "
+        "max {} m); re-fix after the outages {} s, wrong fixes {} (3-D {})".format(
             f(r["rtk"]["first_fix_s"], ".1f"),
             "n/a" if r["rtk"]["fixed_share"] is None else f"{100 * r['rtk']['fixed_share']:.1f} %",
             f(r["rtk"]["rms_h_after_first_fix_m"], ".4f"), f(r["rtk"]["rms_h_fixed_m"], ".4f"),
