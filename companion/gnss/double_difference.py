@@ -104,7 +104,7 @@ def transmit_states(epoch: GnssEpoch, store: EphemerisStore, signals,
     out = {}
     for sat, obs in by_sat.items():
         first = obs.get(signals_of(signals, sat)[0])
-        if first is None or not math.isfinite(first.pseudorange_m):
+        if first is None or not _present(first.pseudorange_m):
             continue
         eph = store.select(sat, epoch.t_gps)
         if eph is None:
@@ -122,14 +122,20 @@ def transmit_states(epoch: GnssEpoch, store: EphemerisStore, signals,
         else:
             clk1 = satellite_clock(eph, t_tx)[0]        # satellite_state's clock, without the orbit
             r_s, v_s, clk, drift = satellite_state(eph, t_tx - clk1)
-        fields = ({s: o.pseudorange_m for s, o in obs.items() if math.isfinite(o.pseudorange_m)},
-                  {s: o.carrier_cycles for s, o in obs.items() if math.isfinite(o.carrier_cycles)},
+        fields = ({s: o.pseudorange_m for s, o in obs.items() if _present(o.pseudorange_m)},
+                  {s: o.carrier_cycles for s, o in obs.items() if _present(o.carrier_cycles)},
                   _wavelengths(obs, eph),
                   {s: bool(o.loss_of_lock) for s, o in obs.items()},
                   {s: bool(o.half_cycle_ambiguous) for s, o in obs.items()},
                   {s: float(o.lock_time_s) for s, o in obs.items()})
         out[sat] = TransmitState(r_s, v_s, clk * SPEED_OF_LIGHT_MPS, fields, eph, t_tx, clk1, drift, clk)
     return out
+
+
+def _present(value: float) -> bool:
+    """An observable that was measured: finite and not 0.0 (RINEX's, RTKLIB's and many a
+    receiver's mark of a missing one; no real pseudorange or carrier phase is exactly zero)."""
+    return math.isfinite(value) and value != 0.0
 
 
 def _wavelengths(obs: dict, eph) -> dict:

@@ -45,7 +45,7 @@ from .ephemeris_store import EphemerisStore
 from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, write_pos
 from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
-from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
+from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs, reading_notes
 from .glonass import frequency_channels, with_fdma_wavelengths
 from .signals import GLONASS, PREPARED_SYSTEMS, SUPPORTED_SYSTEMS
 from .rtk_post import RTK_POST_SYSTEMS, antenna_delta_e
@@ -243,6 +243,8 @@ def _load(args):
             hdr, rover = read_rinex_obs(args.rover, wanted or SUPPORTED_SYSTEMS)
         except (ValueError, IndexError) as exc:
             raise GnssProcessingError(f"cannot read rover observation file {args.rover}: {exc}") from exc
+        if reading_notes(hdr):
+            print(f"rover file: {reading_notes(hdr)}")
     if not rover:
         raise GnssProcessingError(f"no observation epochs in {args.rover}")
     # default: every supported system that has both observations and ephemerides
@@ -264,6 +266,8 @@ def _load(args):
                 bhdr, base_epochs = read_rinex_obs(args.base, systems)
             except (ValueError, IndexError) as exc:
                 raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
+            if reading_notes(bhdr):
+                print(f"base file: {reading_notes(bhdr)}")
         if args.base_xyz and args.base_xyz.strip().lower() == "spp":
             raise GnssProcessingError("--base-xyz spp: only with --mode rtk (DGPS corrections from a base position "
                                       "metres off shift the rover by as much); give --base-xyz X,Y,Z")

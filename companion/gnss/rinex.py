@@ -334,7 +334,9 @@ def _build_obs(sat: str, codes: list[str], values: list[float], llis: list[int],
     """Group one satellite's observation values by signal (band + attribute)."""
     sig: dict[str, dict] = {}
     for code, val, lli in zip(codes, values, llis):
-        if val != val:  # NaN: missing
+        # blank (NaN here) or 0.0: "missing observations are written as 0.0 or blanks" (RINEX
+        # 2.11 and 3.0x); some converters write 0.000 for a signal not tracked at this epoch
+        if val != val or val == 0.0:
             continue
         key = code[1:3]
         d = sig.setdefault(key, {})
@@ -383,7 +385,9 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
     Returns ``(header, epochs)``; ``header`` has 'version', 'marker', 'approx_position_e'
     (np.array, m, or None), 'antenna_delta_hen_m', 'receiver', 'antenna', 'interval_s' (NaN if
     absent), 'obs_types' (system -> RINEX 3 codes), 'n_epochs', 'skipped' (counts by reason:
-    'other system' observations, 'event' records, 'bad epoch' flags), 'time_system'.  Only
+    'other system' observations, 'event' records (flags 2-6), 'repeated epoch' time tags),
+    'out_of_order_epochs', 'time_system'.  Epochs come out in time order, one per time tag
+    (:func:`_in_time_order`; :func:`reading_notes` says what was done).  Only
     satellites of ``systems`` are kept (default GPS only; 'GECJ' for GPS, Galileo, BeiDou and QZSS,
     wavelengths from :data:`FREQUENCY_HZ`; GLONASS observations get NaN wavelengths).  Time tags
     of a file in BDT (TIME OF FIRST OBS) are moved to GPS time (+14 s).  Epochs with flag > 1 (events) are skipped; flag 1 (power failure) is kept
@@ -394,7 +398,7 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
     version = _f(lines[0][:9])
     hdr: dict = {"version": version, "marker": "", "approx_position_e": None, "antenna_delta_hen_m": None,
                  "receiver": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
-                 "skipped": {"other system": 0, "event": 0, "bad epoch": 0}, "time_system": "GPS"}
+                 "skipped": {"other system": 0, "event": 0}, "time_system": "GPS"}
     r2_types: list[str] = []
     r3_types: dict[str, list[str]] = {}
     cur_sys = None
@@ -516,5 +520,29 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
                     llis = [l | 1 for l in llis]
                 obs.extend(_build_obs(s, codes, vals, llis, ssis, version))
             epochs.append(GnssEpoch(t_gps=t, observations=tuple(obs), source="rover"))
+    epochs, hdr["out_of_order_epochs"], hdr["skipped"]["repeated epoch"] = _in_time_order(epochs)
     hdr["n_epochs"] = len(epochs)
     return hdr, epochs
+
+
+def _in_time_order(epochs: list[GnssEpoch]) -> tuple[list[GnssEpoch], int, int]:
+    """(epochs sorted by time with one per time tag, how many were out of order, how many repeated
+    an earlier epoch's tag and were dropped).  Files joined end to end overlap (hourly files, a
+    logger restarted), and a filter fed an epoch twice or backwards would take it as a new epoch
+    or run backwards in time; the first of a repeated tag is kept, as it came first in the file."""
+    out_of_order = sum(1 for a, b in zip(epochs, epochs[1:]) if b.t_gps < a.t_gps)
+    ordered = sorted(epochs, key=lambda e: e.t_gps) if out_of_order else epochs   # stable: the first stays first
+    kept = [e for k, e in enumerate(ordered) if k == 0 or e.t_gps != ordered[k - 1].t_gps]
+    return kept, out_of_order, len(ordered) - len(kept)
+
+
+def reading_notes(hdr: dict) -> str:
+    """What :func:`read_rinex_obs` left out or put in order, for a person ('' when nothing).  Event
+    records (flags 2-6: a header block, a new occupation) are part of the format, not news."""
+    skipped = hdr.get("skipped") or {}
+    notes = []
+    if skipped.get("repeated epoch"):
+        notes.append(f"{skipped['repeated epoch']} epochs repeating an earlier time tag dropped (the first kept)")
+    if hdr.get("out_of_order_epochs"):
+        notes.append(f"epochs put in time order ({hdr['out_of_order_epochs']} went back in time)")
+    return "; ".join(notes)

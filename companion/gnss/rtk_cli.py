@@ -18,7 +18,7 @@ from .ephemeris_store import EphemerisStore
 from .pos_format import write_pos
 from .postprocess import (GnssProcessingError, epoch_progress, epochs_of, load_ubx_capture, median_spp_position,
                           parse_systems, parse_xyz, satellites_by_system, statistics, write_plot, write_tracks)
-from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
+from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs, reading_notes
 from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, glonass_ar_of, pos_records, solve_rtk_epochs
 
@@ -152,6 +152,9 @@ def run_rtk(args) -> int:
             raise GnssProcessingError(f"no observation epochs in {args.rover}")
         hb, base, base_ephs, base_klob = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS,
                                                    int(rover[0].t_gps // SECONDS_PER_WEEK))
+        notes = {who: reading_notes(h) for who, h in (("rover", hr), ("base", hb)) if reading_notes(h)}
+        for who, text in notes.items():
+            print(f"{who} file: {text}")
         if not wanted:
             cfg = dataclasses.replace(cfg, systems=_auto_rtk_systems(cfg, hr, hb))
         ephs = [e for e in ephs + base_ephs if e.sat[0] in cfg.systems]
@@ -178,7 +181,7 @@ def run_rtk(args) -> int:
                "elevation_mask_deg": args.elevation_mask_deg, "systems": cfg.systems,
                "satellites_by_system": by_sys, "base_epochs": info["base_epochs"],
                "max_base_age_s": info["max_base_age_s"], "base_antenna_e": info["base_antenna_e"],
-               "glonass_ar": info["glonass_ar"], "counters": info["counters"]}
+               "glonass_ar": info["glonass_ar"], "counters": info["counters"], "reading_notes": notes}
     if truth is not None:
         summary.update(statistics(sols, truth))
         fixed = [s for s in sols if s.quality == 1]
