@@ -444,6 +444,10 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
         hdr["obs_types"] = {"G": mapped}
         hdr["obs_types_rinex2"] = list(r2_types)
     else:
+        if version < 3.03 and "C" in r3_types:
+            # BeiDou B1I was band 1 up to RINEX 3.02 and is band 2 from 3.03 on, where band 1 is
+            # B1C (1575.42 MHz, not B1I's 1561.098): read as 3.03 codes (RTKLIB does the same)
+            r3_types["C"] = [c[0] + "2" + c[2:] if c[0] in "CLDS" and c[1] == "1" else c for c in r3_types["C"]]
         hdr["obs_types"] = r3_types
 
     epochs: list[GnssEpoch] = []
@@ -462,7 +466,8 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
             nsat = int(ln[29:32])
             if flag > 1:
                 hdr["skipped"]["event"] += 1
-                i += 1 + nsat
+                # flags 2-5: nsat header lines follow; 6 (cycle slip records): an epoch's layout
+                i += 1 + (nsat if flag < 6 else (nsat - 1) // 12 + nsat * nlines_per_sat)
                 continue
             sats = []
             row = ln

@@ -1,6 +1,6 @@
 """Observation files as users have them: joined end to end with an overlap (hourly files, a logger
-restarted), and with 0.0 written for a signal not tracked (RINEX: "missing observations are
-written as 0.0 or blanks").  Built from the real GEONET 0759 file."""
+restarted), with 0.0 written for a signal not tracked (RINEX: "missing observations are written
+as 0.0 or blanks"), and RINEX 3.02's band 1 for BeiDou B1I.  Built from real files."""
 from __future__ import annotations
 
 import re
@@ -83,3 +83,36 @@ def test_rtk_on_the_joined_file_says_what_it_did_and_solves_as_the_original(tmp_
     assert res["joined"]["reading_notes"]["rover"].startswith(f"{OVERLAP} epochs") and not res["orig"]["reading_notes"]
     a, b = (np.array([s["r_e"] for s in res[k]["solutions"]]) for k in ("orig", "joined"))
     assert a.shape == b.shape == (120, 3) and np.array_equal(a, b)
+
+
+def test_rinex_302_beidou_b1i_is_band_2_as_in_303(tmp_path):
+    """RINEX 3.02 labels B1I 'C1I'/'L1I'; 3.03 moved it to band 2 ('C2I') and gave band 1 to B1C
+    (another carrier).  The Septentrio rover's 3.04 file rewritten as 3.02 reads the same."""
+    import hatanaka
+    src = data_path("matrtklib-septentrio-static-2024") / "rover.crx.gz"
+    lines = hatanaka.decompress(src).decode("ascii").splitlines()
+    assert lines[0].startswith("     3.04")
+    lines[0] = lines[0].replace("3.04", "3.02", 1)
+    for i, ln in enumerate(lines):
+        if ln.startswith("C ") and ln[60:].strip() == "SYS / # / OBS TYPES":
+            lines[i] = ln[:60].replace("2I", "1I") + ln[60:]
+            assert " C1I L1I " in lines[i]
+        if "END OF HEADER" in ln:
+            break
+    old = tmp_path / "rover302.rnx"
+    old.write_text("\n".join(lines) + "\n")
+    h302, e302 = read_rinex_obs(old, "C")
+    h304, e304 = read_rinex_obs(src, "C")
+    assert h302["obs_types"]["C"] == h304["obs_types"]["C"] and repr(e302) == repr(e304)
+    assert {o.signal for e in e302 for o in e.observations} >= {"L2I", "L7I", "L6I"}
+
+
+def test_rinex2_cycle_slip_records_are_stepped_over(tmp_path):
+    """A RINEX 2 epoch flag 6 (cycle slip records) is laid out as an epoch: its satellites' lines
+    are skipped with it, and the epochs after it read as before."""
+    head, blocks = _header_and_epochs(ROVER)
+    slip = [blocks[5][0][:28] + "6" + blocks[5][0][29:]] + blocks[5][1:]    # epoch 5 again, flagged 6
+    path = tmp_path / "slips.05o"
+    path.write_text("\n".join(head + [ln for b in blocks[:6] + [slip] + blocks[6:] for ln in b]) + "\n")
+    h, epochs = read_rinex_obs(path)
+    assert repr(epochs) == repr(read_rinex_obs(ROVER)[1]) and h["skipped"]["event"] == 4     # 3 in the file
