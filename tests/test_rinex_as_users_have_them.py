@@ -88,9 +88,8 @@ def test_rtk_on_the_joined_file_says_what_it_did_and_solves_as_the_original(tmp_
 def test_rinex_302_beidou_b1i_is_band_2_as_in_303(tmp_path):
     """RINEX 3.02 labels B1I 'C1I'/'L1I'; 3.03 moved it to band 2 ('C2I') and gave band 1 to B1C
     (another carrier).  The Septentrio rover's 3.04 file rewritten as 3.02 reads the same."""
-    import hatanaka
     src = data_path("matrtklib-septentrio-static-2024") / "rover.crx.gz"
-    lines = hatanaka.decompress(src).decode("ascii").splitlines()
+    lines = hatanaka_text(src).splitlines()
     assert lines[0].startswith("     3.04")
     lines[0] = lines[0].replace("3.04", "3.02", 1)
     for i, ln in enumerate(lines):
@@ -116,3 +115,57 @@ def test_rinex2_cycle_slip_records_are_stepped_over(tmp_path):
     path.write_text("\n".join(head + [ln for b in blocks[:6] + [slip] + blocks[6:] for ln in b]) + "\n")
     h, epochs = read_rinex_obs(path)
     assert repr(epochs) == repr(read_rinex_obs(ROVER)[1]) and h["skipped"]["event"] == 4     # 3 in the file
+
+
+def test_a_time_window_steps_over_the_epochs_outside_it():
+    """A base file of hours for a rover of minutes: only the span asked for is parsed."""
+    for path in (ROVER, data_path("matrtklib-septentrio-static-2024") / "base.crx.gz"):      # RINEX 2 and 3
+        _, every = read_rinex_obs(path, "GECJ")
+        t0, t1 = every[10].t_gps, every[29].t_gps
+        h, part = read_rinex_obs(path, "GECJ", (t0, t1))
+        assert repr(part) == repr(every[10:30]) and h["epochs_outside_window"] == len(every) - 20
+
+
+def test_zeroed_carriers_cost_the_car_few_fixes(tmp_path):
+    """10 % of the 5.3-km car's carrier phases (its first 120 epochs) written as 0.000: taken as
+    measured they left no epoch fixed; as missing ones, most epochs still fix."""
+    import random
+
+    from companion.gnss.rinex import read_rinex_nav
+    from companion.gnss.rtk_post import solve_rtk_epochs
+    car = data_path("cssrlib-fujisawa-car-2021")
+    hr, rover = read_rinex_obs(car / "rover.crx.gz", "GEJ")
+    hb, base = read_rinex_obs(car / "base.crx.gz", "GEJ")
+    ephs = read_rinex_nav(car / "nav.rnx.gz", "GEJ")
+    base_xyz = (-3959400.631, 3385704.533, 3667523.111)
+    head = hatanaka_text(car / "rover.crx.gz").splitlines()
+    end = next(i for i, ln in enumerate(head) if "END OF HEADER" in ln) + 1
+    rng = random.Random(1)
+    lines, n_epochs = head[:end], 0
+    for ln in head[end:]:
+        if ln.startswith(">"):
+            n_epochs += 1
+            if n_epochs > 120:
+                break
+        elif n_epochs and ln[:1] in "GEJ":
+            sys_ = ln[0]
+            codes = hr["obs_types"][sys_]
+            fields = [ln[3 + 16 * k:3 + 16 * k + 16] for k in range(len(codes))]
+            for k, c in enumerate(codes):
+                if c[0] == "L" and fields[k].strip() and rng.random() < 0.1:
+                    fields[k] = f"{0.0:14.3f}  "
+            ln = ln[:3] + "".join(fields)
+        lines.append(ln)
+    zeroed = tmp_path / "rover_zeroed.rnx"
+    zeroed.write_text("\n".join(lines) + "\n")
+    hz, rz = read_rinex_obs(zeroed, "GEJ")
+    sols, _ = solve_rtk_epochs(hz, rz, hb, base, ephs, base_xyz=base_xyz)
+    full, _ = solve_rtk_epochs(hr, rover[:120], hb, base, ephs, base_xyz=base_xyz)
+    n_fix, n_full = sum(s.quality == 1 for s in sols), sum(s.quality == 1 for s in full)
+    print(f"10 % of the carriers 0.000: {n_fix} of {len(sols)} epochs fixed (the file as it is: {n_full})")
+    assert len(sols) == 120 and n_fix >= 100
+
+
+def hatanaka_text(path) -> str:
+    import hatanaka
+    return hatanaka.decompress(path).decode("ascii")

@@ -80,8 +80,8 @@ def test_as_good_as_rtklib_on_the_same_files(tmp_path):
 def slipped_reader(read, t_slip: float, sat: str, cycles: dict, flag: bool = False):
     """``read`` (read_rinex_obs) with ``cycles`` (signal -> cycles) added to ``sat``'s phases in the
     rover file from ``t_slip`` on; ``flag``: the receiver's loss-of-lock flag set at ``t_slip``."""
-    def reader(path, systems="G"):
-        h, eps = read(path, systems)
+    def reader(path, systems="G", t_gps_window=None):
+        h, eps = read(path, systems, t_gps_window)
         if path != ROVER:
             return h, eps
         out = []

@@ -153,8 +153,8 @@ def test_a_phase_with_an_unresolved_half_cycle_waits_until_it_is_resolved(monkey
     from companion.gnss.rinex import read_rinex_obs
     real = read_rinex_obs
 
-    def flagged(path, systems="G"):
-        h, eps = real(path, systems)
+    def flagged(path, systems="G", t_gps_window=None):
+        h, eps = real(path, systems, t_gps_window)
         if path != ROVER:
             return h, eps
         out = []
@@ -184,8 +184,8 @@ def test_a_slower_base_is_used_at_every_rover_epoch(monkeypatch):
     from companion.gnss.rinex import read_rinex_obs
     real = read_rinex_obs
 
-    def every_10_s(path, systems="G"):
-        h, eps = real(path, systems)
+    def every_10_s(path, systems="G", t_gps_window=None):
+        h, eps = real(path, systems, t_gps_window)
         return (h, [e for e in eps if round(e.t_gps) % 10 == 0]) if path == BASE else (h, eps)
 
     monkeypatch.setattr(rtk_post, "read_rinex_obs", every_10_s)

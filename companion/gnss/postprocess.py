@@ -263,7 +263,9 @@ def _load(args):
             base_epochs = epochs_of(ubx_base[1], systems, "base")     # cut to the systems chosen
         else:
             try:
-                bhdr, base_epochs = read_rinex_obs(args.base, systems)
+                # the rover's span and the oldest correction it may use: a base file of hours is not read whole
+                age = ProcessOptions.dgps_max_age_s
+                bhdr, base_epochs = read_rinex_obs(args.base, systems, (rover[0].t_gps - age, rover[-1].t_gps + age))
             except (ValueError, IndexError) as exc:
                 raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
             if reading_notes(bhdr):

@@ -379,7 +379,8 @@ def _parse_obs_fields(text: str, nobs: int) -> tuple[list[float], list[int], lis
     return vals, llis, ssis
 
 
-def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
+def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] | None = None
+                   ) -> tuple[dict, list[GnssEpoch]]:
     """Read a RINEX 2.x / 3.x observation file.
 
     Returns ``(header, epochs)``; ``header`` has 'version', 'marker', 'approx_position_e'
@@ -391,14 +392,17 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
     satellites of ``systems`` are kept (default GPS only; 'GECJ' for GPS, Galileo, BeiDou and QZSS,
     wavelengths from :data:`FREQUENCY_HZ`; GLONASS observations get NaN wavelengths).  Time tags
     of a file in BDT (TIME OF FIRST OBS) are moved to GPS time (+14 s).  Epochs with flag > 1 (events) are skipped; flag 1 (power failure) is kept
-    and all its observations are marked ``loss_of_lock``.
+    and all its observations are marked ``loss_of_lock``.  ``t_gps_window`` (first, last GPS
+    time, s): epochs outside it are stepped over unparsed ('epochs_outside_window' counts them;
+    a base file of hours read for a rover of minutes).
     """
     lines = _open_text(path)
     head = _header_end(lines)
     version = _f(lines[0][:9])
     hdr: dict = {"version": version, "marker": "", "approx_position_e": None, "antenna_delta_hen_m": None,
                  "receiver": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
-                 "skipped": {"other system": 0, "event": 0}, "time_system": "GPS"}
+                 "skipped": {"other system": 0, "event": 0}, "time_system": "GPS", "epochs_outside_window": 0}
+    t_first, t_last = t_gps_window if t_gps_window is not None else (-math.inf, math.inf)
     r2_types: list[str] = []
     r3_types: dict[str, list[str]] = {}
     cur_sys = None
@@ -483,6 +487,10 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
             t = _calendar_to_t_gps(int(ln[1:3]), int(ln[4:6]), int(ln[7:9]), int(ln[10:12]),
                                    int(ln[13:15]), float(ln[15:26]))
             i += 1
+            if not t_first <= t <= t_last:
+                hdr["epochs_outside_window"] += 1
+                i += nsat * nlines_per_sat
+                continue
             obs = []
             for s in sats:
                 text = "".join(lines[i + k].ljust(80)[:80] for k in range(nlines_per_sat))
@@ -510,6 +518,10 @@ def read_rinex_obs(path, systems: str = "G") -> tuple[dict, list[GnssEpoch]]:
             t = _calendar_to_t_gps(int(ln[2:6]), int(ln[7:9]), int(ln[10:12]), int(ln[13:15]),
                                    int(ln[16:18]), float(ln[18:29])) + dt_tag
             i += 1
+            if not t_first <= t <= t_last:
+                hdr["epochs_outside_window"] += 1
+                i += nsat
+                continue
             obs = []
             for _ in range(nsat):
                 row = lines[i]

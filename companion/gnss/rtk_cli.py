@@ -23,16 +23,17 @@ from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, glonass_ar_of, pos_records, solve_rtk_epochs
 
 
-def _rtk_base(path: str, systems: str, week: int):
+def _rtk_base(path: str, systems: str, week: int, t_gps_window: tuple[float, float] | None = None):
     """(header, epochs, ephemerides, Klobuchar or None) of an RTK base: a RINEX observation file,
     a u-blox capture (as a rover's: no position in it), or an RTCM 3 capture (MSM4-7 or 1004/1012
     observations, the 1005/1006 antenna reference point as its position, broadcast ephemerides,
     GLONASS's 1020 too, the 1033 receiver type) decoded as the service decodes its NTRIP stream;
-    ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only)."""
+    ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only);
+    ``t_gps_window``: the span a RINEX base is read over (the rover's)."""
     if is_ubx_capture(path):
         return _ubx_epochs(path, systems, "base")
     if not is_rtcm_capture(path):
-        hdr, epochs = read_rinex_obs(path, systems)
+        hdr, epochs = read_rinex_obs(path, systems, t_gps_window)
         return hdr, epochs, [], None
     from ..io.rtcm import decode_rtcm_file          # the RTCM stack only when a capture is read
     try:
@@ -150,8 +151,10 @@ def run_rtk(args) -> int:
         hr, rover, ephs, klob = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS)
         if not rover:
             raise GnssProcessingError(f"no observation epochs in {args.rover}")
+        # a base file of hours for a rover of minutes: only the rover's span (and a base age) is read
+        span = (rover[0].t_gps - cfg.max_base_age_s, rover[-1].t_gps + cfg.max_base_age_s)
         hb, base, base_ephs, base_klob = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS,
-                                                   int(rover[0].t_gps // SECONDS_PER_WEEK))
+                                                   int(rover[0].t_gps // SECONDS_PER_WEEK), span)
         notes = {who: reading_notes(h) for who, h in (("rover", hr), ("base", hb)) if reading_notes(h)}
         for who, text in notes.items():
             print(f"{who} file: {text}")

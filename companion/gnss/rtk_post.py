@@ -47,7 +47,8 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
     ``direction``: 'forward' (each epoch from the ones before it), 'backward' (from the ones
     after it) or 'combined' (both passes, :func:`companion.gnss.rtk_combine.combine`)."""
     hr, rover = read_rinex_obs(rover_obs, config.systems)
-    hb, base = read_rinex_obs(base_obs, config.systems)
+    span = (rover[0].t_gps - config.max_base_age_s, rover[-1].t_gps + config.max_base_age_s) if rover else None
+    hb, base = read_rinex_obs(base_obs, config.systems, span)
     ephs = []
     for n in navs:
         ephs += read_rinex_nav(n, config.systems)
