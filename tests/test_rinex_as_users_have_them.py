@@ -169,3 +169,16 @@ def test_zeroed_carriers_cost_the_car_few_fixes(tmp_path):
 def hatanaka_text(path) -> str:
     import hatanaka
     return hatanaka.decompress(path).decode("ascii")
+
+
+def test_rinex2_glonass_observations_take_glonass_codes(tmp_path):
+    """RINEX 2's P1/P2/L2 are GPS's W codes but GLONASS's P codes (RINEX 3 'C1P', 'L2P'): a
+    GLONASS satellite of a mixed RINEX 2 file (G03 relabelled R03 here) keeps its L2 and P code."""
+    head, blocks = _header_and_epochs(ROVER)
+    for b in blocks:
+        b[0] = b[0][:32] + b[0][32:].replace("G 3", "R 3")
+    path = tmp_path / "mixed.05o"
+    path.write_text("\n".join(head + [ln for b in blocks for ln in b]) + "\n")
+    _, epochs = read_rinex_obs(path, "GR")
+    sig = {(o.sat[0], o.signal) for o in epochs[0].observations}
+    assert {("R", "L1C"), ("R", "L2P"), ("G", "L1C"), ("G", "L2W")} <= sig and ("R", "L2W") not in sig

@@ -445,6 +445,9 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
         # keep pseudorange/phase pairing: L2 goes with whichever L2 code exists
         if "L2W" in mapped and "C2W" not in mapped and "C2X" in mapped:
             mapped[mapped.index("L2W")] = "L2X"
+        # GLONASS names its P code 'P' and its L2 C/A 'C' (RINEX 3), where GPS has 'W' and 'X'
+        r2_codes = {"G": mapped, "R": [c[:2] + "P" if c[2] == "W" else (c[:2] + "C" if c[1:] == "2X" else c)
+                                       for c in mapped]}
         hdr["obs_types"] = {"G": mapped}
         hdr["obs_types_rinex2"] = list(r2_types)
     else:
@@ -458,8 +461,7 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
     dt_tag = SYSTEM_TO_GPS_S["C"] if hdr["time_system"] == "BDT" else 0.0
     i, n = head, len(lines)
     if version < 3:
-        codes = hdr["obs_types"]["G"]
-        nobs = len(codes)
+        nobs = len(hdr["obs_types"]["G"])
         nlines_per_sat = max(1, math.ceil(nobs / 5))
         while i < n:
             ln = lines[i]
@@ -501,6 +503,7 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
                 vals, llis, ssis = _parse_obs_fields(text, nobs)
                 if flag == 1:
                     llis = [l | 1 for l in llis]
+                codes = r2_codes["R" if s[0] == "R" else "G"]
                 obs.extend(_build_obs(s, codes, vals, llis, ssis, version))
             epochs.append(GnssEpoch(t_gps=t, observations=tuple(obs), source="rover"))
     else:
