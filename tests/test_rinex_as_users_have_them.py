@@ -182,3 +182,20 @@ def test_rinex2_glonass_observations_take_glonass_codes(tmp_path):
     _, epochs = read_rinex_obs(path, "GR")
     sig = {(o.sat[0], o.signal) for o in epochs[0].observations}
     assert {("R", "L1C"), ("R", "L2P"), ("G", "L1C"), ("G", "L2W")} <= sig and ("R", "L2W") not in sig
+
+
+@pytest.mark.parametrize("mode", ["rtk", "dgps"])
+def test_a_base_or_nav_of_another_day_is_said_with_both_spans(mode, capsys):
+    """The 2021 car's base for the 2005 GEONET rover, the 2005 nav for the 2021 car: each error
+    names what the files cover, not an empty solution."""
+    from companion.cli import main
+    car = data_path("cssrlib-fujisawa-car-2021")
+    assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--base", str(car / "base.crx.gz"),
+                 "--mode", mode]) == 2
+    err = capsys.readouterr().err
+    assert ("the base file has no epochs during the rover's (2005/04/02 00:00:00 to 00:59:30 GPST): it covers "
+            "2021/09/22 06:30:00 to 06:35:59 GPST") in err
+    assert main(["gnss", "--rover", str(car / "rover.crx.gz"), "--nav", str(NAV), "--base", str(car / "base.crx.gz"),
+                 "--mode", mode]) == 2
+    err = capsys.readouterr().err
+    assert "(2021/09/22 06:30:00 to 06:35:59 GPST); the navigation file(s) are of 2005/04/01" in err

@@ -42,6 +42,13 @@ def gpst_calendar(t_gps: float) -> str:
     return t.strftime("%Y/%m/%d %H:%M:%S.") + f"{t.microsecond // 1000:03d}"
 
 
+def span_text(t0_gps: float, t1_gps: float) -> str:
+    """A span of GPS time for a person: '2005/04/02 00:00:00 to 00:59:30 GPST' (the date once
+    when both ends share it)."""
+    a, b = gpst_calendar(t0_gps)[:19], gpst_calendar(t1_gps)[:19]
+    return f"{a} to {b[11:] if a[:10] == b[:10] else b} GPST"
+
+
 def _time_field(t_gps: float, time_format: str) -> str:
     if time_format == "week":
         week = int(t_gps // SECONDS_PER_WEEK)

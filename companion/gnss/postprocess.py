@@ -42,7 +42,7 @@ from ..messages import BaseStationPosition
 from ..nav.earth import ecef_to_geodetic, ecef_to_ned
 from .dgps import DgpsCorrector
 from .ephemeris_store import EphemerisStore
-from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, write_pos
+from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, span_text, write_pos
 from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
 from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs, reading_notes
@@ -282,6 +282,11 @@ def _load(args):
                                       "APPROX POSITION XYZ, or a u-blox capture)")
         r_b = np.asarray(r_b, float)
         base = BaseStationPosition(station_id=0, r_e=r_b + antenna_delta_e(r_b, bhdr.get("antenna_delta_hen_m")))
+        from .rtk_post import check_epochs
+        try:
+            check_epochs(rover, bhdr, base_epochs)          # a base of another day: both spans said
+        except ValueError as exc:
+            raise GnssProcessingError(str(exc)) from exc
         t_r = {round(e.t_gps) for e in rover}
         if not t_r & {round(e.t_gps) for e in base_epochs}:
             raise GnssProcessingError("no epochs in common between rover and base observations")
@@ -292,7 +297,9 @@ def _load(args):
     t0, t1 = rover[0].t_gps, rover[-1].t_gps
     if not any(store.select_with_reason(s, 0.5 * (t0 + t1))[0] for s in store.sats) and \
             not any(store.select_with_reason(s, t0)[0] for s in store.sats):
-        raise GnssProcessingError("no ephemeris valid during the observation period")
+        toes = [e.t_oe_gps for sat in store.sats for e in store.all(sat) if hasattr(e, "t_oe_gps")]
+        raise GnssProcessingError(f"no ephemeris valid during the observation period ({span_text(t0, t1)})"
+                                  + (f"; the navigation file(s) are of {span_text(min(toes), max(toes))}" if toes else ""))
     return store, klob, hdr, rover, base_epochs, base, systems
 
 

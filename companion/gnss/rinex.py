@@ -394,7 +394,8 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
     of a file in BDT (TIME OF FIRST OBS) are moved to GPS time (+14 s).  Epochs with flag > 1 (events) are skipped; flag 1 (power failure) is kept
     and all its observations are marked ``loss_of_lock``.  ``t_gps_window`` (first, last GPS
     time, s): epochs outside it are stepped over unparsed ('epochs_outside_window' counts them;
-    a base file of hours read for a rover of minutes).
+    a base file of hours read for a rover of minutes); 'file_span_t_gps' is (first, last) epoch
+    of the whole file, read or not (None: no epoch).
     """
     lines = _open_text(path)
     head = _header_end(lines)
@@ -403,6 +404,7 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
                  "receiver": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
                  "skipped": {"other system": 0, "event": 0}, "time_system": "GPS", "epochs_outside_window": 0}
     t_first, t_last = t_gps_window if t_gps_window is not None else (-math.inf, math.inf)
+    span = (math.inf, -math.inf)
     r2_types: list[str] = []
     r3_types: dict[str, list[str]] = {}
     cur_sys = None
@@ -489,6 +491,7 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
             t = _calendar_to_t_gps(int(ln[1:3]), int(ln[4:6]), int(ln[7:9]), int(ln[10:12]),
                                    int(ln[13:15]), float(ln[15:26]))
             i += 1
+            span = (min(span[0], t), max(span[1], t))
             if not t_first <= t <= t_last:
                 hdr["epochs_outside_window"] += 1
                 i += nsat * nlines_per_sat
@@ -521,6 +524,7 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
             t = _calendar_to_t_gps(int(ln[2:6]), int(ln[7:9]), int(ln[10:12]), int(ln[13:15]),
                                    int(ln[16:18]), float(ln[18:29])) + dt_tag
             i += 1
+            span = (min(span[0], t), max(span[1], t))
             if not t_first <= t <= t_last:
                 hdr["epochs_outside_window"] += 1
                 i += nsat
@@ -541,6 +545,7 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
                 obs.extend(_build_obs(s, codes, vals, llis, ssis, version))
             epochs.append(GnssEpoch(t_gps=t, observations=tuple(obs), source="rover"))
     epochs, hdr["out_of_order_epochs"], hdr["skipped"]["repeated epoch"] = _in_time_order(epochs)
+    hdr["file_span_t_gps"] = span if span[0] <= span[1] else None
     hdr["n_epochs"] = len(epochs)
     return hdr, epochs
 

@@ -20,7 +20,7 @@ from .postprocess import (GnssProcessingError, epoch_progress, epochs_of, load_u
                           parse_systems, parse_xyz, satellites_by_system, statistics, write_plot, write_tracks)
 from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs, reading_notes
 from .rtk import RtkConfig
-from .rtk_post import RTK_POST_SYSTEMS, glonass_ar_of, pos_records, solve_rtk_epochs
+from .rtk_post import RTK_POST_SYSTEMS, check_epochs, glonass_ar_of, pos_records, solve_rtk_epochs
 
 
 def _rtk_base(path: str, systems: str, week: int, t_gps_window: tuple[float, float] | None = None):
@@ -155,6 +155,7 @@ def run_rtk(args) -> int:
         span = (rover[0].t_gps - cfg.max_base_age_s, rover[-1].t_gps + cfg.max_base_age_s)
         hb, base, base_ephs, base_klob = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS,
                                                    int(rover[0].t_gps // SECONDS_PER_WEEK), span)
+        check_epochs(rover, hb, base)
         notes = {who: reading_notes(h) for who, h in (("rover", hr), ("base", hb)) if reading_notes(h)}
         for who, text in notes.items():
             print(f"{who} file: {text}")

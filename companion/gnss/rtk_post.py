@@ -17,7 +17,7 @@ import numpy as np
 
 from ..nav.earth import C_n_e, ecef_to_geodetic
 from .ephemeris_store import EphemerisStore
-from .pos_format import PosRecord
+from .pos_format import PosRecord, span_text
 from .rinex import read_rinex_nav, read_rinex_obs
 from ..rtk_signals import rtk_epoch
 from .rtk import RtkConfig, RtkFilter, RtkSolution, pair_epochs
@@ -62,6 +62,7 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     epochs of rover and base) and the ephemerides."""
     if direction not in DIRECTIONS:
         raise ValueError(f"direction must be one of {', '.join(DIRECTIONS)}, not {direction!r}")
+    check_epochs(rover, hb, base)
     # each system's tracking families to one code on both sides (a rover's L2L pairs a base's L2X)
     rover, base = [rtk_epoch(e) for e in rover], [rtk_epoch(e) for e in base]
     for who, hdr, epochs in (("rover", hr, rover), ("base", hb, base)):
@@ -71,6 +72,11 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     if not any(e.sat[0] in config.systems for e in ephs):
         raise ValueError(f"the navigation file(s) hold no ephemeris of the selected systems ({config.systems})")
     store = EphemerisStore(ephs)
+    t_mid = rover[len(rover) // 2].t_gps
+    if not any(store.select(sat, t) is not None for sat in store.sats for t in (rover[0].t_gps, t_mid)):
+        toes = [e.t_oe_gps for e in ephs if hasattr(e, "t_oe_gps")]
+        raise ValueError(f"no ephemeris is valid during the rover's observations ({span_text(rover[0].t_gps, rover[-1].t_gps)}); "
+                         + (f"the navigation file(s) are of {span_text(min(toes), max(toes))}" if toes else ""))
     given = base_xyz if base_xyz is not None else hb.get("approx_position_e")
     # (np.asarray(None, float) is NaN, which np.any takes for a position: test for it)
     base_marker = None if given is None else np.asarray(given, dtype=float)
@@ -113,6 +119,17 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
             "rover_antenna_delta_hen_m": [float(v) for v in (hr.get("antenna_delta_hen_m")
                                                              if hr.get("antenna_delta_hen_m") is not None else (0, 0, 0))], "counters": counters, "glonass_ar": glonass_ar}
     return sols, info
+
+
+def check_epochs(rover, hb: dict, base) -> None:
+    """ValueError unless both files have epochs, the base's during the rover's (its file's span
+    said when it has none there: files of two different days)."""
+    if not rover:
+        raise ValueError("the rover file has no observation epochs")
+    if not base:
+        span = hb.get("file_span_t_gps")
+        raise ValueError(f"the base file has no epochs during the rover's ({span_text(rover[0].t_gps, rover[-1].t_gps)})"
+                         + (f": it covers {span_text(*span)}" if span else ": it has no observation epochs"))
 
 
 def glonass_ar_of(config: RtkConfig, hr: dict, hb: dict) -> tuple[RtkConfig, str]:
