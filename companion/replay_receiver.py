@@ -75,7 +75,8 @@ def _rinex_stream(obs_path, nav_path, base_path):
     """(receiver GPS time, [decoded messages]) of RINEX rover (and base) observations; the
     ephemerides and the base position go with the first epoch."""
     from .gnss.glonass import frequency_channels, with_fdma_wavelengths
-    from .gnss.rinex import read_rinex_nav, read_rinex_obs
+    from .gnss.rinex import read_rinex_nav
+    from .gnss.rinex_obs import read_rinex_obs
     from .gnss.signals import PREPARED_SYSTEMS
     from .gnss.rtk_post import antenna_delta_e
     from .messages import BaseStationPosition

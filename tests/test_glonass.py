@@ -28,7 +28,8 @@ from companion.gnss import glonass
 from companion.gnss.double_difference import elevation_rad, model_range_m, receiver_sats
 from companion.gnss.ephemeris import satellite_state
 from companion.gnss.ephemeris_store import EphemerisStore
-from companion.gnss.rinex import read_rinex_nav, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.gnss.rtk import RtkConfig
 from companion.gnss.rtk_post import antenna_delta_e, solve_rtk_rinex
 from companion.rtk_signals import RTK_SIGNALS_BY_SYSTEM, rtk_epoch

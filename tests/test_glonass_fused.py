@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from companion.gnss.glonass import frequency_channels, with_fdma_wavelengths
-from companion.gnss.rinex import read_rinex_nav, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.rtk_signals import rtk_epoch
 from tests._data import data_path
 from tests._engine_at_rest import engine_at_rest

@@ -17,7 +17,8 @@ from pyubx2 import UBXMessage, UBXReader
 from companion.gnss.ephemeris_store import EphemerisStore
 from companion.gnss.glonass import GlonassEphemeris
 from companion.gnss.glonass_nav import hamming_ok, string_bits
-from companion.gnss.rinex import read_rinex_nav, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.gnss.rtk import RtkConfig
 from companion.gnss.rtk_post import glonass_ar_of
 from companion.io.ubx import UbxDecoder, decode_ubx_file

@@ -25,7 +25,8 @@ from companion.gnss import ephemeris, sat_state
 from companion.gnss.dgps import DgpsCorrector
 from companion.gnss.ephemeris_store import MAX_REMEMBERED_SELECTIONS, EphemerisStore
 from companion.gnss.prepare import prepare_epoch
-from companion.gnss.rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav, read_rinex_nav_header_iono
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.messages import BaseStationPosition, GnssEpoch, GpsEphemeris
 from tests import _gnss_epoch_reference as ref
 from tests._data import data_path

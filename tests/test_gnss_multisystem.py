@@ -10,7 +10,8 @@ import pytest
 
 from companion.gnss.ephemeris import satellite_clock
 from companion.gnss.prepare import PreparedEpoch, form_pseudorange
-from companion.gnss.rinex import _calendar_to_t_gps, read_rinex_obs
+from companion.gnss.rinex import calendar_to_t_gps
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.gnss.signals import clock_group, frequency_hz, group_delay_m
 from companion.gnss.spp import solve_spp
 from companion.messages import (SPEED_OF_LIGHT_MPS, SYSTEM_TO_GPS_S, SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris,
@@ -103,11 +104,11 @@ def test_raim_excludes_a_fault_in_a_multi_system_epoch():
 
 def test_system_times():
     # BDT began 2006-01-01 00:00:00 UTC = 00:00:14 GPS time (GPS - UTC was 14 s), GPS week 1356
-    assert _calendar_to_t_gps(2006, 1, 1, 0, 0, 0) + SYSTEM_TO_GPS_S["C"] == gps_time(1356, 14.0)
+    assert calendar_to_t_gps(2006, 1, 1, 0, 0, 0) + SYSTEM_TO_GPS_S["C"] == gps_time(1356, 14.0)
     assert SYSTEM_WEEK_TO_GPS_WEEK["C"] == 1356
     # GST week 0 began 1999-08-22 00:00:00 GST (= GPS time), GPS week 1024
     assert (dt.datetime(1999, 8, 22) - dt.datetime(1980, 1, 6)).days == 7 * SYSTEM_WEEK_TO_GPS_WEEK["E"]
-    assert _calendar_to_t_gps(1999, 8, 22, 0, 0, 0) == gps_time(1024, 0.0)
+    assert calendar_to_t_gps(1999, 8, 22, 0, 0, 0) == gps_time(1024, 0.0)
     # a BeiDou clock is evaluated against its toc in BDT: af1 x (t_gps - 14 - toc_bdt)
     kep = dict(sqrt_a=6493.0, e=0.0, i0_rad=0.96, omega0_rad=0.0, omega_rad=0.0, m0_rad=0.0, delta_n_radps=0.0,
                idot_radps=0.0, omega_dot_radps=0.0, cuc_rad=0.0, cus_rad=0.0, crc_m=0.0, crs_m=0.0, cic_rad=0.0,
@@ -131,7 +132,7 @@ def test_rinex3_obs_in_bdt_is_moved_to_gps_time(tmp_path):
     p.write_text("\n".join(hdr + body) + "\n")
     h, eps = read_rinex_obs(p, "C")
     assert h["time_system"] == "BDT"
-    assert eps[0].t_gps == _calendar_to_t_gps(2022, 12, 13, 1, 9, 22.0) + 14.0
+    assert eps[0].t_gps == calendar_to_t_gps(2022, 12, 13, 1, 9, 22.0) + 14.0
     o = {x.signal: x for x in eps[0].observations}
     assert o["L2I"].wavelength_m == pytest.approx(C / 1561.098e6) and o["L6I"].wavelength_m == pytest.approx(C / 1268.52e6)
 

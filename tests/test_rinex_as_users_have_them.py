@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from companion.gnss.rinex import read_rinex_obs, reading_notes
+from companion.gnss.rinex_obs import read_rinex_obs, reading_notes
 from tests._data import data_path
 
 pytestmark = pytest.mark.real_data
@@ -199,3 +199,31 @@ def test_a_base_or_nav_of_another_day_is_said_with_both_spans(mode, capsys):
                  "--mode", mode]) == 2
     err = capsys.readouterr().err
     assert "(2021/09/22 06:30:00 to 06:35:59 GPST); the navigation file(s) are of 2005/04/01" in err
+
+
+def test_a_file_cut_mid_epoch_or_a_corrupt_line_costs_one_epoch(tmp_path):
+    """A field log cut while writing (RINEX 3, the car's rover cut halfway through an epoch) and a
+    corrupt line in a RINEX 2 epoch: the epoch is counted unreadable, every other one is read."""
+    car = data_path("cssrlib-fujisawa-car-2021") / "rover.crx.gz"
+    text = hatanaka_text(car)
+    cut = text.index(">", len(text) // 2) + 200                  # inside an epoch's satellite lines
+    path = tmp_path / "cut.rnx"
+    path.write_text(text[:cut])
+    _, every = read_rinex_obs(car, "GEJ")
+    h, part = read_rinex_obs(path, "GEJ")
+    assert h["skipped"]["unreadable epoch"] == 1 and repr(part) == repr(every[:len(part)])
+    assert len(part) == text[:cut].count("\n>") - 1
+    assert reading_notes(h) == "1 epoch unreadable (a file cut mid-epoch or a corrupt line) skipped"
+
+    head, blocks = _header_and_epochs(ROVER)
+    blocks[7][0] = blocks[7][0][:10] + "xx" + blocks[7][0][12:]          # the hour of epoch 7's line
+    path = tmp_path / "corrupt.05o"
+    path.write_text("\n".join(head + [ln for b in blocks for ln in b]) + "\n")
+    h, eps = read_rinex_obs(path)
+    _, every = read_rinex_obs(ROVER)
+    assert h["skipped"]["unreadable epoch"] == 1 and repr(eps) == repr(every[:7] + every[8:])
+
+
+def test_a_navigation_file_given_as_observations_is_said_so():
+    with pytest.raises(ValueError, match="not a RINEX observation file .*'N: GPS NAV DATA': a navigation file"):
+        read_rinex_obs(NAV)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.gnss.rinex import read_rinex_nav, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav
+from companion.gnss.rinex_obs import read_rinex_obs
 from tests._data import data_path
 
 hatanaka = pytest.importorskip("hatanaka", reason="pip install 'companion[rinex]'")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.gnss import rtk_post
-from companion.gnss.rinex import read_rinex_obs
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.gnss.rtk import Q_FIX, Q_FLOAT, RtkSolution
 from companion.gnss.rtk_combine import combine
 from companion.gnss.rtk_post import solve_rtk_rinex

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from companion.gnss.double_difference import ReceiverSat, cross_pair
-from companion.gnss.rinex import read_rinex_nav, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.gnss.rtk import RtkConfig
 from companion.gnss.rtk_post import solve_rtk_epochs
 from tests.test_rtk_car_5km import BASE, BASE_XYZ, NAV, ROVER

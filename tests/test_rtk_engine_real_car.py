@@ -17,7 +17,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from companion.gnss.rinex import read_rinex_nav, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.gnss.rtk_post import solve_rtk_rinex
 from companion.messages import BaseStationPosition
 from companion.nav.engine import EngineConfig, NavEngine

@@ -100,7 +100,7 @@ def test_a_cycle_slip_without_a_flag_is_found_and_the_fix_survives(monkeypatch):
     """7 cycles added to one satellite's rover L1 phase from mid-file on, with no loss-of-lock flag:
     the geometry-free test finds it, the ambiguity restarts, and no epoch fixes wrongly."""
     from companion.gnss import rtk_post
-    from companion.gnss.rinex import read_rinex_obs
+    from companion.gnss.rinex_obs import read_rinex_obs
     t_slip = read_rinex_obs(ROVER)[1][60].t_gps
     monkeypatch.setattr(rtk_post, "read_rinex_obs", slipped_reader(read_rinex_obs, t_slip, "G20", {"L1C": 7.0}))
     sols, info = solve_rtk_rinex(ROVER, BASE, [NAV])

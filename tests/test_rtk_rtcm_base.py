@@ -19,7 +19,7 @@ import shutil
 import numpy as np
 import pytest
 
-from companion.gnss.rinex import read_rinex_obs
+from companion.gnss.rinex_obs import read_rinex_obs
 from sitl.caster import encode_1005
 from sitl.rtcm_msm import Msm7Encoder
 from tests.test_rtk_septentrio_static import BASE, BASE_XYZ, NAV, REF_ROVER, ROVER

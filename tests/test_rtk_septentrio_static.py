@@ -124,7 +124,7 @@ def test_engine_rtk_on_the_real_pair():
     """The tightly coupled engine's RTK update on the same real rover and base epochs, with an IMU at
     rest at the reference (synthetic: no IMU was recorded): every system's DD rows, fixed from the
     first epochs, millimetres, and the float-to-fixed flow of a real receiver's noise and multipath."""
-    from companion.gnss.rinex import read_rinex_obs
+    from companion.gnss.rinex_obs import read_rinex_obs
     from companion.rtk_signals import rtk_epoch
     from tests._engine_at_rest import engine_at_rest
     rover = [rtk_epoch(e) for e in read_rinex_obs(ROVER, "GECJ")[1]]
@@ -150,7 +150,7 @@ def test_a_phase_with_an_unresolved_half_cycle_waits_until_it_is_resolved(monkey
     (the receiver takes the half cycle out).  The flagged phase forms no ambiguity; after it a new
     one starts; every epoch stays fixed and right."""
     from companion.gnss import rtk_post
-    from companion.gnss.rinex import read_rinex_obs
+    from companion.gnss.rinex_obs import read_rinex_obs
     real = read_rinex_obs
 
     def flagged(path, systems="G", t_gps_window=None):
@@ -181,7 +181,7 @@ def test_a_slower_base_is_used_at_every_rover_epoch(monkeypatch):
     drift over the age is in the variances.  Measured: 120 of 120 fixed, 0.0056 m against 0.0019 m
     at 1 s, 9 s the largest age (the file ends 9 s after its last base epoch at 10 s)."""
     from companion.gnss import rtk_post
-    from companion.gnss.rinex import read_rinex_obs
+    from companion.gnss.rinex_obs import read_rinex_obs
     real = read_rinex_obs
 
     def every_10_s(path, systems="G", t_gps_window=None):

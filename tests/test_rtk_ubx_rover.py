@@ -15,7 +15,7 @@ import struct
 import numpy as np
 import pytest
 
-from companion.gnss.rinex import read_rinex_obs
+from companion.gnss.rinex_obs import read_rinex_obs
 from tests.test_rtk_septentrio_static import BASE, BASE_XYZ, NAV, REF_ROVER, ROVER
 
 pyubx2 = pytest.importorskip("pyubx2", reason="pip install 'companion[receiver]'")

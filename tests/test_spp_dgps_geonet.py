@@ -21,7 +21,8 @@ from companion.gnss.dgps import DgpsCorrector
 from companion.gnss.ephemeris_store import EphemerisStore
 from companion.gnss.postprocess import ProcessOptions, process, statistics
 from companion.gnss.prepare import prepare_epoch
-from companion.gnss.rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav, read_rinex_nav_header_iono
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.gnss.spp import solve_spp, spp_epoch
 from companion.messages import BaseStationPosition, GnssEpoch, SatObservation
 from tests._data import data_path

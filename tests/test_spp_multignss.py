@@ -32,7 +32,8 @@ from companion.gnss.ephemeris import is_beidou_geo, satellite_state
 from companion.gnss.ephemeris_store import EphemerisStore
 from companion.gnss.postprocess import ProcessOptions, process, statistics
 from companion.gnss.prepare import prepare_epoch
-from companion.gnss.rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs
+from companion.gnss.rinex import read_rinex_nav, read_rinex_nav_header_iono
+from companion.gnss.rinex_obs import read_rinex_obs
 from companion.messages import BaseStationPosition
 from companion.nav.earth import ecef_to_geodetic, ecef_to_ned
 from tests._data import data_path

@@ -45,7 +45,8 @@ from .ephemeris_store import EphemerisStore
 from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, span_text, write_pos
 from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
-from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs, reading_notes
+from .rinex import read_rinex_nav, read_rinex_nav_header_iono
+from .rinex_obs import read_rinex_obs, reading_notes
 from .glonass import frequency_channels, with_fdma_wavelengths
 from .signals import GLONASS, PREPARED_SYSTEMS, SUPPORTED_SYSTEMS
 from .rtk_post import RTK_POST_SYSTEMS, antenna_delta_e

@@ -1,28 +1,20 @@
-"""RINEX 2.x / 3.x readers: navigation files (GPS LNAV, Galileo I/NAV and F/NAV, BeiDou D1/D2,
-QZSS LNAV) and observation files (any system).
+"""RINEX 2.x / 3.x / 4 navigation files (GPS LNAV, Galileo I/NAV and F/NAV, BeiDou D1/D2, QZSS
+LNAV, GLONASS) and the fixed-column helpers the observation reader (:mod:`.rinex_obs`) shares.
 
 Own fixed-column parsers (no georinex at run time): a 1-h 30-s file reads in well under a second.
 
 * :func:`read_rinex_nav` -> list of :class:`GpsEphemeris` of G/E/C/J, and on request GLONASS's
   (:class:`~.glonass.GlonassEphemeris`, RINEX 3); SBAS and NavIC skipped.
 * :func:`read_rinex_nav_header_iono` -> Klobuchar (alpha[4], beta[4]) from the header, or None.
-* :func:`read_rinex_obs` -> (header dict, list of :class:`GnssEpoch`).
 
 Conventions: RINEX nav angles are already radians, the GPS and Galileo weeks in the file are
 continuous GPS weeks (no 1024 roll-over); BeiDou records are in BDT (epoch, toe, BDT week), converted
-as :class:`GpsEphemeris` describes.  Observation time tags are the receiver's GPS time tags, converted to continuous
-GPS seconds.  RINEX 2 observation types are mapped onto RINEX 3 codes (RTKLIB's convention):
-C1->C1C, P1->C1W, L1->L1C, D1->D1C, S1->S1C, P2->C2W, L2->L2W (L2C if the file has C2 but no P2),
-C2->C2X... see ``_RINEX2_MAP``.  One :class:`SatObservation` is produced per satellite per signal,
-named 'L' + band + attribute ('L1C', 'L2W', 'L1W', ...).  LLI bit 0 -> ``loss_of_lock``; in
-RINEX 3 LLI bit 1 -> ``half_cycle_ambiguous``.
+as :class:`GpsEphemeris` describes.
 """
 from __future__ import annotations
 
 import datetime as _dt
-import math
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -30,30 +22,21 @@ import numpy as np
 from .ephemeris_store import MIN_FIT_INTERVAL_H
 from .glonass import GlonassEphemeris, gps_minus_utc_s
 from .glonass import ephemeris_from_rinex as glonass_ephemeris_from_rinex
-from .signals import FREQUENCY_HZ
-from ..messages import (SPEED_OF_LIGHT_MPS, SYSTEM_TO_GPS_S, SYSTEM_WEEK_TO_GPS_WEEK, GnssEpoch, GpsEphemeris,
-                        SatObservation)
+from ..messages import SYSTEM_WEEK_TO_GPS_WEEK, GpsEphemeris
 
 _GPS_EPOCH = _dt.datetime(1980, 1, 6)
 _SECONDS_PER_WEEK = 604800.0
 _NAV_LINES = {"G": 8, "J": 8, "E": 8, "C": 8, "I": 8, "R": 4, "S": 4}
 
-# RINEX 2 observation type -> RINEX 3 code (type letter, band, attribute)
-_RINEX2_MAP = {
-    "C1": "C1C", "P1": "C1W", "L1": "L1C", "D1": "D1C", "S1": "S1C",
-    "C2": "C2X", "P2": "C2W", "L2": "L2W", "D2": "D2W", "S2": "S2W",
-    "C5": "C5X", "L5": "L5X", "D5": "D5X", "S5": "S5X",
-}
-
-
-def _calendar_to_t_gps(year: int, month: int, day: int, hour: int, minute: int, sec: float) -> float:
+def calendar_to_t_gps(year: int, month: int, day: int, hour: int, minute: int, sec: float) -> float:
     if year < 100:
         year += 2000 if year < 80 else 1900
     d = _dt.datetime(year, month, day, hour, minute) - _GPS_EPOCH
     return d.days * 86400.0 + d.seconds + sec
 
 
-def _f(s: str) -> float:
+def header_float(s: str) -> float:
+    """A header or navigation field: blank is 0, Fortran D exponents allowed."""
     s = s.strip()
     if not s:
         return 0.0
@@ -64,7 +47,7 @@ def _f(s: str) -> float:
 _COMPRESSED = re.compile(r"(\.(gz|Z|zip|bz2|crx)|\.\d\dd)$", re.IGNORECASE)
 
 
-def _open_text(path) -> list[str]:
+def open_text(path) -> list[str]:
     """Lines of a RINEX file, plain or compressed: gzip, .Z, Hatanaka (.crx, .YYd) and their
     gzipped forms are decompressed by the ``hatanaka`` package (RNXCMP's own C code), not here."""
     p = Path(path)
@@ -80,7 +63,7 @@ def _open_text(path) -> list[str]:
     return p.read_text(errors="replace").splitlines()
 
 
-def _header_end(lines: list[str]) -> int:
+def header_end(lines: list[str]) -> int:
     for i, ln in enumerate(lines):
         if ln[60:].strip().startswith("END OF HEADER"):
             return i + 1
@@ -97,17 +80,17 @@ def read_rinex_nav_header_iono(path) -> tuple[np.ndarray, np.ndarray] | None:
     (IS-GPS-200 20.3.3.5.1.7: alpha_n in s/semicircle^n, beta_n in s/semicircle^n).  Without GPS
     coefficients, QZSS's (QZSA/QZSB: the same model and units, IS-QZSS-PNT 5.2.2, fitted over the
     QZSS service area) are returned: a short u-blox log often has QZSS's and not yet GPS's."""
-    lines = _open_text(path)
+    lines = open_text(path)
     alpha = beta = None
     qzs: dict[str, list[float]] = {}
-    for ln in lines[:_header_end(lines)]:
+    for ln in lines[:header_end(lines)]:
         label = ln[60:].strip()
         if label == "ION ALPHA":
-            alpha = [_f(ln[2 + 12 * k:14 + 12 * k]) for k in range(4)]
+            alpha = [header_float(ln[2 + 12 * k:14 + 12 * k]) for k in range(4)]
         elif label == "ION BETA":
-            beta = [_f(ln[2 + 12 * k:14 + 12 * k]) for k in range(4)]
+            beta = [header_float(ln[2 + 12 * k:14 + 12 * k]) for k in range(4)]
         elif label == "IONOSPHERIC CORR":
-            vals = [_f(ln[5 + 12 * k:17 + 12 * k]) for k in range(4)]
+            vals = [header_float(ln[5 + 12 * k:17 + 12 * k]) for k in range(4)]
             if ln[:4] == "GPSA":
                 alpha = vals
             elif ln[:4] == "GPSB":
@@ -196,9 +179,9 @@ def read_rinex_nav(path, systems: str = "GECJ") -> list:
     then, when ``systems`` has 'R', a RINEX 3 file's GLONASS records
     (:class:`~.glonass.GlonassEphemeris`).  SBAS and NavIC records, RINEX 4's GLONASS and CNAV
     ephemerides and its ION / STO / EOP records are skipped."""
-    lines = _open_text(path)
-    head = _header_end(lines)
-    version = _f(lines[0][:9])
+    lines = open_text(path)
+    head = header_end(lines)
+    version = header_float(lines[0][:9])
     file_sys = lines[0][40:41].upper() if version >= 3 else "G"
     out: list[GpsEphemeris] = []
     recs: list[tuple[GpsEphemeris, bool]] = []
@@ -218,14 +201,14 @@ def read_rinex_nav(path, systems: str = "GECJ") -> list:
                 continue
             prn = int(ln[0:2])
             yy, mo, dd, hh, mi = (int(ln[3 + 3 * k:5 + 3 * k]) for k in range(5))
-            ss = _f(ln[17:22])
-            vals = [_f(ln[22:41]), _f(ln[41:60]), _f(ln[60:79])]
+            ss = header_float(ln[17:22])
+            vals = [header_float(ln[22:41]), header_float(ln[41:60]), header_float(ln[60:79])]
             for k in range(1, 8):
                 row = lines[i + k] if i + k < n else ""
                 for c in range(4):
-                    vals.append(_f(row[3 + 19 * c:22 + 19 * c]))
+                    vals.append(header_float(row[3 + 19 * c:22 + 19 * c]))
             i += 8
-            out.append(_eph_from_fields(f"G{prn:02d}", _calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals))
+            out.append(_eph_from_fields(f"G{prn:02d}", calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals))
         return out
     while i < n:
         ln = lines[i]
@@ -285,15 +268,15 @@ def _glonass_record(lines: list[str], i: int, j: int, leap_s: int | None) -> Glo
     channel outside -7..+13 (its carriers would be wrong)."""
     ln = lines[i]
     yy, mo, dd, hh, mi, ss = (int(ln[4:8]), int(ln[9:11]), int(ln[12:14]), int(ln[15:17]),
-                              int(ln[18:20]), _f(ln[21:23]))
-    vals = [_f(ln[23:42]), _f(ln[42:61]), _f(ln[61:80])]
+                              int(ln[18:20]), header_float(ln[21:23]))
+    vals = [header_float(ln[23:42]), header_float(ln[42:61]), header_float(ln[61:80])]
     for k in range(i + 1, min(j, i + 4)):
         row = lines[k]
         for c in range(4):
-            vals.append(_f(row[4 + 19 * c:23 + 19 * c]))
+            vals.append(header_float(row[4 + 19 * c:23 + 19 * c]))
     if len(vals) < 15 or not -7 <= vals[10] <= 13:
         return None
-    t_utc = _calendar_to_t_gps(yy, mo, dd, hh, mi, ss)
+    t_utc = calendar_to_t_gps(yy, mo, dd, hh, mi, ss)
     leap = leap_s if leap_s is not None else gps_minus_utc_s(t_utc)
     return glonass_ephemeris_from_rinex(f"R{int(ln[1:3]):02d}", t_utc, leap, vals)
 
@@ -309,265 +292,16 @@ def _v3_nav_record(lines: list[str], i: int, sys_: str) -> tuple[GpsEphemeris, b
     n = len(lines)
     prn = int(ln[1:3])
     yy, mo, dd, hh, mi, ss = (int(ln[4:8]), int(ln[9:11]), int(ln[12:14]), int(ln[15:17]),
-                              int(ln[18:20]), _f(ln[21:23]))
-    vals = [_f(ln[23:42]), _f(ln[42:61]), _f(ln[61:80])]
+                              int(ln[18:20]), header_float(ln[21:23]))
+    vals = [header_float(ln[23:42]), header_float(ln[42:61]), header_float(ln[61:80])]
     for k in range(1, 8):
         row = lines[i + k] if i + k < n else ""
         for c in range(4):
-            vals.append(_f(row[4 + 19 * c:23 + 19 * c]))
+            vals.append(header_float(row[4 + 19 * c:23 + 19 * c]))
     sat = f"{sys_}{prn:02d}"
-    return _eph_from_fields(sat, _calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals), _is_fnav(sat, vals)
+    return _eph_from_fields(sat, calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals), _is_fnav(sat, vals)
 
 
 # ---------------------------------------------------------------------------------------------
 # observations
 # ---------------------------------------------------------------------------------------------
-
-def _wavelength(sys_: str, band: str) -> float:
-    """Carrier wavelength, m, of a band of a system (:data:`FREQUENCY_HZ`); NaN for GLONASS FDMA."""
-    hz = FREQUENCY_HZ.get(sys_, {}).get(band)
-    return SPEED_OF_LIGHT_MPS / hz if hz else float("nan")
-
-
-def _build_obs(sat: str, codes: list[str], values: list[float], llis: list[int], ssis: list[int],
-               version: float) -> list[SatObservation]:
-    """Group one satellite's observation values by signal (band + attribute)."""
-    sig: dict[str, dict] = {}
-    for code, val, lli in zip(codes, values, llis):
-        # blank (NaN here) or 0.0: "missing observations are written as 0.0 or blanks" (RINEX
-        # 2.11 and 3.0x); some converters write 0.000 for a signal not tracked at this epoch
-        if val != val or val == 0.0:
-            continue
-        key = code[1:3]
-        d = sig.setdefault(key, {})
-        t = code[0]
-        if t == "C":
-            d["P"] = val
-        elif t == "L":
-            d["L"] = val
-            d["lli"] = lli
-        elif t == "D":
-            d["D"] = val
-        elif t == "S":
-            d["S"] = val
-    out = []
-    nan = float("nan")
-    sat = sys.intern(sat)          # one string per satellite and signal name for the whole file, not
-    for key, d in sig.items():     # per observation: a long file is held in memory whole
-        if "P" not in d and "L" not in d and "D" not in d:
-            continue
-        lli = d.get("lli", 0)
-        out.append(SatObservation(
-            sat=sat, pseudorange_m=d.get("P", nan), carrier_cycles=d.get("L", nan),
-            doppler_hz=d.get("D", nan), cn0_dbhz=d.get("S", nan),
-            loss_of_lock=bool(lli & 1), half_cycle_ambiguous=bool(lli & 2) if version >= 3 else False,
-            signal=sys.intern("L" + key), wavelength_m=_wavelength(sat[0], key[0])))
-    return out
-
-
-def _parse_obs_fields(text: str, nobs: int) -> tuple[list[float], list[int], list[int]]:
-    vals, llis, ssis = [], [], []
-    nan = float("nan")
-    for k in range(nobs):
-        f = text[16 * k:16 * k + 16]
-        v = f[:14].strip()
-        vals.append(float(v) if v else nan)
-        c = f[14:15]
-        llis.append(int(c) if c.strip() else 0)
-        c = f[15:16]
-        ssis.append(int(c) if c.strip() else 0)
-    return vals, llis, ssis
-
-
-def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] | None = None
-                   ) -> tuple[dict, list[GnssEpoch]]:
-    """Read a RINEX 2.x / 3.x observation file.
-
-    Returns ``(header, epochs)``; ``header`` has 'version', 'marker', 'approx_position_e'
-    (np.array, m, or None), 'antenna_delta_hen_m', 'receiver', 'antenna', 'interval_s' (NaN if
-    absent), 'obs_types' (system -> RINEX 3 codes), 'n_epochs', 'skipped' (counts by reason:
-    'other system' observations, 'event' records (flags 2-6), 'repeated epoch' time tags),
-    'out_of_order_epochs', 'time_system'.  Epochs come out in time order, one per time tag
-    (:func:`_in_time_order`; :func:`reading_notes` says what was done).  Only
-    satellites of ``systems`` are kept (default GPS only; 'GECJ' for GPS, Galileo, BeiDou and QZSS,
-    wavelengths from :data:`FREQUENCY_HZ`; GLONASS observations get NaN wavelengths).  Time tags
-    of a file in BDT (TIME OF FIRST OBS) are moved to GPS time (+14 s).  Epochs with flag > 1 (events) are skipped; flag 1 (power failure) is kept
-    and all its observations are marked ``loss_of_lock``.  ``t_gps_window`` (first, last GPS
-    time, s): epochs outside it are stepped over unparsed ('epochs_outside_window' counts them;
-    a base file of hours read for a rover of minutes); 'file_span_t_gps' is (first, last) epoch
-    of the whole file, read or not (None: no epoch).
-    """
-    lines = _open_text(path)
-    head = _header_end(lines)
-    version = _f(lines[0][:9])
-    hdr: dict = {"version": version, "marker": "", "approx_position_e": None, "antenna_delta_hen_m": None,
-                 "receiver": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
-                 "skipped": {"other system": 0, "event": 0}, "time_system": "GPS", "epochs_outside_window": 0}
-    t_first, t_last = t_gps_window if t_gps_window is not None else (-math.inf, math.inf)
-    span = (math.inf, -math.inf)
-    r2_types: list[str] = []
-    r3_types: dict[str, list[str]] = {}
-    cur_sys = None
-    for ln in lines[:head]:
-        label = ln[60:].strip()
-        if label == "MARKER NAME":
-            hdr["marker"] = ln[:60].strip()
-        elif label == "APPROX POSITION XYZ":
-            xyz = np.array([_f(ln[0:14]), _f(ln[14:28]), _f(ln[28:42])])
-            hdr["approx_position_e"] = xyz if np.any(xyz != 0.0) else None
-        elif label == "ANTENNA: DELTA H/E/N":
-            hdr["antenna_delta_hen_m"] = np.array([_f(ln[0:14]), _f(ln[14:28]), _f(ln[28:42])])
-        elif label == "REC # / TYPE / VERS":
-            hdr["receiver"] = ln[20:40].strip()
-        elif label == "ANT # / TYPE":
-            hdr["antenna"] = ln[20:40].strip()
-        elif label == "INTERVAL":
-            hdr["interval_s"] = _f(ln[:10])
-        elif label == "TIME OF FIRST OBS" and ln[48:51].strip():
-            hdr["time_system"] = ln[48:51].strip()
-        elif label == "# / TYPES OF OBSERV":
-            if ln[:6].strip():
-                r2_types = []
-            r2_types += ln[6:60].split()
-        elif label == "SYS / # / OBS TYPES":
-            if ln[0] != " ":
-                cur_sys = ln[0]
-                r3_types[cur_sys] = []
-            r3_types[cur_sys] += ln[7:60].split()
-    if version < 3:
-        has_p2 = "P2" in r2_types
-        mapped = []
-        for t in r2_types:
-            c = _RINEX2_MAP.get(t, t + "X" if len(t) == 2 else t)
-            if t == "L2" and not has_p2 and "C2" in r2_types:
-                c = "L2X"
-            if t == "C2" and not has_p2:
-                c = "C2X"
-            mapped.append(c)
-        # keep pseudorange/phase pairing: L2 goes with whichever L2 code exists
-        if "L2W" in mapped and "C2W" not in mapped and "C2X" in mapped:
-            mapped[mapped.index("L2W")] = "L2X"
-        # GLONASS names its P code 'P' and its L2 C/A 'C' (RINEX 3), where GPS has 'W' and 'X'
-        r2_codes = {"G": mapped, "R": [c[:2] + "P" if c[2] == "W" else (c[:2] + "C" if c[1:] == "2X" else c)
-                                       for c in mapped]}
-        hdr["obs_types"] = {"G": mapped}
-        hdr["obs_types_rinex2"] = list(r2_types)
-    else:
-        if version < 3.03 and "C" in r3_types:
-            # BeiDou B1I was band 1 up to RINEX 3.02 and is band 2 from 3.03 on, where band 1 is
-            # B1C (1575.42 MHz, not B1I's 1561.098): read as 3.03 codes (RTKLIB does the same)
-            r3_types["C"] = [c[0] + "2" + c[2:] if c[0] in "CLDS" and c[1] == "1" else c for c in r3_types["C"]]
-        hdr["obs_types"] = r3_types
-
-    epochs: list[GnssEpoch] = []
-    dt_tag = SYSTEM_TO_GPS_S["C"] if hdr["time_system"] == "BDT" else 0.0
-    i, n = head, len(lines)
-    if version < 3:
-        nobs = len(hdr["obs_types"]["G"])
-        nlines_per_sat = max(1, math.ceil(nobs / 5))
-        while i < n:
-            ln = lines[i]
-            if not ln.strip():
-                i += 1
-                continue
-            flag = int(ln[28:29] or 0)
-            nsat = int(ln[29:32])
-            if flag > 1:
-                hdr["skipped"]["event"] += 1
-                # flags 2-5: nsat header lines follow; 6 (cycle slip records): an epoch's layout
-                i += 1 + (nsat if flag < 6 else (nsat - 1) // 12 + nsat * nlines_per_sat)
-                continue
-            sats = []
-            row = ln
-            while len(sats) < nsat:
-                chunk = row[32:68]
-                for k in range(0, len(chunk), 3):
-                    s = chunk[k:k + 3]
-                    if s.strip() and len(sats) < nsat:
-                        sats.append(s[0].replace(" ", "G") + s[1:].replace(" ", "0"))
-                if len(sats) < nsat:
-                    i += 1
-                    row = lines[i]
-            t = _calendar_to_t_gps(int(ln[1:3]), int(ln[4:6]), int(ln[7:9]), int(ln[10:12]),
-                                   int(ln[13:15]), float(ln[15:26]))
-            i += 1
-            span = (min(span[0], t), max(span[1], t))
-            if not t_first <= t <= t_last:
-                hdr["epochs_outside_window"] += 1
-                i += nsat * nlines_per_sat
-                continue
-            obs = []
-            for s in sats:
-                text = "".join(lines[i + k].ljust(80)[:80] for k in range(nlines_per_sat))
-                i += nlines_per_sat
-                if s[0] not in systems:
-                    hdr["skipped"]["other system"] += 1
-                    continue
-                vals, llis, ssis = _parse_obs_fields(text, nobs)
-                if flag == 1:
-                    llis = [l | 1 for l in llis]
-                codes = r2_codes["R" if s[0] == "R" else "G"]
-                obs.extend(_build_obs(s, codes, vals, llis, ssis, version))
-            epochs.append(GnssEpoch(t_gps=t, observations=tuple(obs), source="rover"))
-    else:
-        while i < n:
-            ln = lines[i]
-            if not ln.startswith(">"):
-                i += 1
-                continue
-            flag = int(ln[31:32] or 0)
-            nsat = int(ln[32:35])
-            if flag > 1:
-                hdr["skipped"]["event"] += 1
-                i += 1 + nsat
-                continue
-            t = _calendar_to_t_gps(int(ln[2:6]), int(ln[7:9]), int(ln[10:12]), int(ln[13:15]),
-                                   int(ln[16:18]), float(ln[18:29])) + dt_tag
-            i += 1
-            span = (min(span[0], t), max(span[1], t))
-            if not t_first <= t <= t_last:
-                hdr["epochs_outside_window"] += 1
-                i += nsat
-                continue
-            obs = []
-            for _ in range(nsat):
-                row = lines[i]
-                i += 1
-                s = row[0:3].replace(" ", "0")
-                sys_ = s[0]
-                if sys_ not in systems or sys_ not in r3_types:
-                    hdr["skipped"]["other system"] += 1
-                    continue
-                codes = r3_types[sys_]
-                vals, llis, ssis = _parse_obs_fields(row[3:].ljust(3 + 16 * len(codes)), len(codes))
-                if flag == 1:
-                    llis = [l | 1 for l in llis]
-                obs.extend(_build_obs(s, codes, vals, llis, ssis, version))
-            epochs.append(GnssEpoch(t_gps=t, observations=tuple(obs), source="rover"))
-    epochs, hdr["out_of_order_epochs"], hdr["skipped"]["repeated epoch"] = _in_time_order(epochs)
-    hdr["file_span_t_gps"] = span if span[0] <= span[1] else None
-    hdr["n_epochs"] = len(epochs)
-    return hdr, epochs
-
-
-def _in_time_order(epochs: list[GnssEpoch]) -> tuple[list[GnssEpoch], int, int]:
-    """(epochs sorted by time with one per time tag, how many were out of order, how many repeated
-    an earlier epoch's tag and were dropped).  Files joined end to end overlap (hourly files, a
-    logger restarted), and a filter fed an epoch twice or backwards would take it as a new epoch
-    or run backwards in time; the first of a repeated tag is kept, as it came first in the file."""
-    out_of_order = sum(1 for a, b in zip(epochs, epochs[1:]) if b.t_gps < a.t_gps)
-    ordered = sorted(epochs, key=lambda e: e.t_gps) if out_of_order else epochs   # stable: the first stays first
-    kept = [e for k, e in enumerate(ordered) if k == 0 or e.t_gps != ordered[k - 1].t_gps]
-    return kept, out_of_order, len(ordered) - len(kept)
-
-
-def reading_notes(hdr: dict) -> str:
-    """What :func:`read_rinex_obs` left out or put in order, for a person ('' when nothing).  Event
-    records (flags 2-6: a header block, a new occupation) are part of the format, not news."""
-    skipped = hdr.get("skipped") or {}
-    notes = []
-    if skipped.get("repeated epoch"):
-        notes.append(f"{skipped['repeated epoch']} epochs repeating an earlier time tag dropped (the first kept)")
-    if hdr.get("out_of_order_epochs"):
-        notes.append(f"epochs put in time order ({hdr['out_of_order_epochs']} went back in time)")
-    return "; ".join(notes)

@@ -18,7 +18,8 @@ from .ephemeris_store import EphemerisStore
 from .pos_format import write_pos
 from .postprocess import (GnssProcessingError, epoch_progress, epochs_of, load_ubx_capture, median_spp_position,
                           parse_systems, parse_xyz, satellites_by_system, statistics, write_plot, write_tracks)
-from .rinex import read_rinex_nav, read_rinex_nav_header_iono, read_rinex_obs, reading_notes
+from .rinex import read_rinex_nav, read_rinex_nav_header_iono
+from .rinex_obs import read_rinex_obs, reading_notes
 from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, check_epochs, glonass_ar_of, pos_records, solve_rtk_epochs
 

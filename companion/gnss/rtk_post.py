@@ -18,7 +18,8 @@ import numpy as np
 from ..nav.earth import C_n_e, ecef_to_geodetic
 from .ephemeris_store import EphemerisStore
 from .pos_format import PosRecord, span_text
-from .rinex import read_rinex_nav, read_rinex_obs
+from .rinex import read_rinex_nav
+from .rinex_obs import read_rinex_obs
 from ..rtk_signals import rtk_epoch
 from .rtk import RtkConfig, RtkFilter, RtkSolution, pair_epochs
 from .rtk_combine import combine
