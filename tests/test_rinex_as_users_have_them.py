@@ -227,3 +227,30 @@ def test_a_file_cut_mid_epoch_or_a_corrupt_line_costs_one_epoch(tmp_path):
 def test_a_navigation_file_given_as_observations_is_said_so():
     with pytest.raises(ValueError, match="not a RINEX observation file .*'N: GPS NAV DATA': a navigation file"):
         read_rinex_obs(NAV)
+
+
+def test_a_navigation_file_cut_mid_record_or_with_a_corrupt_line_loses_that_record(tmp_path, capsys):
+    """RINEX 2 (GEONET) and RINEX 3 (the car's mixed nav): the record cut or corrupted is left out
+    and counted, every other one is read; `companion gnss` says so."""
+    from companion.cli import main
+    from companion.gnss.rinex import read_rinex_nav
+    text = NAV.read_text()
+    whole = read_rinex_nav(NAV, "G")
+    cut = tmp_path / "cut.05n"
+    cut.write_text(text[:len(text) // 2 + 37])             # mid-record (a record is 8 lines of ~80)
+    counts: dict = {}
+    part = read_rinex_nav(cut, "G", counts)
+    assert counts["unreadable records"] == 1 and len(part) == len(whole) // 2 - 1
+    assert all(a.t_oe_gps == b.t_oe_gps and a.sqrt_a == b.sqrt_a for a, b in zip(part, whole))
+
+    car = data_path("cssrlib-fujisawa-car-2021")
+    lines = hatanaka_text(car / "nav.rnx.gz").splitlines()
+    whole = read_rinex_nav(car / "nav.rnx.gz", "GEJ")
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("G") and i > 100) + 3     # (a Galileo I/NAV has an F/NAV twin)
+    lines[k] = "garbage !!"
+    bad = tmp_path / "bad.rnx"
+    bad.write_text("\n".join(lines) + "\n")
+    counts = {}
+    assert len(read_rinex_nav(bad, "GEJ", counts)) == len(whole) - 1 and counts["unreadable records"] == 1
+    assert main(["gnss", "--rover", str(car / "rover.crx.gz"), "--nav", str(bad), "--sys", "G,E,J"]) == 0
+    assert "bad.rnx: 1 record unreadable (a file cut mid-record or a corrupt line) skipped" in capsys.readouterr().out

@@ -45,7 +45,7 @@ from .ephemeris_store import EphemerisStore
 from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, span_text, write_pos
 from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
-from .rinex import read_rinex_nav, read_rinex_nav_header_iono
+from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
 from .rinex_obs import read_rinex_obs, reading_notes
 from .glonass import frequency_channels, with_fdma_wavelengths
 from .signals import GLONASS, PREPARED_SYSTEMS, SUPPORTED_SYSTEMS
@@ -228,8 +228,11 @@ def _load(args):
         klob = klob or ubx_base[2]
     for p in args.nav or []:
         try:
-            for e in read_rinex_nav(p, wanted or SUPPORTED_SYSTEMS):
+            counts: dict = {}
+            for e in read_rinex_nav(p, wanted or SUPPORTED_SYSTEMS, counts):
                 store.add(e)
+            if nav_reading_notes(counts):
+                print(f"navigation file {p}: {nav_reading_notes(counts)}")
             klob = klob or read_rinex_nav_header_iono(p)
         except (ValueError, IndexError) as exc:
             raise GnssProcessingError(f"cannot read navigation file {p}: {exc}") from exc

@@ -173,12 +173,16 @@ def _prefer_inav(recs: list[tuple[GpsEphemeris, bool]]) -> list[GpsEphemeris]:
     return [e for e, fnav in recs if not (fnav and (e.sat, e.iode, e.toe_s) in inav)]
 
 
-def read_rinex_nav(path, systems: str = "GECJ") -> list:
+def read_rinex_nav(path, systems: str = "GECJ", counts: dict | None = None) -> list:
     """Keplerian ephemerides of ``systems`` (GPS, Galileo, BeiDou, QZSS) from a RINEX 2.x GPS ('N'),
     3.x or 4.x navigation file, in file order (Galileo F/NAV records with an I/NAV twin dropped),
     then, when ``systems`` has 'R', a RINEX 3 file's GLONASS records
     (:class:`~.glonass.GlonassEphemeris`).  SBAS and NavIC records, RINEX 4's GLONASS and CNAV
-    ephemerides and its ION / STO / EOP records are skipped."""
+    ephemerides and its ION / STO / EOP records are skipped.  A record that cannot be read (a file
+    cut mid-record, a corrupt line) is left out and counted in ``counts['unreadable records']``;
+    reading resumes at the next record's first line."""
+    counts = {} if counts is None else counts
+    counts.setdefault("unreadable records", 0)
     lines = open_text(path)
     head = header_end(lines)
     version = header_float(lines[0][:9])
@@ -199,16 +203,23 @@ def read_rinex_nav(path, systems: str = "GECJ") -> list:
             if not ln.strip():
                 i += 1
                 continue
-            prn = int(ln[0:2])
-            yy, mo, dd, hh, mi = (int(ln[3 + 3 * k:5 + 3 * k]) for k in range(5))
-            ss = header_float(ln[17:22])
-            vals = [header_float(ln[22:41]), header_float(ln[41:60]), header_float(ln[60:79])]
-            for k in range(1, 8):
-                row = lines[i + k] if i + k < n else ""
-                for c in range(4):
-                    vals.append(header_float(row[3 + 19 * c:22 + 19 * c]))
+            try:
+                if i + 8 > n:
+                    raise IndexError("the file ends inside the record")
+                prn = int(ln[0:2])
+                yy, mo, dd, hh, mi = (int(ln[3 + 3 * k:5 + 3 * k]) for k in range(5))
+                ss = header_float(ln[17:22])
+                vals = [header_float(ln[22:41]), header_float(ln[41:60]), header_float(ln[60:79])]
+                for k in range(1, 8):
+                    for c in range(4):
+                        vals.append(header_float(lines[i + k][3 + 19 * c:22 + 19 * c]))
+                eph = _eph_from_fields(f"G{prn:02d}", calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals)
+            except (ValueError, IndexError):
+                counts["unreadable records"] += 1
+                i = _next_record(lines, i + 1, _V2_RECORD)
+                continue
             i += 8
-            out.append(_eph_from_fields(f"G{prn:02d}", calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals))
+            out.append(eph)
         return out
     while i < n:
         ln = lines[i]
@@ -246,9 +257,34 @@ def read_rinex_nav(path, systems: str = "GECJ") -> list:
         if sys_ not in systems:
             i += 8
             continue
-        recs.append(_v3_nav_record(lines, i, sys_))
+        try:
+            if i + 8 > n or any(_V3_RECORD.match(lines[k]) for k in range(i + 1, i + 8)):
+                raise IndexError("fewer than 8 lines before the next record or the end of the file")
+            recs.append(_v3_nav_record(lines, i, sys_))
+        except (ValueError, IndexError):
+            counts["unreadable records"] += 1
+            i = _next_record(lines, i + 1, _V3_RECORD)
+            continue
         i += 8
     return _prefer_inav(recs) + glonass
+
+
+#: the first line of a navigation record: RINEX 2 'PP YY MM DD HH MM SS.S', RINEX 3 'G01 YYYY MM DD'
+_V2_RECORD = re.compile(r"^[ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d\.\d")
+_V3_RECORD = re.compile(r"^[A-Z][ \d]\d \d{4} \d\d \d\d \d\d \d\d \d\d")
+
+
+def nav_reading_notes(counts: dict) -> str:
+    """What :func:`read_rinex_nav` left out, for a person ('' when nothing)."""
+    n = counts.get("unreadable records", 0)
+    return f"{n} record{'' if n == 1 else 's'} unreadable (a file cut mid-record or a corrupt line) skipped" if n else ""
+
+
+def _next_record(lines: list[str], i: int, first_line: re.Pattern) -> int:
+    """The index of the next record's first line from ``i`` on (len(lines) when none)."""
+    while i < len(lines) and not first_line.match(lines[i]):
+        i += 1
+    return i
 
 
 def _header_leap_seconds(lines: list[str], head: int) -> int | None:

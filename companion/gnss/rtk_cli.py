@@ -18,7 +18,7 @@ from .ephemeris_store import EphemerisStore
 from .pos_format import write_pos
 from .postprocess import (GnssProcessingError, epoch_progress, epochs_of, load_ubx_capture, median_spp_position,
                           parse_systems, parse_xyz, satellites_by_system, statistics, write_plot, write_tracks)
-from .rinex import read_rinex_nav, read_rinex_nav_header_iono
+from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
 from .rinex_obs import read_rinex_obs, reading_notes
 from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, check_epochs, glonass_ar_of, pos_records, solve_rtk_epochs
@@ -164,7 +164,10 @@ def run_rtk(args) -> int:
             cfg = dataclasses.replace(cfg, systems=_auto_rtk_systems(cfg, hr, hb))
         ephs = [e for e in ephs + base_ephs if e.sat[0] in cfg.systems]
         for p in args.nav or []:
-            ephs += read_rinex_nav(p, cfg.systems)
+            counts: dict = {}
+            ephs += read_rinex_nav(p, cfg.systems, counts)
+            if nav_reading_notes(counts):
+                print(f"navigation file {p}: {nav_reading_notes(counts)}")
         if not ephs and not args.nav:
             raise GnssProcessingError(f"no ephemeris of the selected systems ({cfg.systems}): neither capture "
                                       f"brings them (RXM-SFRBX, RTCM 1019/1042/1044/1045/1046); give --nav")
