@@ -48,9 +48,11 @@ def _add_gnss(sub) -> None:
                         "of G,E,C,J with observations and ephemerides in the files.  GLONASS (R) when asked "
                         "(G,R,E,C,J, all; its code inter-channel biases vary with the receiver), and with --mode rtk "
                         "also by default when its integers can be fixed (see --glonass-ar)")
-    p.add_argument("--freq", choices=["l1", "if"], default="l1",
-                   help="spp/dgps: l1 = each system's single-frequency code (GPS/QZSS L1 C/A, Galileo E1, "
-                        "BeiDou B1I) with Klobuchar; if = dual-frequency iono-free per system")
+    p.add_argument("--freq", choices=["l1", "if"], default=None,
+                   help="spp/dgps: l1 (the default) = each system's single-frequency code (GPS/QZSS L1 C/A, "
+                        "Galileo E1, BeiDou B1I) with Klobuchar; if = dual-frequency iono-free per system.  "
+                        "rtk: both frequencies by default; l1 = each system's first one alone (what a "
+                        "single-frequency receiver gives)")
     p.add_argument("--elevation-mask-deg", type=float, default=10.0)
     p.add_argument("--json", help="write statistics and per-epoch solutions as JSON here")
     p.add_argument("--pos", help="write per-epoch solutions in RTKLIB's .pos format here (rtkplot, pos2kml)")

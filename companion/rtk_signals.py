@@ -106,6 +106,10 @@ RTK_SIGNALS_BY_SYSTEM: dict[str, tuple[str, ...]] = {
 #: L5, then its cross pairs)
 RTK_SIGNALS: tuple[str, ...] = tuple(dict.fromkeys(c for f in RTK_SIGNALS_BY_SYSTEM.values() for c in f))
 
+#: each system's first frequency alone (its positioning code: GPS/QZSS/GLONASS L1 C/A, Galileo E1,
+#: BeiDou B1I): what a single-frequency receiver gives (``companion gnss --mode rtk --freq l1``)
+RTK_FIRST_SIGNALS: tuple[str, ...] = tuple(dict.fromkeys(f[0] for f in RTK_SIGNALS_BY_SYSTEM.values()))
+
 _CROSS_BASE = {code: fam_b for pairs in RTK_CROSS_PAIRS_BY_SYSTEM.values() for (_, fam_b), code in pairs.items()}
 _CANONICAL = {(sys, code): canon for sys, fam in RTK_FAMILIES_BY_SYSTEM.items()
               for canon, codes in fam.items() for code in codes}
@@ -160,5 +164,5 @@ def rtk_epoch(epoch: GnssEpoch) -> GnssEpoch:
     return dataclasses.replace(epoch, observations=tuple(out)) if changed else epoch
 
 
-__all__ = ["RTK_CROSS_PAIRS_BY_SYSTEM", "RTK_FAMILIES", "RTK_FAMILIES_BY_SYSTEM", "RTK_SIGNALS", "RTK_SIGNALS_BY_SYSTEM", "RTK_SYSTEMS",
+__all__ = ["RTK_CROSS_PAIRS_BY_SYSTEM", "RTK_FAMILIES", "RTK_FAMILIES_BY_SYSTEM", "RTK_FIRST_SIGNALS", "RTK_SIGNALS", "RTK_SIGNALS_BY_SYSTEM", "RTK_SYSTEMS",
            "base_signal", "canonical_signal", "rtk_epoch", "signals_for_system"]

@@ -187,3 +187,22 @@ def test_a_success_rate_floor_leaves_the_first_epoch_float():
 def test_systems_absent_from_the_files_are_a_clear_error():
     with pytest.raises(ValueError, match=r"rover file has no observations of the selected systems \(C\); it has G"):
         solve_rtk_rinex(ROVER, BASE, [NAV], config=RtkConfig(systems="C"))
+
+
+def test_cli_rtk_on_the_first_frequency_alone(tmp_path, capsys):
+    """``--freq l1``: each system's first frequency alone (a single-frequency receiver's RTK), said
+    in the summary and the .pos header; ``--freq if`` is refused for RTK."""
+    import json
+    from companion.cli import main
+    js, pos = tmp_path / "l1.json", tmp_path / "l1.pos"
+    assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--base", str(BASE), "--mode", "rtk",
+                 "--freq", "l1", "--json", str(js), "--pos", str(pos),
+                 "--truth-xyz=" + ",".join(f"{v}" for v in REF_0759)]) == 0
+    summary = json.loads(js.read_text())
+    assert "L2W" not in summary["signals"] and "L1C" in summary["signals"]
+    assert "% freqs     : L1\n" in pos.read_text() and "rtk (forward, L1):" in capsys.readouterr().out
+    print(f"GEONET, L1 alone: {summary['fixed']} of {summary['solved']} fixed, RMS 3-D of the fixed "
+          f"{summary['fixed_stats']['rms_3d_m']:.4f} m, at most {summary['fixed_stats']['max_3d_m']:.3f} m")
+    assert summary["fixed"] >= 100 and summary["fixed_stats"]["max_3d_m"] < 0.1
+    assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--base", str(BASE), "--mode", "rtk",
+                 "--freq", "if"]) == 2

@@ -22,6 +22,7 @@ from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
 from .rinex_obs import read_rinex_obs, reading_notes
 from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, check_epochs, glonass_ar_of, pos_records, solve_rtk_epochs
+from ..rtk_signals import RTK_FIRST_SIGNALS
 
 
 def _rtk_base(path: str, systems: str, week: int, t_gps_window: tuple[float, float] | None = None):
@@ -114,6 +115,7 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
         theirs = run_demo5(args.rover, args.base, args.nav, info["base_antenna_e"],
                            rover_antenna_delta_hen=info["rover_antenna_delta_hen_m"], systems=cfg.systems,
                            mask_deg=args.elevation_mask_deg, direction=direction,
+                           frequencies="l1" if getattr(args, "freq", None) == "l1" else "l1+l2",
                            glonass_ar="on" if info["glonass_ar"].startswith("on") else "off")
     except RuntimeError as exc:
         raise GnssProcessingError(str(exc)) from exc
@@ -143,7 +145,13 @@ def run_rtk(args) -> int:
     base_spp = (args.base_xyz or "").strip().lower() == "spp"
     base_xyz = parse_xyz(args.base_xyz, "--base-xyz") if args.base_xyz and not base_spp else None
     truth = parse_xyz(args.truth_xyz, "--truth-xyz") if args.truth_xyz else None
-    cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"))
+    freq = getattr(args, "freq", None)
+    if freq == "if":
+        raise GnssProcessingError("--freq if is for spp/dgps: rtk differences each frequency's own carrier "
+                                  "(both by default; --freq l1 for the first alone)")
+    cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"),
+                    **({"signals": RTK_FIRST_SIGNALS} if freq == "l1" else {}))
+    freqs = "L1" if freq == "l1" else "L1+L2"
     direction = getattr(args, "direction", "forward")
     wanted = parse_systems(getattr(args, "sys", None), RTK_POST_SYSTEMS)
     if wanted:
@@ -195,7 +203,7 @@ def run_rtk(args) -> int:
         fixed = [s for s in sols if s.quality == 1]
         if fixed:
             summary["fixed_stats"] = statistics(fixed, truth)
-    print(f"companion gnss rtk ({direction}): {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
+    print(f"companion gnss rtk ({direction}{', L1' if freqs == 'L1' else ''}): {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
           + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
              f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
     if info["max_base_age_s"] > 0:
@@ -225,9 +233,9 @@ def run_rtk(args) -> int:
     write_plot(args, records, f"companion gnss rtk ({','.join(by_sys) or ','.join(cfg.systems)}, {direction}): "
                               f"{Path(args.rover).name}, {n_fix} of {len(sols)} fixed", truth, other=demo5_fixed)
     if args.pos:
-        write_pos(args.pos, records, program="companion gnss rtk (L1+L2, LAMBDA, fix-and-hold)",
+        write_pos(args.pos, records, program=f"companion gnss rtk ({freqs}, LAMBDA, fix-and-hold)",
                   inputs=[args.rover, args.base, *(args.nav or [])],
-                  options={"pos mode": "kinematic", "freqs": "L1+L2", "solution": direction,
+                  options={"pos mode": "kinematic", "freqs": freqs, "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"
