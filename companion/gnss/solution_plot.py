@@ -33,6 +33,7 @@ def plot_solutions(path, records: list[PosRecord], title: str, truth_e=None, oth
     (``--against-demo5``), drawn beside ours in grey."""
     from ..extras import pyplot
     plt = pyplot("companion gnss --plot")
+    from matplotlib.ticker import MaxNLocator
     ref = (np.asarray(truth_e, float) if truth_e is not None
            else np.median(np.array([r.r_e for r in records]), axis=0))
     enu, sig = enu_offsets(records, ref)
@@ -75,14 +76,18 @@ def plot_solutions(path, records: list[PosRecord], title: str, truth_e=None, oth
         sel = q == value
         if sel.any():
             axes[1].plot(t[sel], np.full(int(sel.sum()), axes[1].get_ylim()[0]), "|", color=colour, ms=8)
-    axes[2].plot(t, [r.n_sats for r in records], color="0.3", lw=0.8, label="satellites")
+    n_sats = [r.n_sats for r in records]
+    axes[2].plot(t, n_sats, color="0.3", lw=0.8, label="satellites")
     axes[2].set_ylabel("satellites")
+    axes[2].set_ylim(0, max(n_sats, default=0) + 1)                # 16 against 17 is not a swing
+    axes[2].yaxis.set_major_locator(MaxNLocator(integer=True))
     axes[2].set_xlabel("time [s]")
     ratio = np.array([r.ratio for r in records], float)
     if np.any(ratio > 0):
         r2 = axes[2].twinx()
         r2.semilogy(t, np.where(ratio > 0, ratio, math.nan), ".", ms=2, color="tab:purple", label="ratio")
         r2.axhline(3.0, color="tab:purple", lw=0.6, ls="--")
+        r2.text(t[0], 3.0, " fix threshold 3", color="tab:purple", fontsize=7, va="bottom")
         r2.set_ylabel("LAMBDA ratio", color="tab:purple")
     axes[2].grid(alpha=0.3)
     fig.suptitle(title)
