@@ -23,9 +23,11 @@ def _add_gnss(sub) -> None:
                    help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides; GLONASS's for "
                         "--mode rtk --sys with R); may be repeated; "
                         "required with a RINEX rover, optional with a .ubx one")
-    p.add_argument("--base", help="base station RINEX observation file or u-blox capture (RXM-RAWX, RXM-SFRBX) for "
-                                  "--mode dgps and rtk; with rtk also an RTCM 3 capture (MSM4-7 or 1004/1012, its "
-                                  "1005/1006 position, ephemerides)")
+    p.add_argument("--base", nargs="+", metavar="BASE",
+                   help="base station RINEX observation file(s) or u-blox capture (RXM-RAWX, RXM-SFRBX) for "
+                        "--mode dgps and rtk; with rtk also an RTCM 3 capture (MSM4-7 or 1004/1012, its "
+                        "1005/1006 position, ephemerides).  Several RINEX files of one station (a CORS's "
+                        "hourly files, e.g. --base B/*.rnx) are read as one")
     p.add_argument("--base-xyz", help="base antenna ECEF X,Y,Z in metres (default: base file header; a u-blox base "
                                       "capture has none); rtk: 'spp' = the median of the base's own single-point "
                                       "solutions (metres off; the baseline stays exact)")

@@ -254,3 +254,47 @@ def test_a_navigation_file_cut_mid_record_or_with_a_corrupt_line_loses_that_reco
     assert len(read_rinex_nav(bad, "GEJ", counts)) == len(whole) - 1 and counts["unreadable records"] == 1
     assert main(["gnss", "--rover", str(car / "rover.crx.gz"), "--nav", str(bad), "--sys", "G,E,J"]) == 0
     assert "bad.rnx: 1 record unreadable (a file cut mid-record or a corrupt line) skipped" in capsys.readouterr().out
+
+
+def _split_rinex3(src, tmp_path, parts: int) -> list:
+    """A RINEX 3 file cut into ``parts`` files of consecutive epochs, each with the header (a
+    CORS's hourly files), written last part first."""
+    text = hatanaka_text(src)
+    head, _, body = text.partition("END OF HEADER")
+    head += "END OF HEADER" + body[:body.index("\n") + 1]
+    epochs = [">" + e for e in body[body.index("\n") + 1:].split("\n>")]
+    epochs[0] = epochs[0][1:]
+    size = -(-len(epochs) // parts)
+    out = []
+    for k in reversed(range(parts)):
+        p = tmp_path / f"base_part{k}.rnx"
+        p.write_text(head + "\n".join(epochs[k * size:(k + 1) * size]) + "\n")
+        out.append(p)
+    return out
+
+
+def test_several_base_files_of_one_station_are_one_base(tmp_path, capsys):
+    """The Septentrio base cut in three (given last first): the same RTK solutions as the whole
+    file; files of two stations, or a capture among files, are refused."""
+    import json
+    from companion.cli import main
+    sep = data_path("matrtklib-septentrio-static-2024")
+    parts = _split_rinex3(sep / "base.crx.gz", tmp_path, 3)
+    res = {}
+    for name, base in (("whole", [sep / "base.crx.gz"]), ("parts", parts)):
+        js = tmp_path / f"{name}.json"
+        assert main(["gnss", "--rover", str(sep / "rover.crx.gz"), "--nav", str(sep / "base.nav.gz"), "--mode", "rtk",
+                     "--base", *map(str, base), "--base-xyz=-3817681.121326613,3562839.431140291,3650159.1593410783",
+                     "--json", str(js)]) == 0
+        res[name] = json.loads(js.read_text())
+    assert res["parts"]["base_epochs"] == res["whole"]["base_epochs"] == 120
+    assert [s["r_e"] for s in res["parts"]["solutions"]] == [s["r_e"] for s in res["whole"]["solutions"]]
+    capsys.readouterr()
+    car = data_path("cssrlib-fujisawa-car-2021")
+    assert main(["gnss", "--rover", str(car / "rover.crx.gz"), "--nav", str(car / "nav.rnx.gz"), "--mode", "rtk",
+                 "--base", str(car / "base.crx.gz"), str(parts[0])]) == 2
+    assert "is not of the station of" in capsys.readouterr().err
+    capture = data_path("qzsl6tool-hiroshima-rtcm3-ubx") / "20221213-010900.rtcm"
+    assert main(["gnss", "--rover", str(car / "rover.crx.gz"), "--nav", str(car / "nav.rnx.gz"), "--mode", "dgps",
+                 "--base", str(car / "base.crx.gz"), str(capture)]) == 2
+    assert "a u-blox or RTCM capture is given alone" in capsys.readouterr().err

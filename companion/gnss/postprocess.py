@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.capture_format import is_ubx_capture
+from ..io.capture_format import is_rtcm_capture, is_ubx_capture
 from ..messages import BaseStationPosition
 from ..nav.earth import ecef_to_geodetic, ecef_to_ned
 from .dgps import DgpsCorrector
@@ -46,7 +46,7 @@ from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, span_text, write_pos
 from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
 from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
-from .rinex_obs import read_rinex_obs, reading_notes
+from .rinex_obs import read_rinex_obs, read_rinex_obs_files, reading_notes
 from .glonass import frequency_channels, with_fdma_wavelengths
 from .signals import GLONASS, PREPARED_SYSTEMS, SUPPORTED_SYSTEMS
 from .rtk_post import RTK_POST_SYSTEMS, antenna_delta_e
@@ -207,15 +207,26 @@ def load_ubx_capture(path: str, wanted: str | None, store: EphemerisStore, sourc
     return {"approx_position_e": None, "antenna_delta_hen_m": None, "receiver": dec.receiver_model}, epochs, klob
 
 
+def base_files(args) -> list[str]:
+    """``--base``'s files (several RINEX files of one station, or one capture)."""
+    base = getattr(args, "base", None)
+    files = [base] if isinstance(base, str) else list(base or [])
+    if len(files) > 1 and any(is_ubx_capture(p) or is_rtcm_capture(p) for p in files):
+        raise GnssProcessingError("--base: several files only as RINEX observation files of one station; "
+                                  "a u-blox or RTCM capture is given alone")
+    return files
+
+
 def _load(args):
-    for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
+    bases = base_files(args)
+    for p in [args.rover, *(args.nav or []), *bases]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
     wanted = parse_systems(getattr(args, "sys", None), PREPARED_SYSTEMS)   # GLONASS when asked
     store = EphemerisStore()
     klob = None
     ubx_rover = ubx_base = None
-    base_is_ubx = args.mode == "dgps" and bool(args.base) and is_ubx_capture(args.base)
+    base_is_ubx = args.mode == "dgps" and len(bases) == 1 and is_ubx_capture(bases[0])
     if is_ubx_capture(args.rover):
         ubx_rover = load_ubx_capture(args.rover, wanted, store)
         klob = ubx_rover[2]
@@ -224,7 +235,7 @@ def _load(args):
                                   "its own ephemerides in RXM-SFRBX)")
     if base_is_ubx:
         # its ephemerides join the rover's before the systems are chosen
-        ubx_base = load_ubx_capture(args.base, wanted, store, source="base")
+        ubx_base = load_ubx_capture(bases[0], wanted, store, source="base")
         klob = klob or ubx_base[2]
     for p in args.nav or []:
         try:
@@ -260,7 +271,7 @@ def _load(args):
                                   f"ephemerides ({''.join(sorted(with_eph))})")
     base_epochs = base = None
     if args.mode == "dgps":
-        if not args.base:
+        if not bases:
             raise GnssProcessingError("--mode dgps needs --base")
         if ubx_base is not None:
             bhdr = ubx_base[0]
@@ -269,9 +280,9 @@ def _load(args):
             try:
                 # the rover's span and the oldest correction it may use: a base file of hours is not read whole
                 age = ProcessOptions.dgps_max_age_s
-                bhdr, base_epochs = read_rinex_obs(args.base, systems, (rover[0].t_gps - age, rover[-1].t_gps + age))
+                bhdr, base_epochs = read_rinex_obs_files(bases, systems, (rover[0].t_gps - age, rover[-1].t_gps + age))
             except (ValueError, IndexError) as exc:
-                raise GnssProcessingError(f"cannot read base observation file {args.base}: {exc}") from exc
+                raise GnssProcessingError(f"cannot read base observation file(s) {' '.join(bases)}: {exc}") from exc
             if reading_notes(bhdr):
                 print(f"base file: {reading_notes(bhdr)}")
         if args.base_xyz and args.base_xyz.strip().lower() == "spp":
@@ -398,7 +409,7 @@ def _run(args) -> int:
     if args.pos:
         write_pos(args.pos, records,
                   program=f"companion gnss {args.mode} ({opts.signal})",
-                  inputs=[args.rover, *(args.nav or []), *([args.base] if args.base else [])],
+                  inputs=[args.rover, *(args.nav or []), *base_files(args)],
                   options={"pos mode": "single" if args.mode == "spp" else "dgps",
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg", "navi sys": ",".join(systems),
                            "ionos opt": iono})

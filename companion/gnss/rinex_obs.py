@@ -137,6 +137,41 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
     return hdr, epochs
 
 
+#: files of one station: their header positions agree within this (m)
+SAME_STATION_M = 1.0
+
+
+def read_rinex_obs_files(paths, systems: str = "G", t_gps_window: tuple[float, float] | None = None
+                         ) -> tuple[dict, list[GnssEpoch]]:
+    """Several observation files of one station (a CORS's hourly or 15-min files) read as one:
+    the first file's header, with 'files', the counts summed and 'file_span_t_gps' over all; the
+    epochs of all in time order, one per time tag.  Files whose header positions are more than
+    :data:`SAME_STATION_M` apart are refused (two stations are not one base)."""
+    paths = list(paths)
+    hdr, epochs = read_rinex_obs(paths[0], systems, t_gps_window)
+    if len(paths) == 1:
+        return hdr, epochs
+    hdr = dict(hdr, files=[str(p) for p in paths], skipped=dict(hdr["skipped"]))
+    for path in paths[1:]:
+        h, more = read_rinex_obs(path, systems, t_gps_window)
+        a, b = hdr["approx_position_e"], h["approx_position_e"]
+        if a is not None and b is not None and float(np.linalg.norm(a - b)) > SAME_STATION_M:
+            raise ValueError(f"{path} is not of the station of {paths[0]}: their header positions are "
+                             f"{np.linalg.norm(a - b):.1f} m apart")
+        for k, n in h["skipped"].items():
+            hdr["skipped"][k] = hdr["skipped"].get(k, 0) + n
+        for k in ("out_of_order_epochs", "epochs_outside_window"):
+            hdr[k] += h[k]
+        spans = [sp for sp in (hdr["file_span_t_gps"], h["file_span_t_gps"]) if sp]
+        hdr["file_span_t_gps"] = (min(sp[0] for sp in spans), max(sp[1] for sp in spans)) if spans else None
+        epochs += more
+    # the files in any order; a time tag two files share (an overlap) read once
+    epochs, _, repeated = _in_time_order(epochs)
+    hdr["skipped"]["repeated epoch"] += repeated
+    hdr["n_epochs"] = len(epochs)
+    return hdr, epochs
+
+
 def _read_header(lines: list[str], head: int, path) -> tuple[dict, dict[str, list[str]]]:
     """(the header dict, system -> the RINEX 3 codes of its observation fields)."""
     version = header_float(lines[0][:9])

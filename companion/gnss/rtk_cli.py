@@ -16,26 +16,27 @@ from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GpsEphemeris
 from ..nav.earth import ecef_to_ned
 from .ephemeris_store import EphemerisStore
 from .pos_format import write_pos
-from .postprocess import (GnssProcessingError, epoch_progress, epochs_of, load_ubx_capture, median_spp_position,
+from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, load_ubx_capture, median_spp_position,
                           parse_systems, parse_xyz, satellites_by_system, statistics, write_plot, write_tracks)
 from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
-from .rinex_obs import read_rinex_obs, reading_notes
+from .rinex_obs import read_rinex_obs, read_rinex_obs_files, reading_notes
 from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, check_epochs, glonass_ar_of, pos_records, solve_rtk_epochs
 from ..rtk_signals import RTK_FIRST_SIGNALS
 
 
-def _rtk_base(path: str, systems: str, week: int, t_gps_window: tuple[float, float] | None = None):
-    """(header, epochs, ephemerides, Klobuchar or None) of an RTK base: a RINEX observation file,
-    a u-blox capture (as a rover's: no position in it), or an RTCM 3 capture (MSM4-7 or 1004/1012
-    observations, the 1005/1006 antenna reference point as its position, broadcast ephemerides,
+def _rtk_base(paths: list[str], systems: str, week: int, t_gps_window: tuple[float, float] | None = None):
+    """(header, epochs, ephemerides, Klobuchar or None) of an RTK base: RINEX observation files of
+    one station (read as one), a u-blox capture (as a rover's: no position in it), or an RTCM 3
+    capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its position, broadcast ephemerides,
     GLONASS's 1020 too, the 1033 receiver type) decoded as the service decodes its NTRIP stream;
     ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only);
     ``t_gps_window``: the span a RINEX base is read over (the rover's)."""
+    path = paths[0]
     if is_ubx_capture(path):
         return _ubx_epochs(path, systems, "base")
     if not is_rtcm_capture(path):
-        hdr, epochs = read_rinex_obs(path, systems, t_gps_window)
+        hdr, epochs = read_rinex_obs_files(paths, systems, t_gps_window)
         return hdr, epochs, [], None
     from ..io.rtcm import decode_rtcm_file          # the RTCM stack only when a capture is read
     try:
@@ -99,7 +100,7 @@ def _check_demo5_inputs(args) -> None:
     """``--against-demo5`` before any processing: demo5 installed, and RINEX files for it to read."""
     from .demo5_reference import require_demo5
     require_demo5()
-    captures = [p for p in (args.rover, args.base) if is_ubx_capture(p) or is_rtcm_capture(p)]
+    captures = [p for p in (args.rover, *base_files(args)) if is_ubx_capture(p) or is_rtcm_capture(p)]
     if captures or not args.nav:
         raise GnssProcessingError("--against-demo5 needs RINEX rover and base files and --nav (demo5 is given the "
                                   "same files; " + (f"{', '.join(captures)} is a capture" if captures
@@ -112,7 +113,7 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
     from .demo5_reference import compare, run_demo5
     print("running RTKLIB demo5 on the same files ...", flush=True)
     try:
-        theirs = run_demo5(args.rover, args.base, args.nav, info["base_antenna_e"],
+        theirs = run_demo5(args.rover, base_files(args), args.nav, info["base_antenna_e"],
                            rover_antenna_delta_hen=info["rover_antenna_delta_hen_m"], systems=cfg.systems,
                            mask_deg=args.elevation_mask_deg, direction=direction,
                            frequencies="l1" if getattr(args, "freq", None) == "l1" else "l1+l2",
@@ -130,14 +131,15 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
 
 def run_rtk(args) -> int:
     """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
-    for p in [args.rover, *(args.nav or []), *([args.base] if args.base else [])]:
+    bases = base_files(args)
+    for p in [args.rover, *(args.nav or []), *bases]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
-    if not args.nav and not is_ubx_capture(args.rover) and not (args.base and (is_rtcm_capture(args.base)
-                                                                               or is_ubx_capture(args.base))):
+    if not args.nav and not is_ubx_capture(args.rover) and not (len(bases) == 1 and (is_rtcm_capture(bases[0])
+                                                                                    or is_ubx_capture(bases[0]))):
         raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx capture or an RTCM 3 base can bring the "
                                   "ephemerides)")
-    if not args.base:
+    if not bases:
         raise GnssProcessingError("--mode rtk needs --base")
     against_demo5 = getattr(args, "against_demo5", False)
     if against_demo5:
@@ -162,7 +164,7 @@ def run_rtk(args) -> int:
             raise GnssProcessingError(f"no observation epochs in {args.rover}")
         # a base file of hours for a rover of minutes: only the rover's span (and a base age) is read
         span = (rover[0].t_gps - cfg.max_base_age_s, rover[-1].t_gps + cfg.max_base_age_s)
-        hb, base, base_ephs, base_klob = _rtk_base(args.base, wanted or RTK_POST_SYSTEMS,
+        hb, base, base_ephs, base_klob = _rtk_base(bases, wanted or RTK_POST_SYSTEMS,
                                                    int(rover[0].t_gps // SECONDS_PER_WEEK), span)
         check_epochs(rover, hb, base)
         notes = {who: reading_notes(h) for who, h in (("rover", hr), ("base", hb)) if reading_notes(h)}
@@ -234,7 +236,7 @@ def run_rtk(args) -> int:
                               f"{Path(args.rover).name}, {n_fix} of {len(sols)} fixed", truth, other=demo5_fixed)
     if args.pos:
         write_pos(args.pos, records, program=f"companion gnss rtk ({freqs}, LAMBDA, fix-and-hold)",
-                  inputs=[args.rover, args.base, *(args.nav or [])],
+                  inputs=[args.rover, *bases, *(args.nav or [])],
                   options={"pos mode": "kinematic", "freqs": freqs, "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
