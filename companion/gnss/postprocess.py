@@ -49,7 +49,7 @@ from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
 from .rinex_obs import read_rinex_obs, read_rinex_obs_files, reading_notes
 from .glonass import frequency_channels, with_fdma_wavelengths
 from .signals import GLONASS, PREPARED_SYSTEMS, SUPPORTED_SYSTEMS
-from .rtk_post import RTK_POST_SYSTEMS, antenna_delta_e
+from .rtk_post import RTK_POST_SYSTEMS, antenna_delta_e, check_epochs
 from .spp import SppSolution, spp_epoch
 
 log = logging.getLogger(__name__)
@@ -280,11 +280,13 @@ def _load(args):
             try:
                 # the rover's span and the oldest correction it may use: a base file of hours is not read whole
                 age = ProcessOptions.dgps_max_age_s
-                bhdr, base_epochs = read_rinex_obs_files(bases, systems, (rover[0].t_gps - age, rover[-1].t_gps + age))
+                bhdr, base_epochs = read_rinex_obs_files(bases, systems,
+                                                         (rover[0].t_gps - age, rover[-1].t_gps + age))
             except (ValueError, IndexError) as exc:
-                raise GnssProcessingError(f"cannot read base observation file(s) {' '.join(bases)}: {exc}") from exc
+                raise GnssProcessingError(f"cannot read base observation file(s) {' '.join(bases)}: {exc}") \
+                    from exc
             if reading_notes(bhdr):
-                print(f"base file: {reading_notes(bhdr)}")
+                print(f"base file{'s' if len(bases) > 1 else ''}: {reading_notes(bhdr)}")
         if args.base_xyz and args.base_xyz.strip().lower() == "spp":
             raise GnssProcessingError("--base-xyz spp: only with --mode rtk (DGPS corrections from a base position "
                                       "metres off shift the rover by as much); give --base-xyz X,Y,Z")
@@ -297,7 +299,6 @@ def _load(args):
                                       "APPROX POSITION XYZ, or a u-blox capture)")
         r_b = np.asarray(r_b, float)
         base = BaseStationPosition(station_id=0, r_e=r_b + antenna_delta_e(r_b, bhdr.get("antenna_delta_hen_m")))
-        from .rtk_post import check_epochs
         try:
             check_epochs(rover, bhdr, base_epochs)          # a base of another day: both spans said
         except ValueError as exc:
@@ -314,7 +315,8 @@ def _load(args):
             not any(store.select_with_reason(s, t0)[0] for s in store.sats):
         toes = [e.t_oe_gps for sat in store.sats for e in store.all(sat) if hasattr(e, "t_oe_gps")]
         raise GnssProcessingError(f"no ephemeris valid during the observation period ({span_text(t0, t1)})"
-                                  + (f"; the navigation file(s) are of {span_text(min(toes), max(toes))}" if toes else ""))
+                                  + (f"; the navigation file(s) are of {span_text(min(toes), max(toes))}"
+                                     if toes else ""))
     return store, klob, hdr, rover, base_epochs, base, systems
 
 

@@ -277,7 +277,9 @@ _V3_RECORD = re.compile(r"^[A-Z][ \d]\d \d{4} \d\d \d\d \d\d \d\d \d\d")
 def nav_reading_notes(counts: dict) -> str:
     """What :func:`read_rinex_nav` left out, for a person ('' when nothing)."""
     n = counts.get("unreadable records", 0)
-    return f"{n} record{'' if n == 1 else 's'} unreadable (a file cut mid-record or a corrupt line) skipped" if n else ""
+    if not n:
+        return ""
+    return f"{n} record{'' if n == 1 else 's'} unreadable (a file cut mid-record or a corrupt line) skipped"
 
 
 def _next_record(lines: list[str], i: int, first_line: re.Pattern) -> int:

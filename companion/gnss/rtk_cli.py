@@ -16,8 +16,9 @@ from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GpsEphemeris
 from ..nav.earth import ecef_to_ned
 from .ephemeris_store import EphemerisStore
 from .pos_format import write_pos
-from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, load_ubx_capture, median_spp_position,
-                          parse_systems, parse_xyz, satellites_by_system, statistics, write_plot, write_tracks)
+from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, load_ubx_capture,
+                          median_spp_position, parse_systems, parse_xyz, satellites_by_system, statistics, write_plot,
+                          write_tracks)
 from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
 from .rinex_obs import read_rinex_obs, read_rinex_obs_files, reading_notes
 from .rtk import RtkConfig
@@ -28,8 +29,9 @@ from ..rtk_signals import RTK_FIRST_SIGNALS
 def _rtk_base(paths: list[str], systems: str, week: int, t_gps_window: tuple[float, float] | None = None):
     """(header, epochs, ephemerides, Klobuchar or None) of an RTK base: RINEX observation files of
     one station (read as one), a u-blox capture (as a rover's: no position in it), or an RTCM 3
-    capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its position, broadcast ephemerides,
-    GLONASS's 1020 too, the 1033 receiver type) decoded as the service decodes its NTRIP stream;
+    capture (MSM4-7 or 1004/1012 observations, the 1005/1006 antenna reference point as its
+    position, broadcast ephemerides, GLONASS's 1020 too, the 1033 receiver type) decoded as the
+    service decodes its NTRIP stream;
     ``week``: the GPS week of the rover's first epoch (MSM carries the time of week only);
     ``t_gps_window``: the span a RINEX base is read over (the rover's)."""
     path = paths[0]
@@ -169,7 +171,7 @@ def run_rtk(args) -> int:
         check_epochs(rover, hb, base)
         notes = {who: reading_notes(h) for who, h in (("rover", hr), ("base", hb)) if reading_notes(h)}
         for who, text in notes.items():
-            print(f"{who} file: {text}")
+            print(f"{who} file{'s' if who == 'base' and len(bases) > 1 else ''}: {text}")
         if not wanted:
             cfg = dataclasses.replace(cfg, systems=_auto_rtk_systems(cfg, hr, hb))
         ephs = [e for e in ephs + base_ephs if e.sat[0] in cfg.systems]
@@ -205,7 +207,8 @@ def run_rtk(args) -> int:
         fixed = [s for s in sols if s.quality == 1]
         if fixed:
             summary["fixed_stats"] = statistics(fixed, truth)
-    print(f"companion gnss rtk ({direction}{', L1' if freqs == 'L1' else ''}): {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
+    solution = direction + (", L1" if freqs == "L1" else "")
+    print(f"companion gnss rtk ({solution}): {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
           + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
              f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
     if info["max_base_age_s"] > 0:

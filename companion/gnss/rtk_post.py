@@ -76,7 +76,8 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     t_mid = rover[len(rover) // 2].t_gps
     if not any(store.select(sat, t) is not None for sat in store.sats for t in (rover[0].t_gps, t_mid)):
         toes = [e.t_oe_gps for e in ephs if hasattr(e, "t_oe_gps")]
-        raise ValueError(f"no ephemeris is valid during the rover's observations ({span_text(rover[0].t_gps, rover[-1].t_gps)}); "
+        raise ValueError(f"no ephemeris is valid during the rover's observations "
+                         f"({span_text(rover[0].t_gps, rover[-1].t_gps)}); "
                          + (f"the navigation file(s) are of {span_text(min(toes), max(toes))}" if toes else ""))
     given = base_xyz if base_xyz is not None else hb.get("approx_position_e")
     # (np.asarray(None, float) is NaN, which np.any takes for a position: test for it)
