@@ -37,6 +37,9 @@ def _add_gnss(sub) -> None:
                    help="rtk: forward (each epoch from the ones before it), backward, or combined (both passes "
                         "compared per epoch: a fix the other pass contradicts is reported float; RTKLIB's "
                         "solution types)")
+    p.add_argument("--static", action="store_true",
+                   help="rtk: the rover stood still (RTKLIB's static mode): one position refined over the file, "
+                        "the last epoch's (from every epoch) printed as the survey result; forward only")
     p.add_argument("--glonass-ar", choices=["auto", "on", "off"], default="auto",
                    help="rtk with GLONASS (--sys with R): fix its integers too (on), keep them float (off), or auto: "
                         "on when both RINEX headers name the same receiver model (inter-channel biases cancel)")

@@ -160,3 +160,19 @@ def test_demo5_is_given_several_base_files_as_one(tmp_path):
     parts = run_demo5(rover, _split_rinex3(base, tmp_path, 3), navs, base_xyz, systems="G", work=tmp_path / "parts")
     assert len(parts.fixed) == len(whole.fixed) >= 100
     assert all(t0 == t1 and np.allclose(r0, r1, atol=1e-4) for (t0, r0), (t1, r1) in zip(parts.fixed, whole.fixed))
+
+
+def test_static_mode_lands_where_demo5s_does(tmp_path):
+    """RTKLIB's static mode on both sides (the rover stood still), GEONET at 15 degrees as the
+    reference was made: the last epochs, from all 120, within millimetres of each other and of
+    the reference (RTKLIB 2.4.3's static answer on these files)."""
+    rover, base, navs, base_xyz, truth = SETS["GEONET 0759/3040"]
+    sols, info = solve_rtk_rinex(rover, base, navs, base_xyz=base_xyz,
+                                 config=RtkConfig(systems="G", dynamics="static", elevation_mask_deg=15.0))
+    theirs = run_demo5(rover, base, navs, info["base_antenna_e"], systems="G", mask_deg=15.0, static=True,
+                       work=tmp_path / "demo5-static")
+    ours_last, (_, demo5_last) = sols[-1].r_e, theirs.fixed[-1]
+    print(f"GEONET static, 15 deg: ours {1000 * np.linalg.norm(ours_last - truth):.1f} mm from the reference, demo5 "
+          f"{1000 * np.linalg.norm(demo5_last - truth):.1f} mm, {1000 * np.linalg.norm(ours_last - demo5_last):.1f} mm apart")
+    assert sols[-1].quality == 1 and np.linalg.norm(ours_last - demo5_last) < 0.003
+    assert np.linalg.norm(ours_last - truth) < 0.003 and np.linalg.norm(demo5_last - truth) < 0.003

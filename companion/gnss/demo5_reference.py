@@ -106,14 +106,14 @@ def _joined_plain(srcs, work: Path, index: int) -> str:
 
 def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0, 0.0, 0.0), systems: str = "GEJ",
               mask_deg: float = 10.0, glonass_ar: str = "off", direction: str = "forward",
-              frequencies: str = "l1+l2", work: Path | None = None) -> Demo5Run:
+              frequencies: str = "l1+l2", static: bool = False, work: Path | None = None) -> Demo5Run:
     """demo5's kinematic RTK of ``rover`` against ``base`` (RINEX observation files; the base
     may be several files of one station) with the
     navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m), the rover's
     antenna ``rover_antenna_delta_hen`` (up, east, north, m) above its marker (the RTK run's
     ``info['rover_antenna_delta_hen_m']``, from the rover header); ``frequencies``
-    RTKLIB's pos1-frequency ('l1' as a single-frequency receiver); ``work``: where its files go (a
-    temporary folder when None)."""
+    RTKLIB's pos1-frequency ('l1' as a single-frequency receiver); ``static``: its static mode
+    (the rover stood still); ``work``: where its files go (a temporary folder when None)."""
     require_demo5()
     if direction not in _DIRECTIONS:
         raise ValueError(f"direction must be one of {', '.join(_DIRECTIONS)}, not {direction!r}")
@@ -129,7 +129,7 @@ def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0
         up, east, north = (float(v) for v in rover_antenna_delta_hen)
         conf = work / "demo5.conf"
         conf.write_text("\n".join([
-            "pos1-posmode       =kinematic",
+            f"pos1-posmode       ={'static' if static else 'kinematic'}",
             f"pos1-frequency     ={frequencies}",
             f"pos1-soltype       ={direction}",
             f"pos1-elmask        ={mask_deg:g}",

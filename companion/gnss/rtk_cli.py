@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 
 from ..io.capture_format import is_rtcm_capture, is_ubx_capture
 from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GpsEphemeris
-from ..nav.earth import ecef_to_ned
+from ..nav.earth import C_n_e, ecef_to_geodetic, ecef_to_ned
 from .ephemeris_store import EphemerisStore
 from .pos_format import write_pos
 from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, load_ubx_capture,
@@ -119,6 +120,7 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
                            rover_antenna_delta_hen=info["rover_antenna_delta_hen_m"], systems=cfg.systems,
                            mask_deg=args.elevation_mask_deg, direction=direction,
                            frequencies="l1" if getattr(args, "freq", None) == "l1" else "l1+l2",
+                           static=cfg.dynamics == "static",
                            glonass_ar="on" if info["glonass_ar"].startswith("on") else "off")
     except RuntimeError as exc:
         raise GnssProcessingError(str(exc)) from exc
@@ -129,6 +131,25 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
         demo5_pos.write_text(theirs.pos_text)
         print(f"demo5's solutions: {demo5_pos}")
     return c.summary(), theirs
+
+
+def _static_result(last, n_epochs: int, truth) -> tuple[dict, str]:
+    """``--static``: the last epoch's position (every epoch in it) as a survey result: the JSON
+    entry and the line printed."""
+    lat, lon, h = ecef_to_geodetic(last.r_e)
+    C = C_n_e(lat, lon)
+    sigma_ned = np.sqrt(np.maximum(np.diag(C.T @ last.cov_e @ C), 0.0))
+    out = {"r_e": [float(v) for v in last.r_e], "lat_deg": math.degrees(lat), "lon_deg": math.degrees(lon),
+           "height_m": float(h), "sigma_ned_m": [float(v) for v in sigma_ned], "fixed": last.quality == 1,
+           "epochs": n_epochs}
+    line = (f"static: {last.r_e[0]:.4f},{last.r_e[1]:.4f},{last.r_e[2]:.4f} (lat {math.degrees(lat):.9f}, "
+            f"lon {math.degrees(lon):.9f}, h {h:.4f} m), sigma north/east/down "
+            + "/".join(f"{1000 * v:.1f}" for v in sigma_ned) + f" mm, {'fixed' if last.quality == 1 else 'float'}, "
+            f"from {n_epochs} epochs")
+    if truth is not None:
+        out["error_ned_m"] = [float(v) for v in ecef_to_ned(last.r_e, truth)]
+        line += f"; {1000 * np.linalg.norm(last.r_e - truth):.1f} mm from --truth-xyz"
+    return out, line
 
 
 def run_rtk(args) -> int:
@@ -153,10 +174,14 @@ def run_rtk(args) -> int:
     if freq == "if":
         raise GnssProcessingError("--freq if is for spp/dgps: rtk differences each frequency's own carrier "
                                   "(both by default; --freq l1 for the first alone)")
+    static = bool(getattr(args, "static", False))
     cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"),
+                    dynamics="static" if static else "kinematic",
                     **({"signals": RTK_FIRST_SIGNALS} if freq == "l1" else {}))
     freqs = "L1" if freq == "l1" else "L1+L2"
     direction = getattr(args, "direction", "forward")
+    if static and direction != "forward":
+        raise GnssProcessingError("--static: forward only (its last epoch already uses every epoch)")
     wanted = parse_systems(getattr(args, "sys", None), RTK_POST_SYSTEMS)
     if wanted:
         cfg = dataclasses.replace(cfg, systems=wanted)
@@ -207,17 +232,20 @@ def run_rtk(args) -> int:
         fixed = [s for s in sols if s.quality == 1]
         if fixed:
             summary["fixed_stats"] = statistics(fixed, truth)
-    solution = direction + (", L1" if freqs == "L1" else "")
+    solution = ("static" if static else direction) + (", L1" if freqs == "L1" else "")
     print(f"companion gnss rtk ({solution}): {len(sols)}/{info['paired_epochs']} epochs solved, {n_fix} fixed"
           + (f", RMS 3-D {summary['rms_3d_m']:.4f} m, horizontal {summary['rms_h_m']:.4f} m, "
              f"95% 3-D {summary['p95_3d_m']:.4f} m, max {summary['max_3d_m']:.4f} m" if "rms_3d_m" in summary else ""))
-    if info["max_base_age_s"] > 0:
+    if info["max_base_age_s"] >= 0.05:           # (a few microseconds apart: one epoch)
         print(f"base: {info['base_epochs']} epochs, each rover epoch solved against the nearest one, up to "
               f"{info['max_base_age_s']:.1f} s apart (at most {cfg.max_base_age_s:g} s)")
     print("satellites per epoch (common to rover and base, above the mask): "
           + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
     if info["glonass_ar"]:
         print(f"GLONASS integers: {info['glonass_ar']}")
+    if static:
+        summary["static_position"], line = _static_result(sols[-1], len(sols), truth)
+        print(line)
     if hb.get("rtcm_descriptor") is not None:
         print(f"base: {hb['rtcm_descriptor'].line()}")
         summary["base_descriptor"] = hb["rtcm_descriptor"].as_dict()
@@ -240,7 +268,7 @@ def run_rtk(args) -> int:
     if args.pos:
         write_pos(args.pos, records, program=f"companion gnss rtk ({freqs}, LAMBDA, fix-and-hold)",
                   inputs=[args.rover, *bases, *(args.nav or [])],
-                  options={"pos mode": "kinematic", "freqs": freqs, "solution": direction,
+                  options={"pos mode": "static" if static else "kinematic", "freqs": freqs, "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"
