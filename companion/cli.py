@@ -58,6 +58,9 @@ def _add_gnss(sub) -> None:
                         "Galileo E1, BeiDou B1I) with Klobuchar; if = dual-frequency iono-free per system.  "
                         "rtk: both frequencies by default; l1 = each system's first one alone (what a "
                         "single-frequency receiver gives)")
+    p.add_argument("--start", metavar="GPST", help="process from this time on, GPST as RTKLIB writes it "
+                   "('2021/09/22 06:31:00') or ISO ('2021-09-22T06:31:00'); default: the rover file's first epoch")
+    p.add_argument("--end", metavar="GPST", help="process up to this time (GPST, as --start); default: the file's last")
     p.add_argument("--elevation-mask-deg", type=float, default=10.0)
     p.add_argument("--json", help="write statistics and per-epoch solutions as JSON here")
     p.add_argument("--pos", help="write per-epoch solutions in RTKLIB's .pos format here (rtkplot, pos2kml)")

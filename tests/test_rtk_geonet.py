@@ -229,3 +229,20 @@ def test_cli_static_survey_lands_on_rtklibs_static_answer(tmp_path, capsys, mask
     assert st["fixed"] and st["epochs"] == 120 and off < within_m and max(st["sigma_ned_m"]) < 0.005
     assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--base", str(BASE), "--mode", "rtk", "--static",
                  "--direction", "combined"]) == 2
+
+
+def test_cli_rtk_between_start_and_end_and_how_the_fixes_came(tmp_path, capsys):
+    """``--start`` / ``--end`` (GPST, RTKLIB's form or ISO) cut the rover's span, the base's follows;
+    the summary says the fix rate, the first fix and the longest run without one."""
+    import json
+    from companion.cli import main
+    js = tmp_path / "part.json"
+    assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--base", str(BASE), "--mode", "rtk",
+                 "--start", "2005/04/02 00:10:00", "--end", "2005-04-02T00:19:30", "--json", str(js)]) == 0
+    summary = json.loads(js.read_text())
+    assert summary["epochs"] == summary["solved"] == 20 and summary["base_epochs"] >= 20   # (00:19:30 is tagged .001 s)
+    assert summary["fix_rate"] == 1.0 and summary["first_fix_s"] == 0.0 and summary["longest_unfixed_epochs"] == 0
+    assert "fix: 100.0 % of the epochs, from the first epoch" in capsys.readouterr().out
+    assert main(["gnss", "--rover", str(ROVER), "--nav", str(NAV), "--base", str(BASE), "--mode", "rtk",
+                 "--start", "2005/04/03 00:00:00"]) == 2
+    assert "it covers 2005/04/02 00:00:00 to 00:59:30 GPST" in capsys.readouterr().err

@@ -42,6 +42,20 @@ def gpst_calendar(t_gps: float) -> str:
     return t.strftime("%Y/%m/%d %H:%M:%S.") + f"{t.microsecond // 1000:03d}"
 
 
+def parse_gpst(text: str) -> float:
+    """GPS seconds of a GPST calendar time as RTKLIB writes it ('2021/09/22 06:31:00', seconds may
+    have decimals) or in ISO form ('2021-09-22T06:31:00'); ValueError otherwise."""
+    t = text.strip().replace("T", " ").replace("-", "/")
+    date, _, clock = t.partition(" ")
+    try:
+        y, mo, d = (int(v) for v in date.split("/"))
+        h, mi, s = (clock.split(":") + ["0", "0", "0"])[:3] if clock else ("0", "0", "0")
+        day = datetime(y, mo, d, int(h), int(mi), tzinfo=timezone.utc)
+    except ValueError:
+        raise ValueError(f"not a GPST time (YYYY/MM/DD HH:MM:SS): {text!r}") from None
+    return (day - GPS_EPOCH).total_seconds() + float(s)
+
+
 def span_text(t0_gps: float, t1_gps: float) -> str:
     """A span of GPS time for a person: '2005/04/02 00:00:00 to 00:59:30 GPST' (the date once
     when both ends share it)."""

@@ -42,7 +42,7 @@ from ..messages import BaseStationPosition
 from ..nav.earth import ecef_to_geodetic, ecef_to_ned
 from .dgps import DgpsCorrector
 from .ephemeris_store import EphemerisStore
-from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, span_text, write_pos
+from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, parse_gpst, span_text, write_pos
 from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
 from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
@@ -207,6 +207,39 @@ def load_ubx_capture(path: str, wanted: str | None, store: EphemerisStore, sourc
     return {"approx_position_e": None, "antenna_delta_hen_m": None, "receiver": dec.receiver_model}, epochs, klob
 
 
+#: receivers tag epochs a millisecond or so off the second (GEONET's 30.001 s): --start / --end
+#: take them within this (RTKLIB's DTTOL)
+WINDOW_TOLERANCE_S = 0.025
+
+
+def time_window(args) -> tuple[float, float] | None:
+    """``--start`` / ``--end`` (GPST) as GPS seconds, widened by :data:`WINDOW_TOLERANCE_S`; None
+    when neither is given."""
+    start, end = getattr(args, "start", None), getattr(args, "end", None)
+    if start is None and end is None:
+        return None
+    try:
+        window = (parse_gpst(start) - WINDOW_TOLERANCE_S if start else -math.inf,
+                  parse_gpst(end) + WINDOW_TOLERANCE_S if end else math.inf)
+    except ValueError as exc:
+        raise GnssProcessingError(f"--start / --end: {exc}") from exc
+    if window[0] > window[1]:
+        raise GnssProcessingError(f"--start {start} is after --end {end}")
+    return window
+
+
+def in_window(epochs, window, path, hdr: dict | None = None) -> list:
+    """The epochs inside ``window`` (all when None); a clear error when none is (the file's span said)."""
+    if window is None:
+        return epochs
+    kept = [e for e in epochs if window[0] <= e.t_gps <= window[1]]
+    if not kept:
+        span = (hdr or {}).get("file_span_t_gps") or ((epochs[0].t_gps, epochs[-1].t_gps) if epochs else None)
+        raise GnssProcessingError(f"no epoch of {path} between --start and --end"
+                                  + (f": it covers {span_text(*span)}" if span else ""))
+    return kept
+
+
 def base_files(args) -> list[str]:
     """``--base``'s files (several RINEX files of one station, or one capture)."""
     base = getattr(args, "base", None)
@@ -227,6 +260,7 @@ def _load(args):
     klob = None
     ubx_rover = ubx_base = None
     base_is_ubx = args.mode == "dgps" and len(bases) == 1 and is_ubx_capture(bases[0])
+    window = time_window(args)
     if is_ubx_capture(args.rover):
         ubx_rover = load_ubx_capture(args.rover, wanted, store)
         klob = ubx_rover[2]
@@ -255,13 +289,14 @@ def _load(args):
         hdr, rover = ubx_rover[0], ubx_rover[1]
     else:
         try:
-            hdr, rover = read_rinex_obs(args.rover, wanted or SUPPORTED_SYSTEMS)
+            hdr, rover = read_rinex_obs(args.rover, wanted or SUPPORTED_SYSTEMS, window)
         except (ValueError, IndexError) as exc:
             raise GnssProcessingError(f"cannot read rover observation file {args.rover}: {exc}") from exc
         if reading_notes(hdr):
             print(f"rover file: {reading_notes(hdr)}")
-    if not rover:
+    if not rover and window is None:
         raise GnssProcessingError(f"no observation epochs in {args.rover}")
+    rover = in_window(rover, window, args.rover, hdr)
     # default: every supported system that has both observations and ephemerides
     with_eph = {s[0] for s in store.sats}
     observed = {o.sat[0] for ep in rover for o in ep.observations}

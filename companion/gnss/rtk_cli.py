@@ -16,10 +16,10 @@ from ..io.capture_format import is_rtcm_capture, is_ubx_capture
 from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GpsEphemeris
 from ..nav.earth import C_n_e, ecef_to_geodetic, ecef_to_ned
 from .ephemeris_store import EphemerisStore
-from .pos_format import write_pos
-from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, load_ubx_capture,
-                          median_spp_position, parse_systems, parse_xyz, satellites_by_system, statistics, write_plot,
-                          write_tracks)
+from .pos_format import gpst_calendar, write_pos
+from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, in_window, load_ubx_capture,
+                          median_spp_position, parse_systems, parse_xyz, satellites_by_system, statistics,
+                          time_window, write_plot, write_tracks)
 from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
 from .rinex_obs import read_rinex_obs, read_rinex_obs_files, reading_notes
 from .rtk import RtkConfig
@@ -59,13 +59,14 @@ def _rtk_base(paths: list[str], systems: str, week: int, t_gps_window: tuple[flo
     return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass, None
 
 
-def _rtk_rover(path: str, systems: str):
+def _rtk_rover(path: str, systems: str, window: tuple[float, float] | None = None):
     """(header, epochs, ephemerides, Klobuchar or None) of an RTK rover: a RINEX observation file,
-    or a u-blox capture."""
+    or a u-blox capture; ``window`` (GPS s): ``--start`` / ``--end``."""
     if not is_ubx_capture(path):
-        hdr, epochs = read_rinex_obs(path, systems)
-        return hdr, epochs, [], None
-    return _ubx_epochs(path, systems, "rover")
+        hdr, epochs = read_rinex_obs(path, systems, window)
+        return hdr, in_window(epochs, window, path, hdr), [], None
+    hdr, epochs, ephs, klob = _ubx_epochs(path, systems, "rover")
+    return hdr, in_window(epochs, window, path), ephs, klob
 
 
 def _ubx_epochs(path: str, systems: str, source: str):
@@ -133,6 +134,26 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
     return c.summary(), theirs
 
 
+def _fix_statistics(sols) -> tuple[dict, str]:
+    """How the fixes came: the share, the first one's time from the start, the longest run of
+    epochs without one (and when it began)."""
+    fixed = [s.quality == 1 for s in sols]
+    first = next((s.t_gps - sols[0].t_gps for s, f in zip(sols, fixed) if f), None)
+    run = best = 0
+    best_start = None
+    for k, f in enumerate(fixed):
+        run = 0 if f else run + 1
+        if run > best:
+            best, best_start = run, sols[k - run + 1].t_gps
+    out = {"fix_rate": sum(fixed) / len(sols), "first_fix_s": first, "longest_unfixed_epochs": best}
+    line = (f"fix: {100 * out['fix_rate']:.1f} % of the epochs"
+            + (", none" if first is None else ", from the first epoch" if first == 0
+               else f", the first {first:g} s after the start")
+            + (f"; longest run without one: {best} epoch{'s' if best > 1 else ''} from {gpst_calendar(best_start)[11:19]}"
+               if best and first is not None else ""))
+    return out, line
+
+
 def _static_result(last, n_epochs: int, truth) -> tuple[dict, str]:
     """``--static``: the last epoch's position (every epoch in it) as a survey result: the JSON
     entry and the line printed."""
@@ -186,7 +207,7 @@ def run_rtk(args) -> int:
     if wanted:
         cfg = dataclasses.replace(cfg, systems=wanted)
     try:
-        hr, rover, ephs, klob = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS)
+        hr, rover, ephs, klob = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS, time_window(args))
         if not rover:
             raise GnssProcessingError(f"no observation epochs in {args.rover}")
         # a base file of hours for a rover of minutes: only the rover's span (and a base age) is read
@@ -243,6 +264,9 @@ def run_rtk(args) -> int:
           + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
     if info["glonass_ar"]:
         print(f"GLONASS integers: {info['glonass_ar']}")
+    fix_stats, line = _fix_statistics(sols)
+    summary.update(fix_stats)
+    print(line)
     if static:
         summary["static_position"], line = _static_result(sols[-1], len(sols), truth)
         print(line)
