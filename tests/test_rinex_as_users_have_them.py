@@ -209,9 +209,9 @@ def test_a_file_cut_mid_epoch_or_a_corrupt_line_costs_one_epoch(tmp_path):
     cut = text.index(">", len(text) // 2) + 200                  # inside an epoch's satellite lines
     path = tmp_path / "cut.rnx"
     path.write_text(text[:cut])
-    _, every = read_rinex_obs(car, "GEJ")
+    _, car_every = read_rinex_obs(car, "GEJ")
     h, part = read_rinex_obs(path, "GEJ")
-    assert h["skipped"]["unreadable epoch"] == 1 and repr(part) == repr(every[:len(part)])
+    assert h["skipped"]["unreadable epoch"] == 1 and repr(part) == repr(car_every[:len(part)])
     assert len(part) == text[:cut].count("\n>") - 1
     assert reading_notes(h) == "1 epoch unreadable (a file cut mid-epoch or a corrupt line) skipped"
 
@@ -222,6 +222,17 @@ def test_a_file_cut_mid_epoch_or_a_corrupt_line_costs_one_epoch(tmp_path):
     h, eps = read_rinex_obs(path)
     _, every = read_rinex_obs(ROVER)
     assert h["skipped"]["unreadable epoch"] == 1 and repr(eps) == repr(every[:7] + every[8:])
+
+    lines = text.splitlines()                                   # RINEX 3: one satellite's line corrupt
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("G") and i > 400)
+    sat, lines[k] = lines[k][:3], "garbage !!" + lines[k][10:]
+    path = tmp_path / "corrupt.rnx"
+    path.write_text("\n".join(lines) + "\n")
+    h, eps = read_rinex_obs(path, "GEJ")
+    assert h["skipped"]["unreadable satellite line"] == 1 and len(eps) == len(car_every)
+    assert "1 satellite line unreadable (a corrupt line) skipped" in reading_notes(h)
+    assert sum(o.sat == sat for e in eps for o in e.observations) < sum(o.sat == sat for e in car_every
+                                                                      for o in e.observations)
 
 
 def test_a_navigation_file_given_as_observations_is_said_so():

@@ -98,7 +98,7 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
     (np.array, m, or None), 'antenna_delta_hen_m', 'receiver', 'antenna', 'interval_s' (NaN if
     absent), 'obs_types' (system -> RINEX 3 codes), 'n_epochs', 'skipped' (counts by reason:
     'other system' observations, 'event' records (flags 2-6), 'repeated epoch' time tags,
-    'unreadable epoch'), 'out_of_order_epochs', 'time_system'.  Epochs come out in time order, one
+    'unreadable epoch', 'unreadable satellite line' (RINEX 3)), 'out_of_order_epochs', 'time_system'.  Epochs come out in time order, one
     per time tag (:func:`_in_time_order`; :func:`reading_notes` says what was done).  Only
     satellites of ``systems`` are kept (default GPS only; 'GECJ' for GPS, Galileo, BeiDou and QZSS,
     wavelengths from :data:`FREQUENCY_HZ`; GLONASS observations get NaN wavelengths).  Time tags
@@ -182,7 +182,8 @@ def _read_header(lines: list[str], head: int, path) -> tuple[dict, dict[str, lis
                          f"{lines[0][20:40].strip()!r}: a navigation file given as observations?)")
     hdr: dict = {"version": version, "marker": "", "approx_position_e": None, "antenna_delta_hen_m": None,
                  "receiver": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
-                 "skipped": {"other system": 0, "event": 0, "unreadable epoch": 0}, "time_system": "GPS",
+                 "skipped": {"other system": 0, "event": 0, "unreadable epoch": 0, "unreadable satellite line": 0},
+                 "time_system": "GPS",
                  "epochs_outside_window": 0}
     r2_types: list[str] = []
     r3_types: dict[str, list[str]] = {}
@@ -261,6 +262,9 @@ class _Context:
         return False
 
 
+#: a RINEX 3 satellite: system letter and two digits
+_SATELLITE = re.compile(r"^[GRECJSI]\d\d$")
+
 #: a RINEX 2 epoch line: yy mm dd hh mm ss.sssssss, flag, count
 _RINEX2_EPOCH = re.compile(r"^ [ \d]\d( [ \d]\d){4} [ \d]\d\.\d{7}  \d[ \d]{2}\d")
 
@@ -338,6 +342,9 @@ def _rinex3_epoch(lines: list[str], i: int, ctx: _Context) -> tuple[GnssEpoch | 
     for row in lines[i:i + nsat]:
         s = row[0:3].replace(" ", "0")
         sys_ = s[0]
+        if not _SATELLITE.match(s):
+            ctx.hdr["skipped"]["unreadable satellite line"] += 1          # a corrupt line, not a system
+            continue
         if sys_ not in ctx.systems or sys_ not in ctx.codes:
             ctx.hdr["skipped"]["other system"] += 1
             continue
@@ -373,6 +380,9 @@ def reading_notes(hdr: dict) -> str:
     if skipped.get("unreadable epoch"):
         notes.append(f"{epochs(skipped['unreadable epoch'])} unreadable (a file cut mid-epoch or a corrupt line) "
                      f"skipped")
+    if skipped.get("unreadable satellite line"):
+        n = skipped["unreadable satellite line"]
+        notes.append(f"{n} satellite line{'' if n == 1 else 's'} unreadable (a corrupt line) skipped")
     if hdr.get("out_of_order_epochs"):
         notes.append(f"epochs put in time order ({hdr['out_of_order_epochs']} went back in time)")
     return "; ".join(notes)
