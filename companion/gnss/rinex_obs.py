@@ -98,14 +98,14 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
     (np.array, m, or None), 'antenna_delta_hen_m', 'receiver', 'antenna', 'interval_s' (NaN if
     absent), 'obs_types' (system -> RINEX 3 codes), 'n_epochs', 'skipped' (counts by reason:
     'other system' observations, 'event' records (flags 2-6), 'repeated epoch' time tags,
-    'unreadable epoch', 'unreadable satellite line' (RINEX 3)), 'out_of_order_epochs', 'time_system'.  Epochs come out in time order, one
-    per time tag (:func:`_in_time_order`; :func:`reading_notes` says what was done).  Only
-    satellites of ``systems`` are kept (default GPS only; 'GECJ' for GPS, Galileo, BeiDou and QZSS,
-    wavelengths from :data:`FREQUENCY_HZ`; GLONASS observations get NaN wavelengths).  Time tags
-    of a file in BDT (TIME OF FIRST OBS) are moved to GPS time (+14 s).  Epochs with flag > 1
-    (events) are skipped; flag 1 (power failure) is kept and all its observations are marked
-    ``loss_of_lock``.  ``t_gps_window`` (first, last GPS
-    time, s): epochs outside it are stepped over unparsed ('epochs_outside_window' counts them;
+    'unreadable epoch', 'unreadable satellite line' (RINEX 3)), 'out_of_order_epochs',
+    'time_system'.  Epochs come out in time order, one per time tag (:func:`_in_time_order`;
+    :func:`reading_notes` says what was done).  Only satellites of ``systems`` are kept (default
+    GPS only; 'GECJ' for GPS, Galileo, BeiDou and QZSS, wavelengths from :data:`FREQUENCY_HZ`;
+    GLONASS observations get NaN wavelengths).  Time tags of a file in BDT (TIME OF FIRST OBS) are
+    moved to GPS time (+14 s).  Epochs with flag > 1 (events) are skipped; flag 1 (power failure)
+    is kept and all its observations are marked ``loss_of_lock``.  ``t_gps_window`` (first, last
+    GPS time, s): epochs outside it are stepped over unparsed ('epochs_outside_window' counts them;
     a base file of hours read for a rover of minutes); 'file_span_t_gps' is (first, last) epoch
     of the whole file, read or not (None: no epoch).
     """
