@@ -212,6 +212,24 @@ def load_ubx_capture(path: str, wanted: str | None, store: EphemerisStore, sourc
 WINDOW_TOLERANCE_S = 0.025
 
 
+def read_navigation(path, systems: str) -> list:
+    """``read_rinex_nav`` of one ``--nav`` file, saying what it left out."""
+    counts: dict = {}
+    ephs = read_rinex_nav(path, systems, counts)
+    if note := nav_reading_notes(counts):
+        print(f"navigation file {path}: {note}")
+    return ephs
+
+
+def say_reading_notes(who: str, hdr: dict) -> str:
+    """Print what reading an observation file left out or reordered ('' and nothing printed when
+    nothing); ``who``: 'rover file', 'base files'..."""
+    note = reading_notes(hdr)
+    if note:
+        print(f"{who}: {note}")
+    return note
+
+
 def time_window(args) -> tuple[float, float] | None:
     """``--start`` / ``--end`` (GPST) as GPS seconds, widened by :data:`WINDOW_TOLERANCE_S`; None
     when neither is given."""
@@ -273,11 +291,8 @@ def _load(args):
         klob = klob or ubx_base[2]
     for p in args.nav or []:
         try:
-            counts: dict = {}
-            for e in read_rinex_nav(p, wanted or SUPPORTED_SYSTEMS, counts):
+            for e in read_navigation(p, wanted or SUPPORTED_SYSTEMS):
                 store.add(e)
-            if nav_reading_notes(counts):
-                print(f"navigation file {p}: {nav_reading_notes(counts)}")
             klob = klob or read_rinex_nav_header_iono(p)
         except (ValueError, IndexError) as exc:
             raise GnssProcessingError(f"cannot read navigation file {p}: {exc}") from exc
@@ -292,8 +307,7 @@ def _load(args):
             hdr, rover = read_rinex_obs(args.rover, wanted or SUPPORTED_SYSTEMS, window)
         except (ValueError, IndexError) as exc:
             raise GnssProcessingError(f"cannot read rover observation file {args.rover}: {exc}") from exc
-        if reading_notes(hdr):
-            print(f"rover file: {reading_notes(hdr)}")
+        say_reading_notes("rover file", hdr)
     if not rover and window is None:
         raise GnssProcessingError(f"no observation epochs in {args.rover}")
     rover = in_window(rover, window, args.rover, hdr)
@@ -320,8 +334,7 @@ def _load(args):
             except (ValueError, IndexError) as exc:
                 raise GnssProcessingError(f"cannot read base observation file(s) {' '.join(bases)}: {exc}") \
                     from exc
-            if reading_notes(bhdr):
-                print(f"base file{'s' if len(bases) > 1 else ''}: {reading_notes(bhdr)}")
+            say_reading_notes("base files" if len(bases) > 1 else "base file", bhdr)
         if args.base_xyz and args.base_xyz.strip().lower() == "spp":
             raise GnssProcessingError("--base-xyz spp: only with --mode rtk (DGPS corrections from a base position "
                                       "metres off shift the rover by as much); give --base-xyz X,Y,Z")

@@ -18,10 +18,10 @@ from ..nav.earth import C_n_e, ecef_to_geodetic, ecef_to_ned
 from .ephemeris_store import EphemerisStore
 from .pos_format import gpst_calendar, write_pos
 from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, in_window, load_ubx_capture,
-                          median_spp_position, parse_systems, parse_xyz, satellites_by_system, statistics,
-                          time_window, write_plot, write_tracks)
-from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
-from .rinex_obs import read_rinex_obs, read_rinex_obs_files, reading_notes
+                          median_spp_position, parse_systems, parse_xyz, read_navigation, satellites_by_system,
+                          say_reading_notes, statistics, time_window, write_plot, write_tracks)
+from .rinex import read_rinex_nav_header_iono
+from .rinex_obs import read_rinex_obs, read_rinex_obs_files
 from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, check_epochs, glonass_ar_of, pos_records, solve_rtk_epochs
 from ..rtk_signals import RTK_FIRST_SIGNALS
@@ -215,17 +215,14 @@ def run_rtk(args) -> int:
         hb, base, base_ephs, base_klob = _rtk_base(bases, wanted or RTK_POST_SYSTEMS,
                                                    int(rover[0].t_gps // SECONDS_PER_WEEK), span)
         check_epochs(rover, hb, base)
-        notes = {who: reading_notes(h) for who, h in (("rover", hr), ("base", hb)) if reading_notes(h)}
-        for who, text in notes.items():
-            print(f"{who} file{'s' if who == 'base' and len(bases) > 1 else ''}: {text}")
+        notes = {who: note for who, h, label in (("rover", hr, "rover file"),
+                                                  ("base", hb, "base files" if len(bases) > 1 else "base file"))
+                 if (note := say_reading_notes(label, h))}
         if not wanted:
             cfg = dataclasses.replace(cfg, systems=_auto_rtk_systems(cfg, hr, hb))
         ephs = [e for e in ephs + base_ephs if e.sat[0] in cfg.systems]
         for p in args.nav or []:
-            counts: dict = {}
-            ephs += read_rinex_nav(p, cfg.systems, counts)
-            if nav_reading_notes(counts):
-                print(f"navigation file {p}: {nav_reading_notes(counts)}")
+            ephs += read_navigation(p, cfg.systems)
         if not ephs and not args.nav:
             raise GnssProcessingError(f"no ephemeris of the selected systems ({cfg.systems}): neither capture "
                                       f"brings them (RXM-SFRBX, RTCM 1019/1042/1044/1045/1046); give --nav")
