@@ -17,8 +17,10 @@ def _add_gnss(sub) -> None:
     p = sub.add_parser("gnss", help="post-process RINEX observations (SPP, DGPS or RTK), RTKLIB-style; "
                                     "'gnss configure': set a u-blox receiver up")
     # --rover/--nav are checked in _run_gnss, not by argparse: 'companion gnss configure' has neither
-    p.add_argument("--rover", help="rover RINEX observation file (2.x or 3.x), or a u-blox capture (.ubx with "
-                                   "RXM-RAWX and RXM-SFRBX); required")
+    p.add_argument("--rover", nargs="+", metavar="ROVER",
+                   help="rover RINEX observation file(s) (2.x or 3.x), or a u-blox capture (.ubx with RXM-RAWX and "
+                        "RXM-SFRBX); required.  Several RINEX files of one receiver (hourly files, a logger "
+                        "restarted) are read as one")
     p.add_argument("--nav", action="append",
                    help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides; GLONASS's for "
                         "--mode rtk --sys with R); may be repeated; "

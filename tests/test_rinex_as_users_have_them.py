@@ -267,7 +267,7 @@ def test_a_navigation_file_cut_mid_record_or_with_a_corrupt_line_loses_that_reco
     assert "bad.rnx: 1 record unreadable (a file cut mid-record or a corrupt line) skipped" in capsys.readouterr().out
 
 
-def _split_rinex3(src, tmp_path, parts: int) -> list:
+def _split_rinex3(src, tmp_path, parts: int, stem: str = "base") -> list:
     """A RINEX 3 file cut into ``parts`` files of consecutive epochs, each with the header (a
     CORS's hourly files), written last part first."""
     text = hatanaka_text(src)
@@ -278,7 +278,7 @@ def _split_rinex3(src, tmp_path, parts: int) -> list:
     size = -(-len(epochs) // parts)
     out = []
     for k in reversed(range(parts)):
-        p = tmp_path / f"base_part{k}.rnx"
+        p = tmp_path / f"{stem}_part{k}.rnx"
         p.write_text(head + "\n".join(epochs[k * size:(k + 1) * size]) + "\n")
         out.append(p)
     return out
@@ -309,3 +309,39 @@ def test_several_base_files_of_one_station_are_one_base(tmp_path, capsys):
     assert main(["gnss", "--rover", str(car / "rover.crx.gz"), "--nav", str(car / "nav.rnx.gz"), "--mode", "dgps",
                  "--base", str(car / "base.crx.gz"), str(capture)]) == 2
     assert "a u-blox or RTCM capture is given alone" in capsys.readouterr().err
+
+
+def test_several_rover_files_of_one_receiver_are_one_rover(tmp_path, capsys):
+    """The moving car's rover file cut in three (given last first, as a shell's glob may not):
+    the same RTK and SPP solutions as the whole file, its name in the titles; files of another
+    receiver (its type, or its serial number for two of one model) are refused, not read as the
+    rover jumping between them."""
+    import json
+    from companion.cli import main
+    car = data_path("cssrlib-fujisawa-car-2021")
+    parts = _split_rinex3(car / "rover.crx.gz", tmp_path, 3, stem="rover")
+    common = ["--nav", str(car / "nav.rnx.gz"), "--base", str(car / "base.crx.gz")]
+    res = {}
+    for mode in ("rtk", "spp"):
+        for name, rover in (("whole", [car / "rover.crx.gz"]), ("parts", parts)):
+            js = tmp_path / f"{mode}_{name}.json"
+            assert main(["gnss", "--rover", *map(str, rover), *common, "--mode", mode, "--json", str(js),
+                         "--kml", str(tmp_path / f"{mode}_{name}.kml")]) == 0
+            res[mode, name] = json.loads(js.read_text())
+        whole, cut = res[mode, "whole"], res[mode, "parts"]
+        assert cut["epochs"] == whole["epochs"] == 360
+        assert [s["r_e"] for s in cut["solutions"]] == [s["r_e"] for s in whole["solutions"]]
+    assert res["rtk", "parts"]["fixed"] >= 350
+    assert "rover_part2.rnx and 2 more" in (tmp_path / "rtk_parts.kml").read_text()
+    capsys.readouterr()
+    assert main(["gnss", "--rover", str(parts[0]), str(car / "base.crx.gz"), *common, "--mode", "rtk"]) == 2
+    assert "is not of the receiver of" in capsys.readouterr().err
+    sep = data_path("matrtklib-septentrio-static-2024")     # two mosaic-X5s: only the serials differ
+    assert main(["gnss", "--rover", str(sep / "rover.crx.gz"), str(sep / "base.crx.gz"), "--nav",
+                 str(sep / "base.nav.gz"), "--base", str(sep / "base.crx.gz"), "--mode", "rtk"]) == 2
+    assert "receiver number '3605054', not '3604480'" in capsys.readouterr().err
+    raised = tmp_path / "raised.rnx"           # the antenna lifted between two files: one offset cannot serve both
+    raised.write_text(re.sub(r".*ANTENNA: DELTA H/E/N", f"{1.5:14.4f}{0:14.4f}{0:14.4f}" + " " * 18
+                             + "ANTENNA: DELTA H/E/N", parts[1].read_text(), count=1))
+    assert main(["gnss", "--rover", str(parts[0]), str(raised), *common, "--mode", "rtk"]) == 2
+    assert "has another antenna offset (ANTENNA: DELTA H/E/N)" in capsys.readouterr().err

@@ -151,13 +151,14 @@ def test_without_pyrtklib5_the_command_says_which_extra_before_processing(monkey
     assert "epochs solved" not in captured.out                 # refused before the processing
 
 
-def test_demo5_is_given_several_base_files_as_one(tmp_path):
-    """A base cut into three files (a CORS's hourly files): demo5 reads them joined and solves as
-    from the whole file."""
+def test_demo5_is_given_several_files_of_a_receiver_as_one(tmp_path):
+    """A base cut into three files (a CORS's hourly files) and the rover into two: demo5 reads
+    each joined and solves as from the whole files."""
     from tests.test_rinex_as_users_have_them import _split_rinex3
     rover, base, navs, base_xyz, _ = SETS["Septentrio pair"]
     whole = run_demo5(rover, base, navs, base_xyz, systems="G", work=tmp_path / "whole")
-    parts = run_demo5(rover, _split_rinex3(base, tmp_path, 3), navs, base_xyz, systems="G", work=tmp_path / "parts")
+    parts = run_demo5(_split_rinex3(rover, tmp_path, 2, stem="rover"), _split_rinex3(base, tmp_path, 3), navs,
+                      base_xyz, systems="G", work=tmp_path / "parts")
     assert len(parts.fixed) == len(whole.fixed) >= 100
     assert all(t0 == t1 and np.allclose(r0, r1, atol=1e-4) for (t0, r0), (t1, r1) in zip(parts.fixed, whole.fixed))
 

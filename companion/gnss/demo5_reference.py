@@ -82,7 +82,7 @@ def _plain(src, work: Path, index: int | str) -> str:
 
 
 def _joined_plain(srcs, work: Path, index: int) -> str:
-    """Several observation files of one station as one plain RINEX for demo5: the first file,
+    """Several observation files of one receiver as one plain RINEX for demo5: the first file,
     then the epochs of the others (RTKLIB sorts them and drops what repeats); their observation
     types must be the same, as one header describes them all."""
     texts = [Path(_plain(src, work, f"{index}.{k}")).read_text(errors="replace") for k, src in enumerate(srcs)]
@@ -96,8 +96,8 @@ def _joined_plain(srcs, work: Path, index: int) -> str:
     for src, text in zip(srcs[1:], texts[1:]):
         types, body = split(text)
         if types != types0:
-            raise RuntimeError(f"demo5 is given the base files as one: {src} has other observation types than "
-                               f"{srcs[0]}")
+            raise RuntimeError(f"demo5 is given a receiver's files as one: {src} has other observation types "
+                               f"than {srcs[0]}")
         out += body.rstrip("\n") + "\n"
     joined = work / f"{index}_joined.obs"
     joined.write_text(out)
@@ -107,8 +107,8 @@ def _joined_plain(srcs, work: Path, index: int) -> str:
 def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0, 0.0, 0.0), systems: str = "GEJ",
               mask_deg: float = 10.0, glonass_ar: str = "off", direction: str = "forward",
               frequencies: str = "l1+l2", static: bool = False, work: Path | None = None) -> Demo5Run:
-    """demo5's kinematic RTK of ``rover`` against ``base`` (RINEX observation files; the base
-    may be several files of one station) with the
+    """demo5's kinematic RTK of ``rover`` against ``base`` (RINEX observation files; each may be
+    several files of one receiver) with the
     navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m), the rover's
     antenna ``rover_antenna_delta_hen`` (up, east, north, m) above its marker (the RTK run's
     ``info['rover_antenna_delta_hen_m']``, from the rover header); ``frequencies``
@@ -122,8 +122,8 @@ def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0
     with tempfile.TemporaryDirectory(prefix="companion-demo5-") as tmp:
         work = Path(work or tmp)
         work.mkdir(parents=True, exist_ok=True)
-        bases = [base] if isinstance(base, (str, Path)) else list(base)
-        files = [_plain(rover, work, 0),
+        rovers, bases = ([f] if isinstance(f, (str, Path)) else list(f) for f in (rover, base))
+        files = [_plain(rovers[0], work, 0) if len(rovers) == 1 else _joined_plain(rovers, work, 0),
                  _plain(bases[0], work, 1) if len(bases) == 1 else _joined_plain(bases, work, 1),
                  *(_plain(f, work, i + 2) for i, f in enumerate(navs))]
         up, east, north = (float(v) for v in rover_antenna_delta_hen)

@@ -46,7 +46,7 @@ from .pos_format import Q_DGPS, Q_SINGLE, PosRecord, parse_gpst, span_text, writ
 from .prepare import CarrierSmoother
 from .atmosphere import KLOBUCHAR_DEFAULT
 from .rinex import nav_reading_notes, read_rinex_nav, read_rinex_nav_header_iono
-from .rinex_obs import read_rinex_obs, read_rinex_obs_files, reading_notes
+from .rinex_obs import read_rinex_obs_files, reading_notes
 from .glonass import frequency_channels, with_fdma_wavelengths
 from .signals import GLONASS, PREPARED_SYSTEMS, SUPPORTED_SYSTEMS
 from .rtk_post import RTK_POST_SYSTEMS, antenna_delta_e, check_epochs
@@ -258,19 +258,37 @@ def in_window(epochs, window, path, hdr: dict | None = None) -> list:
     return kept
 
 
+def observation_files(args, who: str = "base") -> list[str]:
+    """``--rover``'s or ``--base``'s files (``who``): several RINEX files of one receiver, or one
+    capture."""
+    given = getattr(args, who, None)
+    files = [given] if isinstance(given, str) else list(given or [])
+    if len(files) > 1 and any(is_ubx_capture(p) or is_rtcm_capture(p) for p in files):
+        raise GnssProcessingError(f"--{who}: several files only as RINEX observation files of one "
+                                  f"{'station' if who == 'base' else 'receiver'}; a u-blox or RTCM capture is "
+                                  "given alone")
+    return files
+
+
 def base_files(args) -> list[str]:
     """``--base``'s files (several RINEX files of one station, or one capture)."""
-    base = getattr(args, "base", None)
-    files = [base] if isinstance(base, str) else list(base or [])
-    if len(files) > 1 and any(is_ubx_capture(p) or is_rtcm_capture(p) for p in files):
-        raise GnssProcessingError("--base: several files only as RINEX observation files of one station; "
-                                  "a u-blox or RTCM capture is given alone")
-    return files
+    return observation_files(args, "base")
+
+
+def rover_files(args) -> list[str]:
+    """``--rover``'s files (several RINEX files of one receiver, or one capture)."""
+    return observation_files(args, "rover")
+
+
+def files_label(paths) -> str:
+    """A title's name for observation files: the first file's name, and how many more."""
+    return Path(paths[0]).name + (f" and {len(paths) - 1} more" if len(paths) > 1 else "")
 
 
 def _load(args):
     bases = base_files(args)
-    for p in [args.rover, *(args.nav or []), *bases]:
+    rovers = rover_files(args)
+    for p in [*rovers, *(args.nav or []), *bases]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
     wanted = parse_systems(getattr(args, "sys", None), PREPARED_SYSTEMS)   # GLONASS when asked
@@ -279,8 +297,8 @@ def _load(args):
     ubx_rover = ubx_base = None
     base_is_ubx = args.mode == "dgps" and len(bases) == 1 and is_ubx_capture(bases[0])
     window = time_window(args)
-    if is_ubx_capture(args.rover):
-        ubx_rover = load_ubx_capture(args.rover, wanted, store)
+    if is_ubx_capture(rovers[0]):
+        ubx_rover = load_ubx_capture(rovers[0], wanted, store)
         klob = ubx_rover[2]
     elif not args.nav and not base_is_ubx:
         raise GnssProcessingError("--nav is required with a RINEX rover file (a u-blox .ubx capture brings "
@@ -304,13 +322,13 @@ def _load(args):
         hdr, rover = ubx_rover[0], ubx_rover[1]
     else:
         try:
-            hdr, rover = read_rinex_obs(args.rover, wanted or SUPPORTED_SYSTEMS, window)
+            hdr, rover = read_rinex_obs_files(rovers, wanted or SUPPORTED_SYSTEMS, window, moving=True)
         except (ValueError, IndexError) as exc:
-            raise GnssProcessingError(f"cannot read rover observation file {args.rover}: {exc}") from exc
-        say_reading_notes("rover file", hdr)
+            raise GnssProcessingError(f"cannot read rover observation file(s) {' '.join(rovers)}: {exc}") from exc
+        say_reading_notes("rover files" if len(rovers) > 1 else "rover file", hdr)
     if not rover and window is None:
-        raise GnssProcessingError(f"no observation epochs in {args.rover}")
-    rover = in_window(rover, window, args.rover, hdr)
+        raise GnssProcessingError(f"no observation epochs in {' '.join(rovers)}")
+    rover = in_window(rover, window, ' '.join(rovers), hdr)
     # default: every supported system that has both observations and ephemerides
     with_eph = {s[0] for s in store.sats}
     observed = {o.sat[0] for ep in rover for o in ep.observations}
@@ -454,12 +472,12 @@ def _run(args) -> int:
             json.dump({**summary, "solutions": rows}, fh, indent=1)
     q = Q_DGPS if args.mode == "dgps" else Q_SINGLE
     records = [PosRecord(s.t_gps, s.r_e, s.cov_r_e, q, s.n_sats) for s in solved]
-    write_tracks(args, records, f"companion gnss {args.mode}: {Path(args.rover).name}")
-    write_plot(args, records, f"companion gnss {args.mode} ({opts.signal}): {Path(args.rover).name}", truth)
+    write_tracks(args, records, f"companion gnss {args.mode}: {files_label(rover_files(args))}")
+    write_plot(args, records, f"companion gnss {args.mode} ({opts.signal}): {files_label(rover_files(args))}", truth)
     if args.pos:
         write_pos(args.pos, records,
                   program=f"companion gnss {args.mode} ({opts.signal})",
-                  inputs=[args.rover, *(args.nav or []), *base_files(args)],
+                  inputs=[*rover_files(args), *(args.nav or []), *base_files(args)],
                   options={"pos mode": "single" if args.mode == "spp" else "dgps",
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg", "navi sys": ",".join(systems),
                            "ionos opt": iono})

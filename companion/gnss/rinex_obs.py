@@ -142,12 +142,15 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
 SAME_STATION_M = 1.0
 
 
-def read_rinex_obs_files(paths, systems: str = "G", t_gps_window: tuple[float, float] | None = None
-                         ) -> tuple[dict, list[GnssEpoch]]:
-    """Several observation files of one station (a CORS's hourly or 15-min files) read as one:
-    the first file's header, with 'files', the counts summed and 'file_span_t_gps' over all; the
-    epochs of all in time order, one per time tag.  Files whose header positions are more than
-    :data:`SAME_STATION_M` apart are refused (two stations are not one base)."""
+def read_rinex_obs_files(paths, systems: str = "G", t_gps_window: tuple[float, float] | None = None,
+                         *, moving: bool = False) -> tuple[dict, list[GnssEpoch]]:
+    """Several observation files of one receiver (a CORS's hourly or 15-min files, a rover's logger
+    restarted) read as one: the first file's header, with 'files', the counts summed and
+    'file_span_t_gps' over all; the epochs of all in time order, one per time tag.  Refused: files
+    of two stations (header positions more than :data:`SAME_STATION_M` apart; ``moving``, a
+    rover's, whose header positions are wherever it was: two marker names, receiver
+    numbers or types or antenna types instead), and files
+    whose antenna heights differ (one antenna offset is applied to all)."""
     paths = list(paths)
     hdr, epochs = read_rinex_obs(paths[0], systems, t_gps_window)
     if len(paths) == 1:
@@ -155,10 +158,7 @@ def read_rinex_obs_files(paths, systems: str = "G", t_gps_window: tuple[float, f
     hdr = dict(hdr, files=[str(p) for p in paths], skipped=dict(hdr["skipped"]))
     for path in paths[1:]:
         h, more = read_rinex_obs(path, systems, t_gps_window)
-        a, b = hdr["approx_position_e"], h["approx_position_e"]
-        if a is not None and b is not None and float(np.linalg.norm(a - b)) > SAME_STATION_M:
-            raise ValueError(f"{path} is not of the station of {paths[0]}: their header positions are "
-                             f"{np.linalg.norm(a - b):.1f} m apart")
+        _check_same_receiver(hdr, h, paths[0], path, moving)
         for k, n in h["skipped"].items():
             hdr["skipped"][k] = hdr["skipped"].get(k, 0) + n
         for k in ("out_of_order_epochs", "epochs_outside_window"):
@@ -173,6 +173,25 @@ def read_rinex_obs_files(paths, systems: str = "G", t_gps_window: tuple[float, f
     return hdr, epochs
 
 
+def _check_same_receiver(first: dict, other: dict, first_path, path, moving: bool) -> None:
+    """ValueError when ``path``'s header says another receiver or antenna offset than the first file's."""
+    if moving:
+        for key, what in (("marker", "marker"), ("receiver_number", "receiver number"), ("receiver", "receiver"),
+                          ("antenna", "antenna")):
+            a, b = first.get(key), other.get(key)
+            if a and b and a != b:
+                raise ValueError(f"{path} is not of the receiver of {first_path}: {what} {b!r}, not {a!r}")
+    else:
+        a, b = first["approx_position_e"], other["approx_position_e"]
+        if a is not None and b is not None and float(np.linalg.norm(a - b)) > SAME_STATION_M:
+            raise ValueError(f"{path} is not of the station of {first_path}: their header positions are "
+                             f"{np.linalg.norm(a - b):.1f} m apart")
+    a, b = first["antenna_delta_hen_m"], other["antenna_delta_hen_m"]
+    if not np.allclose(a if a is not None else np.zeros(3), b if b is not None else np.zeros(3), atol=1e-3):
+        raise ValueError(f"{path} has another antenna offset (ANTENNA: DELTA H/E/N) than {first_path}: "
+                         "process them apart")
+
+
 def _read_header(lines: list[str], head: int, path) -> tuple[dict, dict[str, list[str]]]:
     """(the header dict, system -> the RINEX 3 codes of its observation fields)."""
     version = header_float(lines[0][:9])
@@ -181,7 +200,7 @@ def _read_header(lines: list[str], head: int, path) -> tuple[dict, dict[str, lis
         raise ValueError(f"{path}: not a RINEX observation file (RINEX VERSION / TYPE says "
                          f"{lines[0][20:40].strip()!r}: a navigation file given as observations?)")
     hdr: dict = {"version": version, "marker": "", "approx_position_e": None, "antenna_delta_hen_m": None,
-                 "receiver": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
+                 "receiver": "", "receiver_number": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
                  "skipped": {"other system": 0, "event": 0, "unreadable epoch": 0, "unreadable satellite line": 0},
                  "time_system": "GPS",
                  "epochs_outside_window": 0}
@@ -199,6 +218,7 @@ def _read_header(lines: list[str], head: int, path) -> tuple[dict, dict[str, lis
             hdr["antenna_delta_hen_m"] = np.array([header_float(ln[0:14]), header_float(ln[14:28]),
                                                    header_float(ln[28:42])])
         elif label == "REC # / TYPE / VERS":
+            hdr["receiver_number"] = ln[:20].strip()
             hdr["receiver"] = ln[20:40].strip()
         elif label == "ANT # / TYPE":
             hdr["antenna"] = ln[20:40].strip()

@@ -17,11 +17,12 @@ from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GpsEphemeris
 from ..nav.earth import C_n_e, ecef_to_geodetic, ecef_to_ned
 from .ephemeris_store import EphemerisStore
 from .pos_format import gpst_calendar, write_pos
-from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, in_window, load_ubx_capture,
-                          median_spp_position, parse_systems, parse_xyz, read_navigation, satellites_by_system,
-                          say_reading_notes, statistics, time_window, write_plot, write_tracks)
+from .postprocess import (GnssProcessingError, base_files, epoch_progress, epochs_of, files_label, in_window,
+                          load_ubx_capture, median_spp_position, parse_systems, parse_xyz, read_navigation,
+                          rover_files, satellites_by_system, say_reading_notes, statistics, time_window, write_plot,
+                          write_tracks)
 from .rinex import read_rinex_nav_header_iono
-from .rinex_obs import read_rinex_obs, read_rinex_obs_files
+from .rinex_obs import read_rinex_obs_files
 from .rtk import RtkConfig
 from .rtk_post import RTK_POST_SYSTEMS, check_epochs, glonass_ar_of, pos_records, solve_rtk_epochs
 from ..rtk_signals import RTK_FIRST_SIGNALS
@@ -59,14 +60,15 @@ def _rtk_base(paths: list[str], systems: str, week: int, t_gps_window: tuple[flo
     return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass, None
 
 
-def _rtk_rover(path: str, systems: str, window: tuple[float, float] | None = None):
-    """(header, epochs, ephemerides, Klobuchar or None) of an RTK rover: a RINEX observation file,
-    or a u-blox capture; ``window`` (GPS s): ``--start`` / ``--end``."""
-    if not is_ubx_capture(path):
-        hdr, epochs = read_rinex_obs(path, systems, window)
-        return hdr, in_window(epochs, window, path, hdr), [], None
-    hdr, epochs, ephs, klob = _ubx_epochs(path, systems, "rover")
-    return hdr, in_window(epochs, window, path), ephs, klob
+def _rtk_rover(paths: list[str], systems: str, window: tuple[float, float] | None = None):
+    """(header, epochs, ephemerides, Klobuchar or None) of an RTK rover: RINEX observation files of
+    one receiver (read as one), or a u-blox capture; ``window`` (GPS s): ``--start`` / ``--end``."""
+    name = " ".join(map(str, paths))
+    if not is_ubx_capture(paths[0]):
+        hdr, epochs = read_rinex_obs_files(paths, systems, window, moving=True)
+        return hdr, in_window(epochs, window, name, hdr), [], None
+    hdr, epochs, ephs, klob = _ubx_epochs(paths[0], systems, "rover")
+    return hdr, in_window(epochs, window, name), ephs, klob
 
 
 def _ubx_epochs(path: str, systems: str, source: str):
@@ -104,7 +106,7 @@ def _check_demo5_inputs(args) -> None:
     """``--against-demo5`` before any processing: demo5 installed, and RINEX files for it to read."""
     from .demo5_reference import require_demo5
     require_demo5()
-    captures = [p for p in (args.rover, *base_files(args)) if is_ubx_capture(p) or is_rtcm_capture(p)]
+    captures = [p for p in (*rover_files(args), *base_files(args)) if is_ubx_capture(p) or is_rtcm_capture(p)]
     if captures or not args.nav:
         raise GnssProcessingError("--against-demo5 needs RINEX rover and base files and --nav (demo5 is given the "
                                   "same files; " + (f"{', '.join(captures)} is a capture" if captures
@@ -117,7 +119,7 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
     from .demo5_reference import compare, run_demo5
     print("running RTKLIB demo5 on the same files ...", flush=True)
     try:
-        theirs = run_demo5(args.rover, base_files(args), args.nav, info["base_antenna_e"],
+        theirs = run_demo5(rover_files(args), base_files(args), args.nav, info["base_antenna_e"],
                            rover_antenna_delta_hen=info["rover_antenna_delta_hen_m"], systems=cfg.systems,
                            mask_deg=args.elevation_mask_deg, direction=direction,
                            frequencies="l1" if getattr(args, "freq", None) == "l1" else "l1+l2",
@@ -176,10 +178,11 @@ def _static_result(last, n_epochs: int, truth) -> tuple[dict, str]:
 def run_rtk(args) -> int:
     """``--mode rtk``: kinematic L1+L2 RTK against the base file (companion.gnss.rtk_post)."""
     bases = base_files(args)
-    for p in [args.rover, *(args.nav or []), *bases]:
+    rovers = rover_files(args)
+    for p in [*rovers, *(args.nav or []), *bases]:
         if not Path(p).is_file():
             raise GnssProcessingError(f"file not found: {p}")
-    if not args.nav and not is_ubx_capture(args.rover) and not (len(bases) == 1 and (is_rtcm_capture(bases[0])
+    if not args.nav and not is_ubx_capture(rovers[0]) and not (len(bases) == 1 and (is_rtcm_capture(bases[0])
                                                                                     or is_ubx_capture(bases[0]))):
         raise GnssProcessingError("--mode rtk needs --nav (a u-blox .ubx capture or an RTCM 3 base can bring the "
                                   "ephemerides)")
@@ -207,15 +210,15 @@ def run_rtk(args) -> int:
     if wanted:
         cfg = dataclasses.replace(cfg, systems=wanted)
     try:
-        hr, rover, ephs, klob = _rtk_rover(args.rover, wanted or RTK_POST_SYSTEMS, time_window(args))
+        hr, rover, ephs, klob = _rtk_rover(rovers, wanted or RTK_POST_SYSTEMS, time_window(args))
         if not rover:
-            raise GnssProcessingError(f"no observation epochs in {args.rover}")
+            raise GnssProcessingError(f"no observation epochs in {' '.join(rovers)}")
         # a base file of hours for a rover of minutes: only the rover's span (and a base age) is read
         span = (rover[0].t_gps - cfg.max_base_age_s, rover[-1].t_gps + cfg.max_base_age_s)
         hb, base, base_ephs, base_klob = _rtk_base(bases, wanted or RTK_POST_SYSTEMS,
                                                    int(rover[0].t_gps // SECONDS_PER_WEEK), span)
         check_epochs(rover, hb, base)
-        notes = {who: note for who, h, label in (("rover", hr, "rover file"),
+        notes = {who: note for who, h, label in (("rover", hr, "rover files" if len(rovers) > 1 else "rover file"),
                                                   ("base", hb, "base files" if len(bases) > 1 else "base file"))
                  if (note := say_reading_notes(label, h))}
         if not wanted:
@@ -283,12 +286,12 @@ def run_rtk(args) -> int:
         with open(args.json, "w") as fh:
             json.dump({**summary, "solutions": rows}, fh, indent=1)
     records = pos_records(sols)
-    write_tracks(args, records, f"companion gnss rtk: {Path(args.rover).name}")
+    write_tracks(args, records, f"companion gnss rtk: {files_label(rovers)}")
     write_plot(args, records, f"companion gnss rtk ({','.join(by_sys) or ','.join(cfg.systems)}, {direction}): "
-                              f"{Path(args.rover).name}, {n_fix} of {len(sols)} fixed", truth, other=demo5_fixed)
+                              f"{files_label(rovers)}, {n_fix} of {len(sols)} fixed", truth, other=demo5_fixed)
     if args.pos:
         write_pos(args.pos, records, program=f"companion gnss rtk ({freqs}, LAMBDA, fix-and-hold)",
-                  inputs=[args.rover, *bases, *(args.nav or [])],
+                  inputs=[*rovers, *bases, *(args.nav or [])],
                   options={"pos mode": "static" if static else "kinematic", "freqs": freqs, "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
