@@ -345,3 +345,47 @@ def test_several_rover_files_of_one_receiver_are_one_rover(tmp_path, capsys):
                              + "ANTENNA: DELTA H/E/N", parts[1].read_text(), count=1))
     assert main(["gnss", "--rover", str(parts[0]), str(raised), *common, "--mode", "rtk"]) == 2
     assert "has another antenna offset (ANTENNA: DELTA H/E/N)" in capsys.readouterr().err
+
+
+def _in_utc(text: str, system: str, leap_s: int, keep_leap_line: bool) -> str:
+    """A RINEX 3 file in GPS time rewritten with its time tags in UTC and ``system`` ('GLO': what
+    RINEX calls GLONASS's UTC) in TIME OF FIRST OBS; the LEAP SECONDS line kept or dropped."""
+    import datetime as dt
+
+    def back(m):
+        t = dt.datetime(*map(int, m.group(1).split()), int(float(m.group(2)))) - dt.timedelta(seconds=leap_s)
+        return f"> {t:%Y %m %d %H %M} {t.second:2d}.0000000"
+    head, _, body = text.partition("END OF HEADER")
+    head = "\n".join(ln[:48] + f"{system:<3}" + ln[51:] if "TIME OF FIRST OBS" in ln else ln
+                     for ln in head.split("\n") if keep_leap_line or "LEAP SECONDS" not in ln)
+    body = re.sub(r"^> (\d{4} \d\d \d\d \d\d \d\d) +(\d+\.\d{7})", back, body, flags=re.M)
+    return head + "END OF HEADER" + body
+
+
+@pytest.mark.parametrize("system,keep_leap_line", [("GLO", True), ("UTC", False)])
+def test_time_tags_in_utc_are_moved_to_gps_time(system, keep_leap_line, tmp_path):
+    """A file whose TIME OF FIRST OBS says GLO (GLONASS's UTC) or UTC: its tags are GPS time less
+    the leap seconds (the header's LEAP SECONDS, else the table's).  Before, they were taken as GPS
+    time, 18 s off: every satellite 18 s off in its orbit, kilometres."""
+    sep = data_path("matrtklib-septentrio-static-2024")
+    _, gps = read_rinex_obs(sep / "rover.crx.gz", "GEJ")
+    p = tmp_path / "utc.rnx"
+    p.write_text(_in_utc(hatanaka_text(sep / "rover.crx.gz"), system, 18, keep_leap_line))
+    hdr, utc = read_rinex_obs(p, "GEJ")
+    assert hdr["time_system"] == system and hdr["time_tag_to_gps_s"] == 18.0
+    assert [e.t_gps for e in utc] == [e.t_gps for e in gps] and len(utc) == 120
+    assert f"time tags in {system} (UTC) moved to GPS time (+18 s)" in reading_notes(hdr)
+
+
+def test_a_glonass_only_file_without_a_time_system_is_in_utc(tmp_path):
+    """RINEX 2.11: a pure GLONASS file may leave the time system blank, and is then in UTC (GLO).
+    GEONET's file relabelled GLONASS-only: its tags move by 2005's 13 leap seconds."""
+    lines = ROVER.read_text().splitlines()
+    lines[0] = lines[0][:40] + "R (GLONASS)".ljust(20) + lines[0][60:]
+    lines = [ln[:48] + "   " + ln[51:] if "TIME OF FIRST OBS" in ln else ln for ln in lines]
+    p = tmp_path / "glonass_only.05o"
+    p.write_text("\n".join(lines) + "\n")
+    _, gps = read_rinex_obs(ROVER, "G")
+    hdr, utc = read_rinex_obs(p, "G")
+    assert hdr["time_system"] == "GLO"
+    assert [e.t_gps for e in utc] == [e.t_gps + 13.0 for e in gps]

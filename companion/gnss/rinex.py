@@ -190,7 +190,7 @@ def read_rinex_nav(path, systems: str = "GECJ", counts: dict | None = None) -> l
     out: list[GpsEphemeris] = []
     recs: list[tuple[GpsEphemeris, bool]] = []
     glonass: list[GlonassEphemeris] = []
-    leap_s = _header_leap_seconds(lines, head)
+    leap_s = header_leap_seconds(lines, head)
     i = head
     n = len(lines)
     if version < 3:
@@ -289,8 +289,9 @@ def _next_record(lines: list[str], i: int, first_line: re.Pattern) -> int:
     return i
 
 
-def _header_leap_seconds(lines: list[str], head: int) -> int | None:
-    """GPS - UTC from a RINEX 3 header's LEAP SECONDS line, None without one."""
+def header_leap_seconds(lines: list[str], head: int) -> int | None:
+    """GPS - UTC from a RINEX 3 header's LEAP SECONDS line (navigation or observation file), None
+    without one."""
     for ln in lines[:head]:
         if ln[60:].strip().startswith("LEAP SECONDS"):
             try:

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rinex import calendar_to_t_gps, header_end, header_float, open_text
+from .glonass import gps_minus_utc_s
+from .rinex import calendar_to_t_gps, header_end, header_float, header_leap_seconds, open_text
 from .signals import FREQUENCY_HZ
 from ..messages import SPEED_OF_LIGHT_MPS, SYSTEM_TO_GPS_S, GnssEpoch, SatObservation
 
@@ -102,8 +103,9 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
     'time_system'.  Epochs come out in time order, one per time tag (:func:`_in_time_order`;
     :func:`reading_notes` says what was done).  Only satellites of ``systems`` are kept (default
     GPS only; 'GECJ' for GPS, Galileo, BeiDou and QZSS, wavelengths from :data:`FREQUENCY_HZ`;
-    GLONASS observations get NaN wavelengths).  Time tags of a file in BDT (TIME OF FIRST OBS) are
-    moved to GPS time (+14 s).  Epochs with flag > 1 (events) are skipped; flag 1 (power failure)
+    GLONASS observations get NaN wavelengths).  Time tags of a file in BDT (TIME OF FIRST OBS, or
+    a BeiDou-only file's default) are moved to GPS time (+14 s), in GLO or UTC by the leap seconds
+    ('time_tag_to_gps_s').  Epochs with flag > 1 (events) are skipped; flag 1 (power failure)
     is kept and all its observations are marked ``loss_of_lock``.  ``t_gps_window`` (first, last
     GPS time, s): epochs outside it are stepped over unparsed ('epochs_outside_window' counts them;
     a base file of hours read for a rover of minutes); 'file_span_t_gps' is (first, last) epoch
@@ -114,7 +116,8 @@ def read_rinex_obs(path, systems: str = "G", t_gps_window: tuple[float, float] |
     hdr, codes = _read_header(lines, head, path)
     version = hdr["version"]
     ctx = _Context(hdr, codes, systems, *(t_gps_window or (-math.inf, math.inf)),
-                   dt_tag=SYSTEM_TO_GPS_S["C"] if hdr["time_system"] == "BDT" else 0.0)
+                   dt_tag=_tag_to_gps_s(hdr, lines, head))
+    hdr["time_tag_to_gps_s"] = ctx.dt_tag
     read_epoch = _rinex2_epoch if version < 3 else _rinex3_epoch
     epochs: list[GnssEpoch] = []
     i, n = head, len(lines)
@@ -192,6 +195,26 @@ def _check_same_receiver(first: dict, other: dict, first_path, path, moving: boo
                          "process them apart")
 
 
+#: RINEX 2.11 and 3: TIME OF FIRST OBS may leave the time system blank in a single-system file,
+#: which is then in that system's time ('GLO' is UTC(SU), the time GLONASS broadcasts in)
+_DEFAULT_TIME_SYSTEM = {"G": "GPS", "R": "GLO", "E": "GAL", "C": "BDT", "J": "QZS", "M": "GPS"}
+
+
+def _tag_to_gps_s(hdr: dict, lines: list[str], head: int) -> float:
+    """What to add to the file's time tags for GPS time: +14 s in BDT; in 'GLO' (GLONASS's UTC, as
+    RINEX names it) or 'UTC', the leap seconds (the header's LEAP SECONDS, else the table's at the
+    first epoch), as RTKLIB does; GAL and QZS are steered to GPS time."""
+    system = hdr["time_system"]
+    if system == "BDT":
+        return SYSTEM_TO_GPS_S["C"]
+    if system in ("GLO", "UTC"):
+        leap = header_leap_seconds(lines, head)
+        if leap is None:
+            leap = gps_minus_utc_s(hdr.get("first_obs_calendar_t", 0.0))
+        return float(leap)
+    return 0.0
+
+
 def _read_header(lines: list[str], head: int, path) -> tuple[dict, dict[str, list[str]]]:
     """(the header dict, system -> the RINEX 3 codes of its observation fields)."""
     version = header_float(lines[0][:9])
@@ -202,7 +225,7 @@ def _read_header(lines: list[str], head: int, path) -> tuple[dict, dict[str, lis
     hdr: dict = {"version": version, "marker": "", "approx_position_e": None, "antenna_delta_hen_m": None,
                  "receiver": "", "receiver_number": "", "antenna": "", "interval_s": float("nan"), "obs_types": {},
                  "skipped": {"other system": 0, "event": 0, "unreadable epoch": 0, "unreadable satellite line": 0},
-                 "time_system": "GPS",
+                 "time_system": _DEFAULT_TIME_SYSTEM.get(lines[0][40:41].upper(), "GPS"),
                  "epochs_outside_window": 0}
     r2_types: list[str] = []
     r3_types: dict[str, list[str]] = {}
@@ -224,8 +247,13 @@ def _read_header(lines: list[str], head: int, path) -> tuple[dict, dict[str, lis
             hdr["antenna"] = ln[20:40].strip()
         elif label == "INTERVAL":
             hdr["interval_s"] = header_float(ln[:10])
-        elif label == "TIME OF FIRST OBS" and ln[48:51].strip():
-            hdr["time_system"] = ln[48:51].strip()
+        elif label == "TIME OF FIRST OBS":
+            hdr["time_system"] = ln[48:51].strip() or hdr["time_system"]
+            try:
+                hdr["first_obs_calendar_t"] = calendar_to_t_gps(*(int(ln[6 * k:6 * k + 6]) for k in range(5)),
+                                                                header_float(ln[30:43]))
+            except ValueError:
+                pass
         elif label == "# / TYPES OF OBSERV":
             if ln[:6].strip():
                 r2_types = []
@@ -270,7 +298,7 @@ class _Context:
     systems: str
     t_first: float                         # the window asked for, GPS s
     t_last: float
-    dt_tag: float = 0.0                    # time tag -> GPS time (BDT files)
+    dt_tag: float = 0.0                    # time tag -> GPS time (BDT, GLO and UTC files)
     span: tuple[float, float] = (math.inf, -math.inf)     # the file's epochs, read or not
 
     def seen(self, t: float) -> bool:
@@ -321,7 +349,7 @@ def _rinex2_epoch(lines: list[str], i: int, ctx: _Context) -> tuple[GnssEpoch | 
             i += 1
             row = lines[i]
     t = calendar_to_t_gps(int(ln[1:3]), int(ln[4:6]), int(ln[7:9]), int(ln[10:12]), int(ln[13:15]),
-                          float(ln[15:26]))
+                          float(ln[15:26])) + ctx.dt_tag
     i += 1
     if not ctx.seen(t):
         return None, i + nsat * nlines_per_sat
@@ -405,4 +433,6 @@ def reading_notes(hdr: dict) -> str:
         notes.append(f"{n} satellite line{'' if n == 1 else 's'} unreadable (a corrupt line) skipped")
     if hdr.get("out_of_order_epochs"):
         notes.append(f"epochs put in time order ({hdr['out_of_order_epochs']} went back in time)")
+    if hdr.get("time_tag_to_gps_s") and hdr.get("time_system") in ("GLO", "UTC"):
+        notes.append(f"time tags in {hdr['time_system']} (UTC) moved to GPS time (+{hdr['time_tag_to_gps_s']:.0f} s)")
     return "; ".join(notes)
