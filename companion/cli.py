@@ -21,9 +21,9 @@ def _add_gnss(sub) -> None:
                    help="rover RINEX observation file(s) (2.x or 3.x), or a u-blox capture (.ubx with RXM-RAWX and "
                         "RXM-SFRBX); required.  Several RINEX files of one receiver (hourly files, a logger "
                         "restarted) are read as one")
-    p.add_argument("--nav", action="append",
-                   help="RINEX navigation file (GPS, Galileo, BeiDou, QZSS broadcast ephemerides; GLONASS's for "
-                        "--mode rtk --sys with R); may be repeated; "
+    p.add_argument("--nav", action="extend", nargs="+", metavar="NAV",
+                   help="RINEX navigation file(s) (GPS, Galileo, BeiDou, QZSS broadcast ephemerides; GLONASS's for "
+                        "--mode rtk --sys with R): several after one --nav (--nav N/*.rnx) or --nav repeated; "
                         "required with a RINEX rover, optional with a .ubx one")
     p.add_argument("--base", nargs="+", metavar="BASE",
                    help="base station RINEX observation file(s) or u-blox capture (RXM-RAWX, RXM-SFRBX) for "

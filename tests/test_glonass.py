@@ -121,6 +121,43 @@ def test_rinex_records_read_with_their_channel_and_the_header_leap_seconds(tmp_p
     assert len(left) == 42 and all(-7 <= e.frequency_channel <= 13 for e in left)
 
 
+def _as_rinex2_glonass(path, leap_line: bool) -> str:
+    """A RINEX 3 file's GLONASS records written as a RINEX 2.11 'G' file (a .g beside a .n, as
+    CORS archives still serve them): 'PP YY MM DD HH MM SS.S', fields two columns to the left."""
+    lines = gzip.open(path, "rt").read().splitlines()
+    out = ["     2.11           G: GLONASS NAV DATA                     RINEX VERSION / TYPE"]
+    if leap_line:
+        out.append(f"{18:6d}" + " " * 54 + "LEAP SECONDS")
+    out.append(" " * 60 + "END OF HEADER")
+    for k, ln in enumerate(lines):
+        if ln.startswith("R"):
+            yy, mo, dd, hh, mi, ss = (int(v) for v in ln[4:23].split())
+            out.append(f"{int(ln[1:3]):2d} {yy % 100:02d}{mo:3d}{dd:3d}{hh:3d}{mi:3d}{ss:5.1f}"
+                       + ln[23:80].replace("E", "D"))
+            out += [ln2[1:].replace("E", "D") for ln2 in lines[k + 1:k + 4]]
+    return "\n".join(out) + "\n"
+
+
+@pytest.mark.parametrize("leap_line", [True, False])
+def test_a_rinex2_glonass_navigation_file_reads_as_its_rinex3_records(leap_line, tmp_path):
+    """A RINEX 2 GLONASS file (.g) gives the ephemerides the same records give in RINEX 3, leap
+    seconds from its header or the date; before, it stopped the run ('not a GPS navigation file')."""
+    from companion.cli import main
+    v3 = [e for e in read_rinex_nav(NAVS[1], "R")]
+    g = tmp_path / "base.24g"
+    g.write_text(_as_rinex2_glonass(NAVS[1], leap_line))
+    v2 = read_rinex_nav(g, "GRECJ")
+    assert len(v2) == len(v3) == 19
+    for a, b in zip(v2, v3):
+        assert (a.sat, a.t_oe_gps, a.frequency_channel, a.health, a.clock_bias_s, a.clock_rate) == \
+            (b.sat, b.t_oe_gps, b.frequency_channel, b.health, b.clock_bias_s, b.clock_rate)
+        assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("r_e", "v_e", "a_e"))
+    assert read_rinex_nav(g, "GECJ") == []                   # GLONASS not asked for
+    # beside a GPS file on the command line: SPP with GLONASS on the Septentrio rover
+    assert main(["gnss", "--rover", str(STATIC / "rover.crx.gz"), "--nav", str(NAVS[1]), str(g), "--sys", "G,R",
+                 "--mode", "spp"]) == 0
+
+
 def test_leap_seconds_by_date():
     day = 86400.0
     assert glonass.gps_minus_utc_s(2134 * 7 * day) == 18            # 2020

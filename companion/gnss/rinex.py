@@ -176,8 +176,8 @@ def _prefer_inav(recs: list[tuple[GpsEphemeris, bool]]) -> list[GpsEphemeris]:
 def read_rinex_nav(path, systems: str = "GECJ", counts: dict | None = None) -> list:
     """Keplerian ephemerides of ``systems`` (GPS, Galileo, BeiDou, QZSS) from a RINEX 2.x GPS ('N'),
     3.x or 4.x navigation file, in file order (Galileo F/NAV records with an I/NAV twin dropped),
-    then, when ``systems`` has 'R', a RINEX 3 file's GLONASS records
-    (:class:`~.glonass.GlonassEphemeris`).  SBAS and NavIC records, RINEX 4's GLONASS and CNAV
+    then, when ``systems`` has 'R', a RINEX 3 file's GLONASS records or a RINEX 2 GLONASS ('G')
+    file's (:class:`~.glonass.GlonassEphemeris`).  SBAS and NavIC records, RINEX 4's GLONASS and CNAV
     ephemerides and its ION / STO / EOP records are skipped.  A record that cannot be read (a file
     cut mid-record, a corrupt line) is left out and counted in ``counts['unreadable records']``;
     reading resumes at the next record's first line."""
@@ -194,8 +194,12 @@ def read_rinex_nav(path, systems: str = "GECJ", counts: dict | None = None) -> l
     i = head
     n = len(lines)
     if version < 3:
-        if lines[0][20:21].upper() not in ("N", " "):
-            raise ValueError(f"{path}: RINEX 2 file is not a GPS navigation file")
+        kind = lines[0][20:21].upper()
+        if kind == "G":                          # 'G: GLONASS NAV DATA' (a .g file beside the .n)
+            return _rinex2_glonass(lines, head, leap_s, counts) if "R" in systems else []
+        if kind not in ("N", " "):
+            raise ValueError(f"{path}: a RINEX 2 navigation file of another kind ({lines[0][20:40].strip()!r}); "
+                             "GPS ('N') and GLONASS ('G') ones are read")
         if "G" not in systems:
             return out
         while i < n:
@@ -301,10 +305,49 @@ def header_leap_seconds(lines: list[str], head: int) -> int | None:
     return None
 
 
-def _glonass_record(lines: list[str], i: int, j: int, leap_s: int | None) -> GlonassEphemeris | None:
-    """The GLONASS record of lines ``i`` to ``j`` (its epoch is UTC; ``leap_s`` from the header,
+def _rinex2_glonass(lines: list[str], head: int, leap_s: int | None, counts: dict) -> list[GlonassEphemeris]:
+    """The GLONASS records of a RINEX 2 'G' file: four lines each, the first 'PP YY MM DD HH MM SS.S'
+    and three fields, then three fields at a time after 3 blanks (RINEX 3's layout, two columns
+    to the left and a two-digit year); a record that cannot be read is counted and skipped."""
+    out = []
+    i, n = head, len(lines)
+    while i < n:
+        ln = lines[i]
+        if not ln.strip():
+            i += 1
+            continue
+        try:
+            if i + 4 > n:
+                raise IndexError("the file ends inside the record")
+            yy, mo, dd, hh, mi = (int(ln[3 + 3 * k:5 + 3 * k]) for k in range(5))
+            vals = [header_float(ln[22:41]), header_float(ln[41:60]), header_float(ln[60:79])]
+            for k in range(1, 4):
+                for c in range(4):
+                    vals.append(header_float(lines[i + k][3 + 19 * c:22 + 19 * c]))
+            eph = _glonass_from_fields(int(ln[0:2]), calendar_to_t_gps(yy, mo, dd, hh, mi, header_float(ln[17:22])),
+                                       vals, leap_s)
+        except (ValueError, IndexError):
+            counts["unreadable records"] += 1
+            i = _next_record(lines, i + 1, _V2_RECORD)
+            continue
+        i += 4
+        if eph is not None:
+            out.append(eph)
+    return out
+
+
+def _glonass_from_fields(prn: int, t_utc: float, vals: list[float], leap_s: int | None) -> GlonassEphemeris | None:
+    """A GLONASS ephemeris from its record's 15 fields (epoch in UTC; ``leap_s`` from the header,
     or by the date when the header has none); None for a record cut short or with a frequency
     channel outside -7..+13 (its carriers would be wrong)."""
+    if len(vals) < 15 or not -7 <= vals[10] <= 13:
+        return None
+    leap = leap_s if leap_s is not None else gps_minus_utc_s(t_utc)
+    return glonass_ephemeris_from_rinex(f"R{prn:02d}", t_utc, leap, vals)
+
+
+def _glonass_record(lines: list[str], i: int, j: int, leap_s: int | None) -> GlonassEphemeris | None:
+    """The GLONASS record of RINEX 3 lines ``i`` to ``j`` (:func:`_glonass_from_fields`)."""
     ln = lines[i]
     yy, mo, dd, hh, mi, ss = (int(ln[4:8]), int(ln[9:11]), int(ln[12:14]), int(ln[15:17]),
                               int(ln[18:20]), header_float(ln[21:23]))
@@ -313,11 +356,7 @@ def _glonass_record(lines: list[str], i: int, j: int, leap_s: int | None) -> Glo
         row = lines[k]
         for c in range(4):
             vals.append(header_float(row[4 + 19 * c:23 + 19 * c]))
-    if len(vals) < 15 or not -7 <= vals[10] <= 13:
-        return None
-    t_utc = calendar_to_t_gps(yy, mo, dd, hh, mi, ss)
-    leap = leap_s if leap_s is not None else gps_minus_utc_s(t_utc)
-    return glonass_ephemeris_from_rinex(f"R{int(ln[1:3]):02d}", t_utc, leap, vals)
+    return _glonass_from_fields(int(ln[1:3]), calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals, leap_s)
 
 
 #: RINEX 4's Keplerian ephemeris messages, the ones read (the legacy navigation messages; CNAV,
