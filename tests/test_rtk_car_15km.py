@@ -44,3 +44,22 @@ def test_fixes_of_independent_systems_agree():
     assert pairs >= 30                     # the test has something to compare (measured 50)
     assert not apart, apart[:5]
     assert len(fixed["GEC"]) >= 36         # fixes a tenth of the drive at least (measured 41)
+
+
+def test_the_command_says_the_baseline_and_that_it_is_long(tmp_path, capsys):
+    """14-15 km: the terminal and the JSON give the baseline, and the terminal says what a fix is
+    worth there (the ionosphere is not estimated); GEONET's 3.3 km gets the length alone."""
+    import json
+    from companion.cli import main
+    js = tmp_path / "car.json"
+    assert main(["gnss", "--rover", str(ROVER), "--base", str(BASE), "--nav", str(NAV), "--mode", "rtk",
+                 "--sys", "G", "--base-xyz", ",".join(map(str, BASE_XYZ)), "--json", str(js)]) == 0
+    out = capsys.readouterr().out
+    baseline = json.loads(js.read_text())["baseline_m"]
+    assert 13e3 < baseline["median"] <= baseline["max"] < 15e3
+    assert "differential ionosphere, not estimated here, can make a fix wrong" in out
+    geonet = data_path("rtklib-testdata-geonet-2005/rinex")
+    assert main(["gnss", "--rover", str(geonet / "07590920.05o"), "--base", str(geonet / "30400920.05o"),
+                 "--nav", str(geonet / "07590920.05n"), "--mode", "rtk"]) == 0
+    out = capsys.readouterr().out
+    assert "baseline: 3.34 km (median), 3.34 km at most\n" in out and "ionosphere" not in out
