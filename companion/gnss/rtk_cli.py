@@ -176,8 +176,8 @@ def _static_result(last, n_epochs: int, truth) -> tuple[dict, str]:
 
 
 #: beyond this baseline the differential ionosphere, which the post-processing filter does not
-#: estimate, reaches the size of a wavelength's fraction the integers cannot absorb (1-2 ppm: 1-3 cm
-#: at 10 km, more at low elevation): fixes there can be wrong by decimetres (README: the 15-km car)
+#: estimate, is 1-3 cm (1-2 ppm) and more at low elevation: enough to pull the float ambiguities
+#: onto wrong integers, decimetres off (README: the 15-km car)
 LONG_BASELINE_M = 10e3
 
 
