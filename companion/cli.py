@@ -60,6 +60,11 @@ def _add_gnss(sub) -> None:
                         "Galileo E1, BeiDou B1I) with Klobuchar; if = dual-frequency iono-free per system.  "
                         "rtk: both frequencies by default; l1 = each system's first one alone (what a "
                         "single-frequency receiver gives)")
+    p.add_argument("--iono", choices=["off", "est"], default="off",
+                   help="rtk: est = estimate the differential ionosphere (one slant delay per satellite, RTKLIB's "
+                        "ionoopt est): a few km of baseline already carry centimetres of it, which 'off' (RTKLIB's "
+                        "and demo5's default) leaves in the position, mostly its height; est needs more satellites "
+                        "or time to fix")
     p.add_argument("--start", metavar="GPST", help="process from this time on, GPST as RTKLIB writes it "
                    "('2021/09/22 06:31:00') or ISO ('2021-09-22T06:31:00'); default: the rover file's first epoch")
     p.add_argument("--end", metavar="GPST", help="process up to this time (GPST, as --start); default: the file's last")

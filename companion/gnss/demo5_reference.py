@@ -106,19 +106,24 @@ def _joined_plain(srcs, work: Path, index: int) -> str:
 
 def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0, 0.0, 0.0), systems: str = "GEJ",
               mask_deg: float = 10.0, glonass_ar: str = "off", direction: str = "forward",
-              frequencies: str = "l1+l2", static: bool = False, work: Path | None = None) -> Demo5Run:
+              frequencies: str = "l1+l2", static: bool = False, iono: str = "off",
+              work: Path | None = None) -> Demo5Run:
     """demo5's kinematic RTK of ``rover`` against ``base`` (RINEX observation files; each may be
     several files of one receiver) with the
     navigation files ``navs``, the base antenna at ``base_antenna_e`` (ECEF, m), the rover's
     antenna ``rover_antenna_delta_hen`` (up, east, north, m) above its marker (the RTK run's
     ``info['rover_antenna_delta_hen_m']``, from the rover header); ``frequencies``
     RTKLIB's pos1-frequency ('l1' as a single-frequency receiver); ``static``: its static mode
-    (the rover stood still); ``work``: where its files go (a temporary folder when None)."""
+    (the rover stood still); ``iono`` 'est': the differential ionosphere estimated (its est-stec;
+    'off' is its broadcast model, which cancels over a baseline); ``work``: where its files go (a
+    temporary folder when None)."""
     require_demo5()
     if direction not in _DIRECTIONS:
         raise ValueError(f"direction must be one of {', '.join(_DIRECTIONS)}, not {direction!r}")
     if frequencies not in ("l1", "l1+l2", "l1+l2+l3"):
         raise ValueError(f"frequencies must be l1, l1+l2 or l1+l2+l3, not {frequencies!r}")
+    if iono not in ("off", "est"):
+        raise ValueError(f"iono must be off or est, not {iono!r}")
     with tempfile.TemporaryDirectory(prefix="companion-demo5-") as tmp:
         work = Path(work or tmp)
         work.mkdir(parents=True, exist_ok=True)
@@ -134,7 +139,7 @@ def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0
             f"pos1-soltype       ={direction}",
             f"pos1-elmask        ={mask_deg:g}",
             f"pos1-navsys        ={sum(_NAVSYS_BITS[s] for s in dict.fromkeys(systems))}",
-            "pos1-ionoopt       =brdc",
+            f"pos1-ionoopt       ={'est-stec' if iono == 'est' else 'brdc'}",
             "pos1-tropopt       =saas",
             "pos1-sateph        =brdc",
             "pos2-armode        =fix-and-hold",

@@ -1,8 +1,9 @@
 """The differential ionosphere of a rover-base pair as states: one between-receiver
 single-difference slant delay per satellite, in metres on GPS L1's frequency (RTKLIB's
-``IONOOPT_EST``), the model of the engine's RTK (:mod:`companion.nav.rtk_update`).  Tried in
-the post-processing RTK (:mod:`.rtk`) on 2026-12-05 and not kept there (README: GEONET 0.0228 m
-against 0.0110 m, no fix on the 15-km car).
+``IONOOPT_EST``), the model of the engine's RTK (:mod:`companion.nav.rtk_update`) and, when
+asked (``RtkConfig.iono_states``, ``companion gnss --mode rtk --iono est``), of the
+post-processing RTK (:mod:`.rtk`; README: on a 5.3-km car it puts the fixed track on the
+ionosphere-free solution of its integers, 4.5 cm from the default's).
 
 * On a carrier of wavelength ``lambda`` the delay is ``(lambda / lambda_L1)^2`` of it
   (:func:`iono_factor`): subtracted from the phase (it advances), added to the code.

@@ -428,6 +428,9 @@ def _run(args) -> int:
     if getattr(args, "direction", "forward") != "forward":
         raise GnssProcessingError(f"--direction {args.direction} applies to --mode rtk (spp and dgps solve each "
                                   f"epoch on its own)")
+    if getattr(args, "iono", "off") != "off":
+        raise GnssProcessingError(f"--iono {args.iono} applies to --mode rtk (spp uses the broadcast model or, with "
+                                  f"--freq if, the iono-free pair; dgps the base's corrections)")
     store, klob, hdr, rover, base_epochs, base, systems = _load(args)
     signal = FREQ_SIGNALS[getattr(args, "freq", None) or "l1"]
     opts = ProcessOptions(mode=args.mode, elevation_mask_rad=math.radians(args.elevation_mask_deg),

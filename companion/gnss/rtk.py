@@ -25,6 +25,10 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
   the atmosphere in the between-receiver one.  Per-receiver variance ``a^2 + b^2 / sin^2(el)``
   (RTKLIB's default 3 mm + 3 mm), code ``code_phase_ratio`` x phase; the DD covariance carries
   the reference satellite's share in every row.
+* **Ionosphere** (``iono_states``, off by default as in RTKLIB and demo5): one SD slant delay
+  per satellite on L1's frequency (:mod:`.differential_iono`, the engine's model), in every DD
+  row of its satellite: ``-(lambda / lambda_L1)^2`` of it on the phase, ``+`` on the code; the
+  fixed solution conditions it on the integers as it does the position.
 * **Kinematic**: every epoch the position prior is the previous solution with ``position_sigma_m``
   (30 m: no dynamics are assumed); **static**: the position is a constant.  Iterated update
   (``iterations``), so the 30-m prior does not bias the linearisation.
@@ -63,6 +67,7 @@ import numpy as np
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
 from ..nav.earth import ecef_to_geodetic
 from ..rtk_signals import RTK_SIGNALS, signals_for_system
+from .differential_iono import iono_factor, prior_sigma_m as iono_prior_sigma_m, random_walk_psd
 from .double_difference import (ReceiverSat, cross_pair, dd_covariance, elevation_rad, model_range_m,
                                 receiver_sats, sd_variance_m2)
 from .ephemeris_store import EphemerisStore
@@ -128,6 +133,17 @@ class RtkConfig:
     # inter-channel phase biases cancel between them; 'off' keeps GLONASS float; 'auto' is decided
     # by companion.gnss.rtk_post from the two receivers' types (the filter alone takes it for 'off')
     glonass_ar: str = "auto"
+    # the differential ionosphere as states (RTKLIB's ionoopt est; the engine's model,
+    # companion.gnss.differential_iono): one between-receiver SD slant delay per satellite, in
+    # metres on L1's frequency, while any of its ambiguities lives; prior at acquisition
+    # (iono_sigma_zenith_m + iono_sigma_ppm x baseline) through the single-layer slant factor, a
+    # random walk of that sigma over iono_correlation_time_s.  Off: the DD ionosphere is taken as
+    # zero (RTKLIB's and demo5's default), which a few kilometres of baseline already make
+    # centimetres of position (README)
+    iono_states: bool = False
+    iono_sigma_zenith_m: float = 0.001
+    iono_sigma_ppm: float = 1.0
+    iono_correlation_time_s: float = 900.0
 
 
 @dataclass
@@ -178,6 +194,8 @@ class RtkFilter:
         self.x = np.zeros(3)
         self.P = np.eye(3) * config.position_sigma_m ** 2
         self.amb: dict[tuple[str, str], int] = {}          # (sat, signal) -> state index
+        self.iono: dict[str, int] = {}                    # sat -> its SD ionosphere's state index
+        self._iono_psd: dict[str, float] = {}             # sat -> its random walk's PSD (m^2/s)
         self.last_seen: dict[tuple[str, str], float] = {}
         self.last_gf: dict[tuple, float] = {}    # (sat, 'rover'|'base', second signal) -> GF phase (m)
         self.t_last: float | None = None
@@ -200,18 +218,24 @@ class RtkFilter:
         self.counters[key] = self.counters.get(key, 0) + n
 
     # ------------------------------------------------------------------ state bookkeeping
-    def _add_amb(self, key, value: float, sigma: float | None = None) -> None:
-        """A new ambiguity state (sat, signal)."""
+    def _add_state(self, value: float, sigma: float) -> int:
+        """A new state (its index), uncorrelated with the others."""
         n = len(self.x)
         self.x = np.append(self.x, value)
         P = np.zeros((n + 1, n + 1))
         P[:n, :n] = self.P
-        P[n, n] = (self.cfg.ambiguity_init_sigma_cycles if sigma is None else sigma) ** 2
+        P[n, n] = sigma ** 2
         self.P = P
-        self.amb[key] = n
+        return n
+
+    def _add_amb(self, key, value: float, sigma: float | None = None) -> None:
+        """A new ambiguity state (sat, signal)."""
+        self.amb[key] = self._add_state(value, self.cfg.ambiguity_init_sigma_cycles if sigma is None else sigma)
 
     def _drop_amb(self, keys) -> None:
-        idx = sorted(self.amb.pop(k) for k in keys if k in self.amb)
+        self._drop_states(sorted(self.amb.pop(k) for k in keys if k in self.amb))
+
+    def _drop_states(self, idx: list[int]) -> None:
         if not idx:
             return
         keep = np.setdiff1d(np.arange(len(self.x)), idx)
@@ -219,6 +243,22 @@ class RtkFilter:
         self.P = self.P[np.ix_(keep, keep)]
         remap = {int(old): new for new, old in enumerate(keep)}
         self.amb = {k: remap[i] for k, i in self.amb.items()}
+        self.iono = {k: remap[i] for k, i in self.iono.items()}
+
+    def _manage_iono(self, common, sr) -> None:
+        """An ionosphere state for each satellite with an ambiguity, none for one without."""
+        live = {k[0] for k in self.amb}
+        gone = [q for q in self.iono if q not in live]
+        for q in gone:
+            self._iono_psd.pop(q, None)
+        self._drop_states(sorted(self.iono.pop(q) for q in gone))
+        baseline_m = float(np.linalg.norm(self.x[:3] - self.base_r_e))
+        for q in common:
+            if q in live and q not in self.iono:
+                sigma = iono_prior_sigma_m(sr[q].elevation_rad, baseline_m, self.cfg.iono_sigma_zenith_m,
+                                           self.cfg.iono_sigma_ppm)
+                self.iono[q] = self._add_state(0.0, sigma)
+                self._iono_psd[q] = random_walk_psd(sigma, self.cfg.iono_correlation_time_s)
 
     # ------------------------------------------------------------------ one epoch
     def process(self, rover: GnssEpoch, base: GnssEpoch, r_prior_e=None) -> RtkSolution | None:
@@ -264,6 +304,8 @@ class RtkFilter:
         if dt > 0:
             for i in self.amb.values():
                 self.P[i, i] += cfg.ambiguity_psd_cycles2ps * dt
+            for q, i in self.iono.items():
+                self.P[i, i] += self._iono_psd[q] * dt
 
     def _flagged(self, sats: dict) -> set[str]:
         """Satellites whose receiver flags a loss of lock on any of their signals at this epoch."""
@@ -320,6 +362,8 @@ class RtkFilter:
                     self.last_seen[key] = t
         lost = [k for k, ts in self.last_seen.items() if abs(t - ts) > self.cfg.max_gap_s and k in self.amb]
         self._drop_amb(lost)
+        if cfg.iono_states:
+            self._manage_iono(common, sr)
 
     # ------------------------------------------------------------------ double differences
     def _dd_rows(self, x: np.ndarray, common, sr, sb, *, fixed: dict | None = None):
@@ -358,6 +402,15 @@ class RtkFilter:
                     dd_rho = (model_r[sat][0] - model_b[sat][0]) - (model_r[ref][0] - model_b[ref][0])
                     H = np.zeros(n)
                     H[:3] = -(model_r[sat][1] - model_r[ref][1])
+                    # the ionosphere advances the phase and delays the code, each satellite on its carrier
+                    sign = -1.0 if kind == "phase" else 1.0
+                    dd_iono = 0.0
+                    if sat in self.iono and ref in self.iono:
+                        f, f_ref = iono_factor(lam), iono_factor(lam_ref)
+                        ii, ir_ = self.iono[sat], self.iono[ref]
+                        dd_iono = sign * (f * x[ii] - f_ref * x[ir_])
+                        H[ii] += sign * f
+                        H[ir_] -= sign * f_ref
                     if kind == "phase":
                         # in metres, each satellite on its own carrier (GLONASS FDMA): the receiver
                         # clocks cancel, the ambiguity term is lambda_i N_i - lambda_j N_j
@@ -366,16 +419,16 @@ class RtkFilter:
                         ia, ir = self.amb[(sat, s)], self.amb[(ref, s)]
                         if fixed is not None and (sat, s) in fixed:
                             # lambda_i N_i - lambda_j N_j = lambda_i (N_i - N_j) + (lambda_i - lambda_j) N_j
-                            h = dd_rho + lam * fixed[(sat, s)] + (lam - lam_ref) * x[ir]
+                            h = dd_rho + lam * fixed[(sat, s)] + (lam - lam_ref) * x[ir] + dd_iono
                         else:
                             H[ia] += lam
                             H[ir] -= lam_ref
-                            h = dd_rho + lam * x[ia] - lam_ref * x[ir]
+                            h = dd_rho + lam * x[ia] - lam_ref * x[ir] + dd_iono
                     else:
                         if fixed is not None:
                             continue
                         obs = (sr[sat].code_m[s] - sb[sat].code_m[s]) - (sr[ref].code_m[s] - sb[ref].code_m[s])
-                        h = dd_rho
+                        h = dd_rho + dd_iono
                     rows_v.append(obs - h)
                     rows_H.append(H)
                     var_sd.append((sd_var(sat, kind), sd_var(ref, kind)))
@@ -463,9 +516,13 @@ class RtkFilter:
         if not float(np.trace(cov_fix)) <= self.cfg.max_fixed_sigma_3d_m ** 2:
             self._count("fixes rejected: position not pinned")
             return None
-        # wrong-fix check: the fixed DD phase residuals against their own noise
+        # wrong-fix check: the fixed DD phase residuals against their own noise (the ionosphere
+        # states conditioned on the integers as the position is)
         x_fix = self.x.copy()
         x_fix[:3] = r_fix
+        if self.iono:
+            idx = list(self.iono.values())
+            x_fix[idx] -= (self.P[idx, :] @ T.T) @ gain
         fixed = {}
         for (q, s, ref), n_dd in zip(labels, afix):
             fixed[(q, s)] = n_dd

@@ -123,7 +123,7 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
                            rover_antenna_delta_hen=info["rover_antenna_delta_hen_m"], systems=cfg.systems,
                            mask_deg=args.elevation_mask_deg, direction=direction,
                            frequencies="l1" if getattr(args, "freq", None) == "l1" else "l1+l2",
-                           static=cfg.dynamics == "static",
+                           static=cfg.dynamics == "static", iono="est" if cfg.iono_states else "off",
                            glonass_ar="on" if info["glonass_ar"].startswith("on") else "off")
     except RuntimeError as exc:
         raise GnssProcessingError(str(exc)) from exc
@@ -175,21 +175,24 @@ def _static_result(last, n_epochs: int, truth) -> tuple[dict, str]:
     return out, line
 
 
-#: beyond this baseline the differential ionosphere, which the post-processing filter does not
-#: estimate, is 1-3 cm (1-2 ppm) and more at low elevation: enough to pull the float ambiguities
-#: onto wrong integers, decimetres off (README: the 15-km car)
+#: beyond this baseline the differential ionosphere, unless estimated (--iono est), is 1-3 cm
+#: (1-2 ppm) and more at low elevation: enough to pull the float ambiguities onto wrong integers,
+#: decimetres off (README: the 15-km car)
 LONG_BASELINE_M = 10e3
 
 
-def _baseline(sols, base_antenna_e) -> tuple[dict, str]:
+def _baseline(sols, base_antenna_e, iono_est: bool) -> tuple[dict, str]:
     """(the JSON's 'baseline_m': median and max rover-base distance, the line for the terminal);
-    a baseline over :data:`LONG_BASELINE_M` is said to be one."""
+    a baseline over :data:`LONG_BASELINE_M` without the ionosphere estimated is said to be one."""
     d = np.linalg.norm(np.array([s.r_e for s in sols]) - np.asarray(base_antenna_e, float), axis=1)
     out = {"median": float(np.median(d)), "max": float(d.max())}
     line = f"baseline: {out['median'] / 1e3:.2f} km (median), {out['max'] / 1e3:.2f} km at most"
-    if out["max"] > LONG_BASELINE_M:
+    if iono_est:
+        line += "; the differential ionosphere estimated (--iono est)"
+    elif out["max"] > LONG_BASELINE_M:
         line += (f"; over {LONG_BASELINE_M / 1e3:g} km the differential ionosphere, not estimated here, can make "
-                 "a fix wrong by decimetres: --direction combined leaves fixes the two passes disagree on float")
+                 "a fix wrong by decimetres: --direction combined leaves fixes the two passes disagree on float, "
+                 "--iono est estimates it (fixes then need longer unbroken tracking)")
     return out, line
 
 
@@ -218,7 +221,7 @@ def run_rtk(args) -> int:
                                   "(both by default; --freq l1 for the first alone)")
     static = bool(getattr(args, "static", False))
     cfg = RtkConfig(elevation_mask_deg=args.elevation_mask_deg, glonass_ar=getattr(args, "glonass_ar", "auto"),
-                    dynamics="static" if static else "kinematic",
+                    dynamics="static" if static else "kinematic", iono_states=getattr(args, "iono", "off") == "est",
                     **({"signals": RTK_FIRST_SIGNALS} if freq == "l1" else {}))
     freqs = "L1" if freq == "l1" else "L1+L2"
     direction = getattr(args, "direction", "forward")
@@ -285,7 +288,8 @@ def run_rtk(args) -> int:
     fix_stats, line = _fix_statistics(sols)
     summary.update(fix_stats)
     print(line)
-    summary["baseline_m"], line = _baseline(sols, info["base_antenna_e"])
+    summary["baseline_m"], line = _baseline(sols, info["base_antenna_e"], cfg.iono_states)
+    summary["ionosphere"] = "estimated" if cfg.iono_states else "not modelled"
     print(line)
     if static:
         summary["static_position"], line = _static_result(sols[-1], len(sols), truth)
@@ -314,6 +318,7 @@ def run_rtk(args) -> int:
                   inputs=[*rovers, *bases, *(args.nav or [])],
                   options={"pos mode": "static" if static else "kinematic", "freqs": freqs, "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
+                           "ionos opt": "estimation" if cfg.iono_states else "off",
                            "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"
                                       + (f"; GLONASS {info['glonass_ar'].split()[0]}" if info["glonass_ar"] else "")})
