@@ -196,35 +196,17 @@ def read_rinex_nav(path, systems: str = "GECJ", counts: dict | None = None) -> l
     if version < 3:
         kind = lines[0][20:21].upper()
         if kind == "G":                          # 'G: GLONASS NAV DATA' (a .g file beside the .n)
-            return _rinex2_glonass(lines, head, leap_s, counts) if "R" in systems else []
+            if "R" not in systems:
+                return []
+            return _rinex2_records(lines, head, 4, counts,
+                                   lambda prn, t, vals: _glonass_from_fields(prn, t, vals, leap_s))
         if kind not in ("N", " "):
             raise ValueError(f"{path}: a RINEX 2 navigation file of another kind ({lines[0][20:40].strip()!r}); "
                              "GPS ('N') and GLONASS ('G') ones are read")
         if "G" not in systems:
             return out
-        while i < n:
-            ln = lines[i]
-            if not ln.strip():
-                i += 1
-                continue
-            try:
-                if i + 8 > n:
-                    raise IndexError("the file ends inside the record")
-                prn = int(ln[0:2])
-                yy, mo, dd, hh, mi = (int(ln[3 + 3 * k:5 + 3 * k]) for k in range(5))
-                ss = header_float(ln[17:22])
-                vals = [header_float(ln[22:41]), header_float(ln[41:60]), header_float(ln[60:79])]
-                for k in range(1, 8):
-                    for c in range(4):
-                        vals.append(header_float(lines[i + k][3 + 19 * c:22 + 19 * c]))
-                eph = _eph_from_fields(f"G{prn:02d}", calendar_to_t_gps(yy, mo, dd, hh, mi, ss), vals)
-            except (ValueError, IndexError):
-                counts["unreadable records"] += 1
-                i = _next_record(lines, i + 1, _V2_RECORD)
-                continue
-            i += 8
-            out.append(eph)
-        return out
+        return _rinex2_records(lines, head, 8, counts,
+                               lambda prn, t, vals: _eph_from_fields(f"G{prn:02d}", t, vals))
     while i < n:
         ln = lines[i]
         if not ln.strip():
@@ -305,10 +287,12 @@ def header_leap_seconds(lines: list[str], head: int) -> int | None:
     return None
 
 
-def _rinex2_glonass(lines: list[str], head: int, leap_s: int | None, counts: dict) -> list[GlonassEphemeris]:
-    """The GLONASS records of a RINEX 2 'G' file: four lines each, the first 'PP YY MM DD HH MM SS.S'
-    and three fields, then three fields at a time after 3 blanks (RINEX 3's layout, two columns
-    to the left and a two-digit year); a record that cannot be read is counted and skipped."""
+def _rinex2_records(lines: list[str], head: int, n_lines: int, counts: dict, make) -> list:
+    """The records of a RINEX 2 navigation file ('N': GPS, 8 lines; 'G': GLONASS, 4), each
+    ``make(prn, epoch, fields)`` (None: left out): the first line 'PP YY MM DD HH MM SS.S' and three
+    fields, then four fields a line after 3 blanks (RINEX 3's layout, one column to the left and a
+    two-digit year).  A record that cannot be read (a file cut mid-record, a corrupt line) is
+    counted in ``counts['unreadable records']``; reading resumes at the next record's first line."""
     out = []
     i, n = head, len(lines)
     while i < n:
@@ -317,20 +301,19 @@ def _rinex2_glonass(lines: list[str], head: int, leap_s: int | None, counts: dic
             i += 1
             continue
         try:
-            if i + 4 > n:
+            if i + n_lines > n:
                 raise IndexError("the file ends inside the record")
             yy, mo, dd, hh, mi = (int(ln[3 + 3 * k:5 + 3 * k]) for k in range(5))
             vals = [header_float(ln[22:41]), header_float(ln[41:60]), header_float(ln[60:79])]
-            for k in range(1, 4):
+            for k in range(1, n_lines):
                 for c in range(4):
                     vals.append(header_float(lines[i + k][3 + 19 * c:22 + 19 * c]))
-            eph = _glonass_from_fields(int(ln[0:2]), calendar_to_t_gps(yy, mo, dd, hh, mi, header_float(ln[17:22])),
-                                       vals, leap_s)
+            eph = make(int(ln[0:2]), calendar_to_t_gps(yy, mo, dd, hh, mi, header_float(ln[17:22])), vals)
         except (ValueError, IndexError):
             counts["unreadable records"] += 1
             i = _next_record(lines, i + 1, _V2_RECORD)
             continue
-        i += 4
+        i += n_lines
         if eph is not None:
             out.append(eph)
     return out
