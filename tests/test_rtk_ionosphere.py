@@ -1,15 +1,17 @@
 """The differential ionosphere in post-processed RTK (``companion gnss --mode rtk --iono est``) on
-the real 5.3-km car (tests/data/cssrlib-fujisawa-car-2021).
+the real 5.3-km car (tests/data/cssrlib-fujisawa-car-2021) and on the same two antennas another
+day, the rover standing still (tests/data/cssrlib-fujisawa-static-2021).
 
 There is no truth trajectory, but there is a reference the ionosphere cannot bias: the
 **ionosphere-free combination of the fixed integers**.  With the integers known, each DD pair's
 ionosphere-free phase ``(gamma Phi_1 - Phi_2) / (gamma - 1)`` (``gamma = (f1/f2)^2``) carries the
 geometry and no first-order ionosphere; the position it gives is noisier (about three times the
-phase noise) but unbiased by it.  Measured on this drive: the default solution (the DD
-ionosphere taken as zero, as RTKLIB and demo5 do by default) sits 4.5 cm from it, mostly in
-height; with ``--iono est`` within a millimetre on average.  demo5 with its own estimation
-(est-stec) lands there too, and the tightly coupled engine, which always estimates it, agrees
-with this track (tests/test_rtk_engine_real_car.py)."""
+phase noise) but unbiased by it.  Measured: the default solution (the DD ionosphere taken as
+zero, as RTKLIB and demo5 do by default) sits 4.5 cm from it on the drive and 4.7 cm the other
+day, mostly in height (up on one day, down on the other); with ``--iono est`` within 1 and 8 mm
+on average.  demo5 with its own estimation (est-stec) lands there too, and the tightly coupled
+engine, which always estimates it, agrees with the drive's track
+(tests/test_rtk_engine_real_car.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -24,9 +26,13 @@ from tests._data import data_path
 
 pytestmark = pytest.mark.real_data
 
-D = data_path("cssrlib-fujisawa-car-2021")
-ROVER, BASE, NAV = D / "rover.crx.gz", D / "base.crx.gz", D / "nav.rnx.gz"
-BASE_XYZ = (-3959400.631, 3385704.533, 3667523.111)       # as cssrlib's samples (PROVENANCE.md)
+BASE_XYZ = (-3959400.631, 3385704.533, 3667523.111)       # GEONET 3034 as cssrlib's samples (PROVENANCE.md)
+SETS = ("cssrlib-fujisawa-car-2021", "cssrlib-fujisawa-static-2021")
+
+
+def _files(name: str):
+    d = data_path(name)
+    return d / "rover.crx.gz", d / "base.crx.gz", [d / "nav.rnx.gz"]
 #: each system's first-frequency partner for the ionosphere-free pair
 SECOND = {"G": ("L2W", "L2X"), "E": ("L5Q", "L7Q"), "J": ("L2X", "L5Q")}
 
@@ -63,14 +69,15 @@ def _iono_free_offsets(monkeypatch) -> dict[int, np.ndarray]:
     return offsets
 
 
-@pytest.fixture(scope="module")
-def solutions():
-    """(default, --iono est, ionosphere-free offsets of the default's fixes) on the car."""
+@pytest.fixture(scope="module", params=SETS)
+def solutions(request):
+    """(set, default, --iono est, ionosphere-free offsets of the default's fixes)."""
+    rover, base, navs = _files(request.param)
     with pytest.MonkeyPatch.context() as mp:
         offsets = _iono_free_offsets(mp)
-        off, _ = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ)
-    est, _ = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ, config=RtkConfig(iono_states=True))
-    return off, est, offsets
+        off, _ = solve_rtk_rinex(rover, base, navs, base_xyz=BASE_XYZ)
+    est, _ = solve_rtk_rinex(rover, base, navs, base_xyz=BASE_XYZ, config=RtkConfig(iono_states=True))
+    return request.param, off, est, offsets
 
 
 def _ned_mm(d_e) -> np.ndarray:
@@ -79,18 +86,20 @@ def _ned_mm(d_e) -> np.ndarray:
 
 
 def test_estimated_ionosphere_lands_on_the_ionosphere_free_fixed_solution(solutions):
-    off, est, offsets = solutions
+    name, off, est, offsets = solutions
     r_off = {round(s.t_gps): s.r_e for s in off if s.quality == 1}
     r_est = {round(s.t_gps): s.r_e for s in est if s.quality == 1}
     both = sorted(set(r_off) & set(r_est) & set(offsets))
     iono_free = {t: r_off[t] + offsets[t] for t in both}
     bias_off = _ned_mm(np.array([r_off[t] - iono_free[t] for t in both])).mean(axis=0)
     bias_est = _ned_mm(np.array([r_est[t] - iono_free[t] for t in both])).mean(axis=0)
-    print(f"car 5.3 km: fixed {len(r_off)} (off) / {len(r_est)} (est) of {len(est)}; mean offset from the "
+    print(f"{name}: fixed {len(r_off)} (off) / {len(r_est)} (est) of {len(est)}; mean offset from the "
           f"ionosphere-free fixed solution (N, E, D mm): off {np.round(bias_off, 1)}, est {np.round(bias_est, 1)}")
-    assert len(both) >= 350 and len(r_est) >= len(r_off)
-    assert np.linalg.norm(bias_off) > 30.0          # the ionosphere left in the default (measured 45 mm)
-    assert np.all(np.abs(bias_est) < 5.0)           # estimated, it is gone (measured within 0.8 mm)
+    assert len(both) >= 0.97 * len(est) and len(r_est) >= len(r_off)
+    # the ionosphere left in the default (measured 45 and 47 mm); estimated, at least four fifths of
+    # it gone (measured: within 0.8 and 7.4 mm per axis)
+    assert np.linalg.norm(bias_off) > 30.0
+    assert np.linalg.norm(bias_est) < 0.2 * np.linalg.norm(bias_off)
 
 
 @pytest.mark.skipif(not demo5_available(), reason="pyrtklib5 (RTKLIB demo5) not installed: "
@@ -98,11 +107,12 @@ def test_estimated_ionosphere_lands_on_the_ionosphere_free_fixed_solution(soluti
 def test_demo5_estimating_the_ionosphere_agrees_and_fixes_fewer(solutions, tmp_path):
     """demo5 with est-stec is an independent implementation of the same idea: where both fix, the
     two agree within centimetres; without estimation both sit on the ionosphere-biased track."""
-    _, est, _ = solutions
-    theirs = run_demo5(ROVER, BASE, [NAV], BASE_XYZ, systems="GEJ", iono="est", work=tmp_path)
+    name, _, est, _ = solutions
+    rover, base, navs = _files(name)
+    theirs = run_demo5(rover, base, navs, BASE_XYZ, systems="GEJ", iono="est", work=tmp_path)
     c = compare(est, theirs)
-    print(f"car 5.3 km, ionosphere estimated: {c.line()}")
-    assert c.ours_fixed >= c.demo5_fixed and c.both_fixed >= 150
+    print(f"{name}, ionosphere estimated: {c.line()}")
+    assert c.ours_fixed >= c.demo5_fixed and c.both_fixed >= 0.5 * len(est)
     assert np.median(c.apart_m) < 0.015
 
 
