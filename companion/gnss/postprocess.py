@@ -475,12 +475,13 @@ def _run(args) -> int:
             json.dump({**summary, "solutions": rows}, fh, indent=1)
     q = Q_DGPS if args.mode == "dgps" else Q_SINGLE
     records = [PosRecord(s.t_gps, s.r_e, s.cov_r_e, q, s.n_sats) for s in solved]
-    write_tracks(args, records, f"companion gnss {args.mode}: {files_label(rover_files(args))}")
-    write_plot(args, records, f"companion gnss {args.mode} ({opts.signal}): {files_label(rover_files(args))}", truth)
+    rovers = rover_files(args)
+    write_tracks(args, records, f"companion gnss {args.mode}: {files_label(rovers)}")
+    write_plot(args, records, f"companion gnss {args.mode} ({opts.signal}): {files_label(rovers)}", truth)
     if args.pos:
         write_pos(args.pos, records,
                   program=f"companion gnss {args.mode} ({opts.signal})",
-                  inputs=[*rover_files(args), *(args.nav or []), *base_files(args)],
+                  inputs=[*rovers, *(args.nav or []), *base_files(args)],
                   options={"pos mode": "single" if args.mode == "spp" else "dgps",
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg", "navi sys": ",".join(systems),
                            "ionos opt": iono})
