@@ -65,6 +65,15 @@ def _add_gnss(sub) -> None:
                         "ionoopt est): a few km of baseline already carry centimetres of it, which 'off' (RTKLIB's "
                         "and demo5's default) leaves in the position, mostly its height; est needs more satellites "
                         "or time to fix")
+    p.add_argument("--antennas", metavar="FILE",
+                   help="rtk: receiver antenna calibrations, an IGS ANTEX (igs20.atx) or NGS ant_info (ngs_abs.pcv) "
+                        "file (RTKLIB's file-rcvantfile): each receiver's phase centres from the antenna type its "
+                        "RINEX header names.  Without it they are taken at the antenna reference point, which "
+                        "puts centimetres into the height when the two antennas differ")
+    p.add_argument("--rover-antenna", metavar="TYPE",
+                   help="rtk with --antennas: the rover antenna's IGS type ('TRM59800.00 SCIS') instead of its header's")
+    p.add_argument("--base-antenna", metavar="TYPE",
+                   help="rtk with --antennas: the base antenna's IGS type instead of its header's")
     p.add_argument("--start", metavar="GPST", help="process from this time on, GPST as RTKLIB writes it "
                    "('2021/09/22 06:31:00') or ISO ('2021-09-22T06:31:00'); default: the rover file's first epoch")
     p.add_argument("--end", metavar="GPST", help="process up to this time (GPST, as --start); default: the file's last")

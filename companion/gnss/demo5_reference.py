@@ -104,9 +104,19 @@ def _joined_plain(srcs, work: Path, index: int) -> str:
     return str(joined)
 
 
+def _antenna_lines(antennas: str | None, types: dict) -> list[str]:
+    """demo5's receiver antenna options: the calibration file, each end's type, and the elevation
+    variations applied as well as the offsets (pos1-posopt2, as ours does)."""
+    if antennas is None or not types:
+        return []
+    return [f"file-rcvantfile    ={Path(antennas).resolve()}", "pos1-posopt2       =on",
+            *(f"ant{k}-anttype      ={types[who]}" for k, who in ((1, "rover"), (2, "base")) if who in types)]
+
+
 def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0, 0.0, 0.0), systems: str = "GEJ",
               mask_deg: float = 10.0, glonass_ar: str = "off", direction: str = "forward",
               frequencies: str = "l1+l2", static: bool = False, iono: str = "off",
+              antennas: str | None = None, antenna_types: dict | None = None,
               work: Path | None = None) -> Demo5Run:
     """demo5's kinematic RTK of ``rover`` against ``base`` (RINEX observation files; each may be
     several files of one receiver) with the
@@ -115,8 +125,10 @@ def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0
     ``info['rover_antenna_delta_hen_m']``, from the rover header); ``frequencies``
     RTKLIB's pos1-frequency ('l1' as a single-frequency receiver); ``static``: its static mode
     (the rover stood still); ``iono`` 'est': the differential ionosphere estimated (its est-stec;
-    'off' is its broadcast model, which cancels over a baseline); ``work``: where its files go (a
-    temporary folder when None)."""
+    'off' is its broadcast model, which cancels over a baseline); ``antennas``: a receiver antenna
+    calibration file (ANTEX or NGS), with ``antenna_types`` ('rover' / 'base' -> the type ours
+    calibrated; a receiver not named keeps its phase centres at the ARP); ``work``: where its files
+    go (a temporary folder when None)."""
     require_demo5()
     if direction not in _DIRECTIONS:
         raise ValueError(f"direction must be one of {', '.join(_DIRECTIONS)}, not {direction!r}")
@@ -151,6 +163,7 @@ def run_demo5(rover, base, navs, base_antenna_e, *, rover_antenna_delta_hen=(0.0
             f"ant1-antdelu       ={up!r}",
             "ant2-postype       =xyz",
             *(f"ant2-pos{i + 1}          ={float(v)!r}" for i, v in enumerate(base_antenna_e)),
+            *_antenna_lines(antennas, antenna_types or {}),
             "out-solformat      =xyz",
             "out-timeform       =tow",
             "",

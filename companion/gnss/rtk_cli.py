@@ -124,6 +124,8 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
                            mask_deg=args.elevation_mask_deg, direction=direction,
                            frequencies="l1" if getattr(args, "freq", None) == "l1" else "l1+l2",
                            static=cfg.dynamics == "static", iono="est" if cfg.iono_states else "off",
+                           antennas=getattr(args, "antennas", None),
+                           antenna_types={who: a["entry"] for who, a in info["antennas"].items() if a["calibration"]},
                            glonass_ar="on" if info["glonass_ar"].startswith("on") else "off")
     except RuntimeError as exc:
         raise GnssProcessingError(str(exc)) from exc
@@ -134,6 +136,30 @@ def _against_demo5(args, sols, info: dict, cfg: RtkConfig, direction: str, truth
         demo5_pos.write_text(theirs.pos_text)
         print(f"demo5's solutions: {demo5_pos}")
     return c.summary(), theirs
+
+
+def _antenna_options(args) -> dict:
+    """``--antennas`` / ``--rover-antenna`` / ``--base-antenna`` as solve_rtk_epochs' keywords."""
+    names = {"rover_antenna": getattr(args, "rover_antenna", None), "base_antenna": getattr(args, "base_antenna", None)}
+    path = getattr(args, "antennas", None)
+    if path is None:
+        if any(names.values()):
+            raise GnssProcessingError("--rover-antenna / --base-antenna name a type in a calibration file: give "
+                                      "--antennas FILE (ANTEX or NGS ant_info)")
+        return {}
+    if not Path(path).is_file():
+        raise GnssProcessingError(f"file not found: {path}")
+    return {"antennas": path, **names}
+
+
+def _antenna_text(a: dict) -> str:
+    """One receiver's antenna as the .pos header and the terminal say it."""
+    text = f"{a['type'] or 'no type'} " + ("(calibrated)" if a["calibration"] else "(phase centres at the ARP)")
+    return text + (f"; {', '.join(a['notes'])}" if a["notes"] else "")
+
+
+def _antennas_line(antennas: dict, path: str) -> str:
+    return f"antennas ({Path(path).name}): " + "; ".join(f"{who} {_antenna_text(a)}" for who, a in antennas.items())
 
 
 def _fix_statistics(sols) -> tuple[dict, str]:
@@ -255,7 +281,8 @@ def run_rtk(args) -> int:
             base_xyz = _base_from_spp(base, ephs, cfg.systems, base_klob or klob or navs_klob)
         # an RTK epoch costs milliseconds (tens with four systems): a minute of 1-Hz data is worth a progress line
         sols, info = solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=cfg,
-                                      progress=epoch_progress("rtk", min_epochs=60), direction=direction)
+                                      progress=epoch_progress("rtk", min_epochs=60), direction=direction,
+                                      **_antenna_options(args))
     except (ValueError, IndexError) as exc:
         raise GnssProcessingError(str(exc)) from exc
     if not sols:
@@ -291,6 +318,9 @@ def run_rtk(args) -> int:
     summary["baseline_m"], line = _baseline(sols, info["base_antenna_e"], cfg.iono_states)
     summary["ionosphere"] = "estimated" if cfg.iono_states else "not modelled"
     print(line)
+    if info["antennas"]:
+        summary["antennas"] = info["antennas"]
+        print(_antennas_line(info["antennas"], args.antennas))
     if static:
         summary["static_position"], line = _static_result(sols[-1], len(sols), truth)
         print(line)
@@ -319,6 +349,8 @@ def run_rtk(args) -> int:
                   options={"pos mode": "static" if static else "kinematic", "freqs": freqs, "solution": direction,
                            "elev mask": f"{args.elevation_mask_deg:.1f} deg",
                            "ionos opt": "estimation" if cfg.iono_states else "off",
+                           **{f"antenna{k + 1}": _antenna_text(info["antennas"][who])
+                              for k, who in enumerate(("rover", "base")) if who in info["antennas"]},
                            "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"
                                       + (f"; GLONASS {info['glonass_ar'].split()[0]}" if info["glonass_ar"] else "")})

@@ -16,6 +16,7 @@ import dataclasses
 import numpy as np
 
 from ..nav.earth import C_n_e, ecef_to_geodetic
+from .antenna_calibration import read_antenna_file, receiver_antenna
 from .ephemeris_store import EphemerisStore
 from .pos_format import PosRecord, span_text
 from .rinex import read_rinex_nav
@@ -43,10 +44,11 @@ RTK_POST_SYSTEMS = "GRECJ"
 
 
 def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
-                    progress=None, direction: str = "forward") -> tuple[list[RtkSolution], dict]:
+                    progress=None, direction: str = "forward", **antennas) -> tuple[list[RtkSolution], dict]:
     """(solutions at the rover marker, info) for every paired epoch that could be solved.
     ``direction``: 'forward' (each epoch from the ones before it), 'backward' (from the ones
-    after it) or 'combined' (both passes, :func:`companion.gnss.rtk_combine.combine`)."""
+    after it) or 'combined' (both passes, :func:`companion.gnss.rtk_combine.combine`);
+    ``antennas``: :func:`solve_rtk_epochs`'s."""
     hr, rover = read_rinex_obs(rover_obs, config.systems)
     span = (rover[0].t_gps - config.max_base_age_s, rover[-1].t_gps + config.max_base_age_s) if rover else None
     hb, base = read_rinex_obs(base_obs, config.systems, span)
@@ -54,13 +56,16 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
     for n in navs:
         ephs += read_rinex_nav(n, config.systems)
     return solve_rtk_epochs(hr, rover, hb, base, ephs, base_xyz=base_xyz, config=config, progress=progress,
-                            direction=direction)
+                            direction=direction, **antennas)
 
 
 def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
-                     progress=None, direction: str = "forward") -> tuple[list[RtkSolution], dict]:
+                     progress=None, direction: str = "forward", antennas: str | None = None,
+                     rover_antenna: str | None = None, base_antenna: str | None = None) -> tuple[list[RtkSolution], dict]:
     """:func:`solve_rtk_rinex` on observations already read (``read_rinex_obs``'s headers and
-    epochs of rover and base) and the ephemerides."""
+    epochs of rover and base) and the ephemerides.  ``antennas``: an ANTEX or NGS calibration file
+    for the receivers' phase centres (:mod:`.antenna_calibration`), of the antenna types their
+    headers name or ``rover_antenna`` / ``base_antenna``."""
     if direction not in DIRECTIONS:
         raise ValueError(f"direction must be one of {', '.join(DIRECTIONS)}, not {direction!r}")
     check_epochs(rover, hb, base)
@@ -89,6 +94,13 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
                          "spp takes the median of the base's own single-point solutions (metres off: the rover's "
                          "positions inherit that, the baseline does not)")
     base_ant = base_marker + antenna_delta_e(base_marker, hb.get("antenna_delta_hen_m"))
+    cals, antenna_info = {}, {}
+    if antennas is not None:
+        table = read_antenna_file(antennas)
+        for who, asked, hdr in (("rover", rover_antenna, hr), ("base", base_antenna, hb)):
+            cals[who], antenna_info[who] = receiver_antenna(table, asked, hdr.get("antenna"), who, antennas)
+    elif rover_antenna or base_antenna:
+        raise ValueError("an antenna type is named but no calibration file (ANTEX or NGS) is given")
     config, glonass_ar = glonass_ar_of(config, hr, hb)
     pairs = pair_epochs(rover, base, tol_s=config.max_base_age_s)
     passes = ("forward", "backward") if direction == "combined" else (direction,)
@@ -103,7 +115,8 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
     out, counters = {}, {}
     for name in passes:
         backward = name == "backward"
-        filt = RtkFilter(base_ant, store, config, backward=backward)
+        filt = RtkFilter(base_ant, store, config, backward=backward, rover_antenna=cals.get("rover"),
+                         base_antenna=cals.get("base"))
         out[name] = _solve_pass(filt, pairs[::-1] if backward else pairs, store, hr, config, step)
         if backward:
             out[name].reverse()
@@ -119,7 +132,8 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
             "solutions": len(sols), "fixed": sum(1 for s in sols if s.quality == 1), "direction": direction,
             "base_antenna_e": base_ant.tolist(),
             "rover_antenna_delta_hen_m": [float(v) for v in (hr.get("antenna_delta_hen_m")
-                                                             if hr.get("antenna_delta_hen_m") is not None else (0, 0, 0))], "counters": counters, "glonass_ar": glonass_ar}
+                                                             if hr.get("antenna_delta_hen_m") is not None else (0, 0, 0))], "counters": counters, "glonass_ar": glonass_ar,
+            "antennas": antenna_info}
     return sols, info
 
 
