@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from companion.gnss.rinex_obs import read_rinex_obs
-from sitl.caster import encode_1005
+from sitl.caster import encode_1005, encode_1033
 from sitl.rtcm_msm import Msm7Encoder
 from tests.test_rtk_septentrio_static import BASE, BASE_XYZ, NAV, REF_ROVER, ROVER
 
@@ -32,13 +32,16 @@ CODES = {"G": {"L1C": ("1C",), "L2W": ("2W",), "L2L": ("2L",), "L5Q": ("5Q",)},
          "C": {"L2I": ("2I",), "L7I": ("7I",), "L6I": ("6I",)}}
 
 
-def _msm7_capture(path, station: bool = True) -> None:
+def _msm7_capture(path, station: bool = True, antenna: str | None = None) -> None:
+    """``antenna``: the IGS type a 1033 after the 1005 names (none without)."""
     _, epochs = read_rinex_obs(BASE, "GEC")
     encoders = [Msm7Encoder(7, codes=CODES[s], system=s) for s in "GEC"]
     lock_start: dict = {}
     with open(path, "wb") as fh:
         if station:
             fh.write(encode_1005(7, BASE_XYZ))
+        if antenna is not None:
+            fh.write(encode_1033(7, antenna=antenna))
         for e in epochs:
             obs = []
             for o in e.observations:
@@ -72,6 +75,34 @@ def test_an_rtcm_base_gives_the_solutions_of_the_same_observations_in_rinex(tmp_
     rms = float(np.sqrt(np.mean(np.sum((ra - REF_ROVER) ** 2, axis=1))))
     print(f"RTCM base: 120/120 fixed, RMS 3-D {rms:.4f} m; at most {d.max() * 1e3:.2f} mm from the RINEX base")
     assert rms < 0.004 and d.max() < 0.002
+
+
+def test_the_base_antenna_a_1033_names_is_calibrated(tmp_path, capsys):
+    """--antennas finds the base's type in its 1033 (an RTCM base has no RINEX header): a type
+    declared with its phase centres 100 mm above the ARP raises the base, and the rover with it, by
+    that; the rover's header says 'Unknown', which stays uncalibrated and is said to."""
+    from companion.cli import main
+    from companion.nav.earth import ecef_to_ned
+    from tests.test_rtk_antennas import _antex_text
+    rtcm, atx = tmp_path / "base.rtcm3", tmp_path / "up.atx"
+    _msm7_capture(rtcm, antenna="TESTANT_UP100 NONE")
+    atx.write_text(_antex_text({"TESTANT_UP100   NONE": (0.0, {c: ([0.0, 0.0, 100.0], [0.0] * 19, None)
+                                                                for c in ("G01", "G02", "G05")})}))
+    out = {}
+    for name, extra in (("plain", []), ("calibrated", ["--antennas", str(atx)])):
+        js = tmp_path / f"{name}.json"
+        assert main(["gnss", "--rover", str(ROVER), "--base", str(rtcm), "--nav", str(NAV), "--sys", "G,E,C",
+                     "--mode", "rtk", "--json", str(js), *extra]) == 0
+        out[name] = json.loads(js.read_text())
+    assert "base TESTANT_UP100 NONE (calibrated)" in capsys.readouterr().out
+    ant = out["calibrated"]["antennas"]
+    assert ant["base"]["from"] == "header" and ant["rover"]["calibration"] is None
+    # Galileo's and BeiDou's frequencies took GPS's nearest, and that is said
+    assert {"E01 from G01", "E05 from G05", "C02 from G01"} <= set(ant["base"]["notes"])
+    a, b = (np.array([s["r_e"] for s in out[k]["solutions"]]) for k in ("plain", "calibrated"))
+    shift = ecef_to_ned(REF_ROVER + (b - a).mean(axis=0), REF_ROVER)
+    print(f"base declared 100 mm up: the rover moved north/east/down {1e3 * shift} mm")
+    assert shift[2] == pytest.approx(-0.100, abs=0.002) and np.hypot(*shift[:2]) < 0.002
 
 
 def test_what_an_rtcm_base_lacks_is_said(tmp_path, capsys):

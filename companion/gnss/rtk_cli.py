@@ -55,7 +55,8 @@ def _rtk_base(paths: list[str], systems: str, week: int, t_gps_window: tuple[flo
     # the receiver type a 1033 names decides GLONASS's integers as a RINEX header's would
     desc = dec.base_descriptor
     hdr = {"approx_position_e": np.asarray(arp[-1], float) if arp else None, "antenna_delta_hen_m": None,
-           "obs_types": {}, "receiver": desc.receiver if desc else None, "rtcm_descriptor": desc}
+           "obs_types": {}, "receiver": desc.receiver if desc else None, "rtcm_descriptor": desc,
+           "antenna": (desc.antenna or None) if desc else None}    # (1007/1008/1033: for --antennas)
     glonass = list(dec.glonass_history.values()) if "R" in systems else []
     return hdr, epochs, [m for m in msgs if isinstance(m, GpsEphemeris) and m.sat[0] in systems] + glonass, None
 
