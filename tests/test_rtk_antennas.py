@@ -201,6 +201,9 @@ def test_cli_says_which_antennas_and_writes_them(tmp_path, capsys):
             "--elevation-mask-deg", "15"]
     assert main([*args, "--rover-antenna", "AERAT2775_150"]) == 2
     assert "--antennas FILE" in capsys.readouterr().err
+    assert main(["gnss", "--mode", "dgps", "--rover", str(ROVER), "--base", str(BASE), "--nav", str(NAV),
+                 "--antennas", str(NGS)]) == 2
+    assert "--antennas applies to --mode rtk" in capsys.readouterr().err
     assert main([*args, "--antennas", str(NGS), "--rover-antenna", "LEIAR25.R4 NONE"]) == 2
     assert "'LEIAR25.R4 NONE' is not in" in capsys.readouterr().err
     assert main([*args, "--antennas", str(NGS), "--rover-antenna", "AERAT2775_150", "--pos", str(pos),

@@ -431,6 +431,11 @@ def _run(args) -> int:
     if getattr(args, "iono", "off") != "off":
         raise GnssProcessingError(f"--iono {args.iono} applies to --mode rtk (spp uses the broadcast model or, with "
                                   f"--freq if, the iono-free pair; dgps the base's corrections)")
+    named = [o for o, a in (("--antennas", "antennas"), ("--rover-antenna", "rover_antenna"),
+                            ("--base-antenna", "base_antenna")) if getattr(args, a, None)]
+    if named:
+        raise GnssProcessingError(f"{', '.join(named)} applies to --mode rtk (the phase centres are millimetres "
+                                  f"to centimetres: below what spp and dgps resolve)")
     store, klob, hdr, rover, base_epochs, base, systems = _load(args)
     signal = FREQ_SIGNALS[getattr(args, "freq", None) or "l1"]
     opts = ProcessOptions(mode=args.mode, elevation_mask_rad=math.radians(args.elevation_mask_deg),
