@@ -18,6 +18,7 @@ from companion.gnss.rtk import RtkConfig
 from companion.gnss.rtk_post import solve_rtk_rinex
 from companion.nav.earth import ecef_to_ned
 from tests._data import data_path
+from tests._rtklib_pos import rtklib_fixed_xyz
 
 pytestmark = pytest.mark.real_data
 
@@ -82,12 +83,7 @@ def _rnx2rtkp(tmp_path, tag: str, antfile=None, rover_type: str = "*") -> dict[i
     out = tmp_path / f"{tag}.pos"
     subprocess.run(["rnx2rtkp", "-k", str(conf), "-o", str(out), str(ROVER), str(BASE), str(NAV)],
                    check=True, capture_output=True, timeout=120)
-    fixed = {}
-    for ln in out.read_text().splitlines():
-        f = ln.split()
-        if not ln.startswith("%") and len(f) > 5 and f[5] == "1":
-            fixed[round(int(f[0]) * 604800 + float(f[1]))] = np.array([float(v) for v in f[2:5]])
-    return fixed
+    return rtklib_fixed_xyz(out)
 
 
 def test_ngs_reader_and_the_phase_centre_geometry():

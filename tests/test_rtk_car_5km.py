@@ -17,6 +17,7 @@ import pytest
 from companion.gnss.rtk import RtkConfig
 from companion.gnss.rtk_post import solve_rtk_rinex
 from tests._data import data_path
+from tests._rtklib_pos import rtklib_fixed_xyz
 
 pytestmark = pytest.mark.real_data
 
@@ -62,11 +63,7 @@ def test_agrees_with_rtklib_where_it_fixes_and_fixes_more(every_system, tmp_path
     subprocess.run(["rnx2rtkp", "-p", "2", "-f", "2", "-m", "10", "-h", "-e", "-sys", "G,E,J",
                     "-r", *(f"{v}" for v in BASE_XYZ), "-o", str(out), *plain],
                    check=True, capture_output=True, timeout=300)
-    theirs = {}
-    for ln in out.read_text().splitlines():
-        f = ln.split()
-        if not ln.startswith("%") and len(f) > 5 and f[5] == "1":
-            theirs[round(int(f[0]) * 604800 + float(f[1]))] = np.array([float(v) for v in f[2:5]])
+    theirs = rtklib_fixed_xyz(out)
     ours = {round(s.t_gps): s.r_e for s in every_system if s.quality == 1}
     common = sorted(set(ours) & set(theirs))
     d = [float(np.linalg.norm(ours[t] - theirs[t])) for t in common]

@@ -14,6 +14,7 @@ from companion.gnss.pos_format import write_pos
 from companion.gnss.rtk import RtkConfig
 from companion.gnss.rtk_post import pos_records, solve_rtk_rinex
 from tests._data import data_path
+from tests._rtklib_pos import rtklib_fixed_xyz
 
 pytestmark = pytest.mark.real_data
 
@@ -37,14 +38,7 @@ def _rtklib_fixed(tmp_path, mask_deg: float) -> dict[int, np.ndarray]:
     subprocess.run(["rnx2rtkp", "-p", "2", "-f", "2", "-m", f"{mask_deg:g}", "-h", "-e", "-r",
                     *(f"{v}" for v in BASE_HEADER_XYZ), "-o", str(out), str(ROVER), str(BASE), str(NAV)],
                    check=True, capture_output=True, timeout=120)
-    fixed = {}
-    for ln in out.read_text().splitlines():
-        f = ln.split()
-        if ln.startswith("%") or len(f) < 6:
-            continue
-        if f[5] == "1":
-            fixed[round(int(f[0]) * 604800 + float(f[1]))] = np.array([float(v) for v in f[2:5]])
-    return fixed
+    return rtklib_fixed_xyz(out)
 
 
 def test_kinematic_rtk_fixes_every_epoch_from_the_first_at_centimetre_level():
