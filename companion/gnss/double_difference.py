@@ -9,6 +9,8 @@ filter (:mod:`.rtk`) and the engine's RTK update (:mod:`companion.nav.rtk_update
   (atmosphere, orbit and clock errors: mm/s) over it; receiver clocks cancel between satellites.
 * :func:`cross_pair`: a carrier the rover tracks only as L2C and the base only as L2 P(Y) (or the
   reverse) renamed on both sides to the pair's own code (:mod:`companion.rtk_signals`).
+* :func:`at_reference_point`: a receiver's observables moved from each carrier's phase centre to
+  its antenna reference point (the calibration of :mod:`.antenna_calibration`).
 * :func:`model_range_m`: geometric range + Saastamoinen troposphere at the receiver's height -
   satellite clock, and the unit line of sight.
 * :func:`sd_variance_m2`: between-receiver single-difference variance, ``2 (a^2 + b^2/sin^2 el)``
@@ -48,6 +50,27 @@ class ReceiverSat:
     half_cycle: dict | None = None  # signal -> unresolved half-cycle flag
     lock_time_s: dict | None = None  # signal -> continuous lock time (s)
     eph: object = None              # the ephemeris used (both receivers must use the same one)
+
+
+def at_reference_point(sats: dict[str, ReceiverSat], antenna, r_rx_e: np.ndarray, llh=None) -> dict[str, ReceiverSat]:
+    """``sats`` with each carrier's phase and code moved from its phase centre to the antenna
+    reference point: what ``antenna`` (:class:`~.antenna_calibration.AntennaCalibration`, None:
+    ``sats`` as they are) adds to the range along each line of sight from ``r_rx_e`` taken off the
+    observation, where RTKLIB's ``antmodel`` adds it to the modelled range.  New dicts: the
+    observables' dicts are shared with other users of the epoch."""
+    if antenna is None or not sats:
+        return sats
+    lat, lon, _ = ecef_to_geodetic(r_rx_e) if llh is None else llh
+    C_e_n = C_n_e(lat, lon).T
+    out = {}
+    for sat, q in sats.items():
+        d = q.r_sat_e - r_rx_e
+        n, e, dn = C_e_n @ (d / np.linalg.norm(d))
+        u_enu = np.array([e, n, -dn])
+        off = {s: antenna.range_offset_m(sat[:1], s[1], u_enu) for s in {*q.code_m, *q.phase_cyc}}
+        out[sat] = dataclasses.replace(q, code_m={s: v - off[s] for s, v in q.code_m.items()},
+                                       phase_cyc={s: v - off[s] / q.wavelength_m[s] for s, v in q.phase_cyc.items()})
+    return out
 
 
 def signals_of(signals, sat: str) -> tuple[str, ...]:

@@ -30,8 +30,9 @@ The shape is RTKLIB's relative positioning (``rtkpos.c``), written from its docu
   row of its satellite: ``-(lambda / lambda_L1)^2`` of it on the phase, ``+`` on the code; the
   fixed solution conditions it on the integers as it does the position.
 * **Antennas** (``rover_antenna``, ``base_antenna``: :mod:`.antenna_calibration`): each
-  receiver's range gains its calibration's phase-centre offset along the line of sight and its
-  variation, per frequency, in phase and code rows alike (RTKLIB's ``antmodel``); without one a
+  receiver's phase and code, per frequency, moved from the phase centre to its ARP by the
+  calibration's offset along the line of sight and its variation
+  (:func:`~.double_difference.at_reference_point`; RTKLIB's ``antmodel``); without one a
   receiver's phase centres are at its ARP.
 * **Kinematic**: every epoch the position prior is the previous solution with ``position_sigma_m``
   (30 m: no dynamics are assumed); **static**: the position is a constant.  Iterated update
@@ -69,12 +70,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
-from ..nav.earth import C_n_e, ecef_to_geodetic
+from ..nav.earth import ecef_to_geodetic
 from ..rtk_signals import RTK_SIGNALS, signals_for_system
 from .antenna_calibration import AntennaCalibration
 from .differential_iono import iono_factor, prior_sigma_m as iono_prior_sigma_m, random_walk_psd
-from .double_difference import (ReceiverSat, cross_pair, dd_covariance, elevation_rad, model_range_m,
-                                receiver_sats, sd_variance_m2)
+from .double_difference import (ReceiverSat, at_reference_point, cross_pair, dd_covariance, elevation_rad,
+                                model_range_m, receiver_sats, sd_variance_m2)
 from .ephemeris_store import EphemerisStore
 from .lambda_kernel import lambda_ils      # compiled when numba is there, the same results
 
@@ -177,12 +178,6 @@ _model_m = model_range_m
 _TOO_FEW = object()
 
 
-def _enu(llh, los_e: np.ndarray) -> np.ndarray:
-    """An ECEF line of sight in east, north, up at ``llh``."""
-    n, e, d = C_n_e(llh[0], llh[1]).T @ los_e
-    return np.array([e, n, -d])
-
-
 def _half_cycle(q: ReceiverSat, signal: str) -> bool:
     return bool(q.half_cycle and q.half_cycle.get(signal, False))
 
@@ -203,7 +198,7 @@ class RtkFilter:
         self._base_flags_ahead: set[str] = set()
         self.base_r_e = np.asarray(base_r_e, dtype=float)
         self._base_llh = ecef_to_geodetic(self.base_r_e)
-        self._base_models: tuple = (None, {}, {})  # (the epoch's base satellites, sat -> model, antenna)
+        self._base_models: tuple = (None, {})     # (the epoch's base satellites, sat -> model)
         self.store = store
         self.x = np.zeros(3)
         self.P = np.eye(3) * config.position_sigma_m ** 2
@@ -279,8 +274,10 @@ class RtkFilter:
         cfg = self.cfg
         sig = self.sig
         r_guess = self.x[:3].copy() if self.initialized else np.asarray(r_prior_e, dtype=float)
-        sb = _receiver_sats(base, self.store, self.base_r_e, sig)
-        sr = _receiver_sats(rover, self.store, r_guess, sig)
+        # each receiver's carriers moved from their phase centres to its ARP, where the model is
+        sb = at_reference_point(_receiver_sats(base, self.store, self.base_r_e, sig), self.base_antenna,
+                                self.base_r_e, self._base_llh)
+        sr = at_reference_point(_receiver_sats(rover, self.store, r_guess, sig), self.rover_antenna, r_guess)
         sr, sb = cross_pair(sr, sb)
         mask = math.radians(cfg.elevation_mask_deg)
         common = []
@@ -387,15 +384,11 @@ class RtkFilter:
         model_r = {sat: _model_m(r, sr[sat], llh_r) for sat in common}
         # the base's side is the same at every iteration of an epoch: computed once
         if self._base_models[0] is not sb:
-            self._base_models = (sb, {}, {})
-        model_b, ant_b = self._base_models[1], self._base_models[2]
+            self._base_models = (sb, {})
+        model_b = self._base_models[1]
         for sat in common:
             if sat not in model_b:
                 model_b[sat] = _model_m(self.base_r_e, sb[sat], self._base_llh)
-                if self.base_antenna is not None:
-                    ant_b[sat] = _enu(self._base_llh, model_b[sat][1])
-        ant_r = {sat: _enu(llh_r, model_r[sat][1]) for sat in common} if self.rover_antenna is not None else {}
-        antennas = ant_r or ant_b
         rows_v, rows_H, var_sd, groups, keys = [], [], [], [], []
         n = len(x)
         sd_vars: dict[tuple[str, str], float] = {}
@@ -418,8 +411,6 @@ class RtkFilter:
                         continue
                     lam, lam_ref = sr[sat].wavelength_m[s], sr[ref].wavelength_m[s]
                     dd_rho = (model_r[sat][0] - model_b[sat][0]) - (model_r[ref][0] - model_b[ref][0])
-                    if antennas:
-                        dd_rho += self._antenna_sd_m(sat, s, ant_r, ant_b) - self._antenna_sd_m(ref, s, ant_r, ant_b)
                     H = np.zeros(n)
                     H[:3] = -(model_r[sat][1] - model_r[ref][1])
                     # the ionosphere advances the phase and delays the code, each satellite on its carrier
@@ -458,17 +449,6 @@ class RtkFilter:
         m = len(rows_v)
         R = dd_covariance(var_sd, groups)
         return np.array(rows_v), np.array(rows_H).reshape(m, n), R, keys
-
-    def _antenna_sd_m(self, sat: str, signal: str, u_rover: dict, u_base: dict) -> float:
-        """Rover minus base: what each receiver's range gains from its ARP to ``signal``'s phase
-        centre (its calibration's offset and variation along the line of sight; nothing without one)."""
-        band = signal[1]
-        out = 0.0
-        if self.rover_antenna is not None:
-            out += self.rover_antenna.range_offset_m(sat[:1], band, u_rover[sat])
-        if self.base_antenna is not None:
-            out -= self.base_antenna.range_offset_m(sat[:1], band, u_base[sat])
-        return out
 
     def _sd_var(self, el: float, kind: str) -> float:
         cfg = self.cfg
