@@ -416,6 +416,14 @@ class FilterConfig:
                                     "gloarmode on). Only when the base is the rover's receiver model (two ZED-F9P): "
                                     "each make has its own GLONASS inter-channel phase biases, which cancel only "
                                     "between two receivers of one model; otherwise GLONASS stays float")
+    rtk_antennas: str = _f("", doc="receiver antenna calibrations for RTK: an IGS ANTEX (igs20.atx) or NGS "
+                           "ant_info (ngs_abs.pcv) file, a path as the service is started (empty: each antenna's "
+                           "phase centres at its reference point, which puts the difference of the two antennas' "
+                           "offsets, centimetres, into the height)")
+    rtk_rover_antenna: str = _f("", doc="with rtk_antennas: the rover antenna's IGS type and radome, e.g. "
+                                "'TRM59800.00 SCIS' (empty: uncalibrated)")
+    rtk_base_antenna: str = _f("", doc="with rtk_antennas: the base antenna's IGS type (empty: the one its RTCM "
+                               "1007/1008/1033 names, when the file has it)")
 
     def process_noise(self):
         from .nav.filter import ProcessNoise
@@ -651,6 +659,14 @@ def _cross_checks(cfg: Config, where: str) -> None:
         if cfg.filter.use_loose:
             raise ConfigError(f"{where}: filter.rtk_enabled: cannot be combined with filter.use_loose = true "
                               f"(loose coupling fuses receiver fixes, not carrier phase)")
+    f = cfg.filter
+    if (f.rtk_rover_antenna or f.rtk_base_antenna) and not f.rtk_antennas:
+        raise ConfigError(f"{where}: filter.rtk_rover_antenna / rtk_base_antenna: name types in a calibration "
+                          f"file: set filter.rtk_antennas (ANTEX or NGS ant_info)")
+    if f.rtk_antennas and not f.rtk_enabled:
+        raise ConfigError(f"{where}: filter.rtk_antennas: applies to RTK (filter.rtk_enabled = true)")
+    if f.rtk_antennas and not Path(f.rtk_antennas).is_file():
+        raise ConfigError(f"{where}: filter.rtk_antennas: no such file: {f.rtk_antennas}")
     if not cfg.filter.systems:
         raise ConfigError(f"{where}: filter.systems: at least one constellation (e.g. [\"G\"])")
     if c.source == "serial" and cfg.gnss.source == "serial" and c.serial.port == cfg.gnss.serial.port:

@@ -419,6 +419,9 @@ class NavPipeline:
                 self._base_override_sent = True
             msgs = [BaseStationPosition(x.station_id, np.asarray(ov, float), x.antenna_height_m)
                     if isinstance(x, BaseStationPosition) else x for x in msgs]
+        desc = self.rtcm.base_descriptor
+        if desc is not None and desc.antenna:
+            self.engine.name_base_antenna(desc.antenna)     # for [filter] rtk_antennas
         return self._feed_messages(msgs)
 
     def feed_mavlink_record(self, t_rx_ns: int, msg) -> list[NavSolution]:
@@ -1341,7 +1344,8 @@ class NavPipeline:
                 **({"imu_cluster": self.cluster_health()} if self.cluster is not None else {}),
                 "ubx": dict(self.ubx.counters), "rtcm": dict(self.rtcm.counters),
                 # what the base says it is (RTCM 1007 / 1008 / 1033), when it says
-                **({"rtcm_base": self.rtcm.base_descriptor.as_dict()} if self.rtcm.base_descriptor else {})}
+                **({"rtcm_base": self.rtcm.base_descriptor.as_dict()} if self.rtcm.base_descriptor else {}),
+                **({"rtk_antennas": self.engine.rtk_antennas.status()} if self.engine.rtk_antennas else {})}
 
 
     def cluster_health(self) -> dict:

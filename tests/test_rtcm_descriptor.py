@@ -88,3 +88,26 @@ def test_the_health_report_and_the_status_page_name_the_base():
     board.set_health(h)
     assert board.snapshot()["base"] == "NOV OEM729 / JAVGRANT_G5T NONE"
     assert h["rtcm"]["descriptor"] >= 1
+
+
+def test_the_antenna_the_base_names_gets_its_calibration(tmp_path):
+    """[filter] rtk_antennas: the type a real base's 1033 names (JAVGRANT_G5T NONE) is looked up in
+    the file as the stream brings it, and the health report says which calibration each receiver
+    has; a base named nothing, or a type not in the file, keeps its phase centres at its ARP."""
+    from companion.config import loads_config
+    from companion.pipeline import NavPipeline
+    from tests.test_rtk_antennas import _antex_text
+    atx = tmp_path / "ant.atx"
+    atx.write_text(_antex_text({"JAVGRANT_G5T    NONE": (0.0, {"G01": ([0.0, 0.0, 60.0], [0.0] * 19, None)})}))
+    pipe = NavPipeline(loads_config(f"[filter]\nrtk_enabled = true\nrtk_antennas = '{atx}'\n"
+                                    f"[corrections]\nsource = 'file'\n[corrections.file]\npath = 'base.rtcm3'\n"))
+    assert pipe.health()["rtk_antennas"]["base"]["calibration"] is None
+    pipe.feed("rtcm", 1_000_000_000, CAPTURE.read_bytes()[:200_000])
+    ant = pipe.health()["rtk_antennas"]
+    assert ant["base"]["type"] == "JAVGRANT_G5T NONE" and ant["base"]["calibration"] == "ant.atx: JAVGRANT_G5T    NONE"
+    assert ant["rover"]["calibration"] is None and "rtk_rover_antenna" in ant["rover"]["notes"][0]
+    assert pipe.engine.rtk.base_antenna is not None
+    assert pipe.engine.counters["rtk base antenna calibration changes"] == 1
+    pipe.engine.name_base_antenna("LEIAR25.R4 LEIT")            # (another base) not in the file
+    assert pipe.engine.rtk.base_antenna is None
+    assert "not in the file" in pipe.health()["rtk_antennas"]["base"]["notes"][0]

@@ -46,13 +46,11 @@ def _without(epoch, drop):
     return dataclasses.replace(epoch, observations=tuple(o for o in epoch.observations if o.signal not in drop))
 
 
-@pytest.mark.parametrize("drop_rover, drop_base", [((), ()), (L2P, L2C)], ids=["as-recorded", "rover-L2C-base-PY"])
-def test_engine_fixes_the_real_car_from_the_first_epochs(drop_rover, drop_base):
-    """``rover-L2C-base-PY``: the rover's L2 P(Y) and the base's L2C dropped, as an F9P against a
-    base with P(Y) only: GPS L2 is paired across the families (companion.rtk_signals).  Measured:
-    355 of 358 fixed from the first epoch, 1.7 cm RMS and at most 9.6 cm from the reference (as
-    recorded: 353; without the cross pair, GPS on L1 alone beside Galileo and QZSS: 353, the
-    first at epoch 1, measured against the default track)."""
+def _run_engine(drop_rover=(), drop_base=(), before=None, **engine_kw):
+    """The engine along the car's post-processed track (``--iono est``) with its real GNSS:
+    (the track's times and positions, the fix state per rover epoch, the engine's position then,
+    the count of epochs with a cross-paired L2, the engine).  ``before(eng)`` runs once the
+    engine has its ephemerides and base position."""
     sols, _ = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ, config=RtkConfig(iono_states=True))
     track = [(s.t_gps, s.r_e) for s in sols if s.quality == 1]
     t, r, v, C_b_e, imu = car_imu([a for a, _ in track], [b for _, b in track])
@@ -61,14 +59,16 @@ def test_engine_fixes_the_real_car_from_the_first_epochs(drop_rover, drop_base):
     base = {round(e.t_gps): dataclasses.replace(rtk_epoch(_without(e, drop_base)), source="base")
             for e in read_rinex_obs(BASE, "GECJ")[1]}
     eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), systems="GECJ", rtk_enabled=True,
-                                 rtk_signals=RTK_SIGNALS, elevation_mask_deg=10.0))
+                                 rtk_signals=RTK_SIGNALS, elevation_mask_deg=10.0, **engine_kw))
     for e in read_rinex_nav(NAV):
         eng.process(e)
     eng.process(BaseStationPosition(0, BASE_XYZ.copy(), 0.0))
+    if before is not None:
+        before(eng)
     rng = np.random.default_rng(2)
     eng.initialize(t[0], r[0] + rng.normal(0, 1.0, 3), v[0] + rng.normal(0, 0.1, 3), C_b_e[0],
                    dict(pos_m=3.0, vel_mps=0.3, tilt_rad=0.02, heading_rad=0.1, ba_mps2=0.05, bg_radps=1e-3))
-    k, states, errors, cross = 0, [], [], 0
+    k, states, positions, cross = 0, [], [], 0
     for epoch in rover:
         while k < len(imu) and imu[k].t_gps < epoch.t_gps + 0.1:
             eng.process(imu[k])
@@ -77,8 +77,20 @@ def test_engine_fixes_the_real_car_from_the_first_epochs(drop_rover, drop_base):
             eng.process(base[round(epoch.t_gps)])
         states.append(eng.process(epoch).fix_state)
         cross += any(name.endswith("L2X~W") for name in eng.block_states)
-        i = min(int(round((eng.t_gps - t[0]) * 200.0)), len(t) - 1)
-        errors.append(float(np.linalg.norm(eng.r_e - r[i])))
+        positions.append((eng.t_gps, eng.r_e.copy()))
+    return t, r, states, positions, cross, eng
+
+
+@pytest.mark.parametrize("drop_rover, drop_base", [((), ()), (L2P, L2C)], ids=["as-recorded", "rover-L2C-base-PY"])
+def test_engine_fixes_the_real_car_from_the_first_epochs(drop_rover, drop_base):
+    """``rover-L2C-base-PY``: the rover's L2 P(Y) and the base's L2C dropped, as an F9P against a
+    base with P(Y) only: GPS L2 is paired across the families (companion.rtk_signals).  Measured:
+    355 of 358 fixed from the first epoch, 1.7 cm RMS and at most 9.6 cm from the reference (as
+    recorded: 353; without the cross pair, GPS on L1 alone beside Galileo and QZSS: 353, the
+    first at epoch 1, measured against the default track)."""
+    t, r, states, positions, cross, eng = _run_engine(drop_rover, drop_base)
+    errors = [float(np.linalg.norm(r_e - r[min(int(round((t_e - t[0]) * 200.0)), len(t) - 1)]))
+              for t_e, r_e in positions]
     fixed = np.array([e for e, s in zip(errors, states) if s == "fixed"])
     first = states.index("fixed")
     print(f"engine on the real car: {len(fixed)}/{len(states)} fixed, the first at epoch {first}, "
@@ -88,3 +100,32 @@ def test_engine_fixes_the_real_car_from_the_first_epochs(drop_rover, drop_base):
     assert fixed.max() < 0.1
     assert np.sqrt(np.mean(fixed ** 2)) < 0.03       # one ionosphere model on both sides
     assert eng.counters["rtk fixed epochs"] == len(fixed)
+
+
+def test_the_base_antenna_the_base_names_moves_the_engine_with_it(tmp_path):
+    """[filter] rtk_antennas live: the base names its antenna (as its RTCM 1033 would,
+    ``NavEngine.name_base_antenna``) and the file declares that type's phase centres 100 mm above
+    its ARP on every frequency: the base is 100 mm higher than its position says, and the engine's
+    fixed positions follow it up by that.  A type the configuration names but the file lacks stops
+    the start-up."""
+    from companion.nav.earth import ecef_to_ned
+    from tests.test_rtk_antennas import _antex_text
+    atx = tmp_path / "up.atx"
+    atx.write_text(_antex_text({"TESTANT_UP100   NONE": (0.0, {c: ([0.0, 0.0, 100.0], [0.0] * 19, None)
+                                                                for c in ("G01", "G02", "G05")})}))
+    with pytest.raises(ValueError, match="'LEIAR25.R4 NONE' is not in"):
+        NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), rtk_enabled=True, rtk_antennas=str(atx),
+                               rtk_base_antenna="LEIAR25.R4 NONE"))
+    _, _, plain_states, plain, _, _ = _run_engine()
+    _, _, states, moved, _, eng = _run_engine(before=lambda e: e.name_base_antenna("TESTANT_UP100 NONE"),
+                                              rtk_antennas=str(atx))
+    assert eng.counters["rtk base antenna calibration changes"] == 1
+    status = eng.rtk_antennas.status()
+    assert status["base"]["calibration"] == "up.atx: TESTANT_UP100   NONE" and status["rover"]["calibration"] is None
+    both = [k for k, (a, b) in enumerate(zip(plain_states, states)) if a == b == "fixed"]
+    assert len(both) >= 0.9 * len(states)
+    shift = np.array([ecef_to_ned(moved[k][1], plain[k][1]) for k in both])
+    print(f"base declared 100 mm up: the engine moved north/east/down {1e3 * shift.mean(axis=0)} mm "
+          f"(per-epoch sd {1e3 * shift.std(axis=0)} mm) over {len(both)} epochs both fixed")
+    assert shift[:, 2].mean() == pytest.approx(-0.100, abs=0.003)
+    assert np.all(np.abs(shift.mean(axis=0)[:2]) < 0.003)

@@ -198,6 +198,11 @@ class EngineConfig:
     rtk_iono_sigma_zenith_m: float = 0.001
     rtk_iono_sigma_ppm: float = 1.0
     rtk_glonass_integers: bool = False        # GLONASS fixed too: one receiver model at both ends
+    # receiver antenna calibrations (companion.nav.rtk_antennas): an ANTEX / NGS file, the rover's
+    # type, the base's (empty: what the base's RTCM 1007/1008/1033 names)
+    rtk_antennas: str = ""
+    rtk_rover_antenna: str = ""
+    rtk_base_antenna: str = ""
 
     def bias_systems(self) -> tuple[str, ...]:
         """Systems with an inter-system bias state: the configured ones, else every clock group
@@ -288,6 +293,12 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.on_epoch = None  # optional callback(EpochReport)
         self.smoother = None  # optional companion.nav.smoother.SmootherRecorder (post-flight RTS)
         self.rtk = RtkUpdate(config.rtk_config(), self.counters) if config.rtk_enabled else None
+        self.rtk_antennas = None
+        if self.rtk is not None and config.rtk_antennas:
+            from .rtk_antennas import RtkAntennas
+            self.rtk_antennas = RtkAntennas(config.rtk_antennas, config.rtk_rover_antenna, config.rtk_base_antenna)
+            self.rtk.rover_antenna = self.rtk_antennas.rover
+            self.rtk.set_base_antenna(self.rtk_antennas.base)
 
     # ------------------------------------------------------------------ set-up
     def initialize(self, t_gps: float, r_e, v_e, C_b_e, P0_sigmas: dict, *,
@@ -400,6 +411,13 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
             return self.process_baseline(msg)
         self.counters["unknown message"] += 1
         return None
+
+    def name_base_antenna(self, name: str) -> None:
+        """The base named its antenna (RTCM 1007/1008/1033): its calibration, if the configured
+        file has it, from the next epoch on (counted when it changes)."""
+        if self.rtk_antennas is not None and self.rtk_antennas.base_named(name):
+            self.rtk.set_base_antenna(self.rtk_antennas.base)
+            self.counters["rtk base antenna calibration changes"] += 1
 
     def process_base(self, epoch: GnssEpoch):
         if self.base is None:

@@ -58,6 +58,9 @@ The measurement model is :mod:`companion.gnss.rtk`'s (shared pieces in
   to the filter as a measurement of the DD ambiguities (``hold_sigma_cycles``), so the whole state
   (position, velocity, attitude, biases) moves to the fixed solution and the next epochs start
   from it.
+* **Antennas** (``rover_antenna``, ``base_antenna``: :mod:`.rtk_antennas`): each receiver's
+  carriers moved from their phase centres to its ARP before the rows
+  (:func:`~companion.gnss.double_difference.at_reference_point`), as the post-processing does.
 * **Wrong fixes**, per system: a system whose held phase rows then fail the gate (more than one
   row, or most of its rows) has all its ambiguities re-initialised and its rows left out of the
   epoch, and the position covariance is widened by ``wrong_fix_position_sigma_m``; when every
@@ -74,7 +77,7 @@ import numpy as np
 from ..gnss.atmosphere import saastamoinen_zenith_m
 from ..gnss.differential_iono import iono_factor, random_walk_psd
 from ..gnss.differential_iono import prior_sigma_m as iono_prior_sigma_m
-from ..gnss.double_difference import cross_pair, place_at, receiver_sats, sd_variance_m2, transmit_states
+from ..gnss.double_difference import at_reference_point, cross_pair, place_at, receiver_sats, sd_variance_m2, transmit_states
 from ..rtk_signals import base_signal, signals_for_system
 from ..gnss.lambda_kernel import lambda_ils      # compiled when numba is there, same results
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
@@ -192,6 +195,15 @@ class RtkUpdate:
             if own:
                 self.sig[sys] = own
         self._groups = [(sys, s) for sys, sigs in self.sig.items() for s in sigs]
+        # the receivers' antenna calibrations (companion.nav.rtk_antennas; None: phase centres at the ARP)
+        self.rover_antenna = None
+        self.base_antenna = None
+
+    def set_base_antenna(self, calibration) -> None:
+        """The base's antenna calibration changed: the base epochs kept are placed again with it."""
+        self.base_antenna = calibration
+        for b in self._base:
+            b[2] = None
 
     # ------------------------------------------------------------------ bookkeeping
     def reset(self) -> None:
@@ -317,10 +329,13 @@ class RtkUpdate:
         if b[2] is None:
             # the base's satellites from the rover's orbits where their transmit times agree
             b[2] = place_at(transmit_states(b[1], eng.ephemerides, self.sig, near=states), eng.base.r_e)
+            # each receiver's carriers moved from their phase centres to its ARP, where the model is
+            b[2] = at_reference_point(b[2], self.base_antenna, eng.base.r_e)
         sb = b[2]
         if sr is None:
             sr = (place_at(states, r_ant_e) if states is not None
                   else receiver_sats(epoch, eng.ephemerides, r_ant_e, self.sig))
+        sr = at_reference_point(sr, self.rover_antenna, r_ant_e)
         sr, sb = cross_pair(sr, sb)          # rover L2C only against base P(Y) only: a group of its own
         cand = []
         for sat in sorted(set(sr) & set(sb)):

@@ -1,0 +1,56 @@
+"""The receivers' antenna calibrations of the engine's RTK (``[filter] rtk_antennas``): the file read
+once at start-up, the rover's type from the configuration, the base's from the configuration or,
+by default, from what the base says it is (RTCM 1007/1008/1033, as they arrive).
+
+A type the configuration names and the file lacks stops the start-up (a typo must not pass for a
+calibration); a type the base names and the file lacks leaves the base's phase centres at its ARP,
+counted and in the health report, as does a base that names none.
+"""
+from __future__ import annotations
+
+import logging
+
+from ..gnss.antenna_calibration import AntennaCalibration, read_antenna_file, receiver_antenna
+
+log = logging.getLogger(__name__)
+
+
+class RtkAntennas:
+    """Which calibration each receiver has, and why (:meth:`status` for the health report)."""
+
+    def __init__(self, path: str, rover_type: str = "", base_type: str = ""):
+        try:
+            self._table = read_antenna_file(path)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"[filter] rtk_antennas: cannot read {path}: {exc}") from exc
+        self.path = path
+        self._base_asked = base_type or None
+        self.rover, self._rover_info = receiver_antenna(self._table, rover_type or None, None, "rover", path)
+        if not rover_type:
+            self._rover_info["notes"] = ["no [filter] rtk_rover_antenna: its phase centres taken at the ARP"]
+        self.base: AntennaCalibration | None = None
+        self._base_info: dict = {"type": None, "from": "base's RTCM 1007/1008/1033", "calibration": None,
+                                 "notes": ["the base has not named its antenna yet"]}
+        self._base_named: str | None = None
+        if self._base_asked:
+            self.base, self._base_info = receiver_antenna(self._table, self._base_asked, None, "base", path)
+
+    def base_named(self, name: str) -> bool:
+        """The base named its antenna ``name``; True when that changes the base's calibration
+        (ignored when the configuration names the base's type)."""
+        if self._base_asked or name == self._base_named:
+            return False
+        self._base_named = name
+        cal, info = receiver_antenna(self._table, None, name, "base", self.path)
+        info["from"] = "base's RTCM 1007/1008/1033"
+        self._base_info = info
+        log.info("RTK base antenna %r: %s", name, info["calibration"] or "; ".join(info["notes"]))
+        changed = (cal is None) != (self.base is None) or (cal is not None and cal.name != self.base.name)
+        self.base = cal
+        return changed
+
+    def status(self) -> dict:
+        return {"file": self.path, "rover": dict(self._rover_info), "base": dict(self._base_info)}
+
+
+__all__ = ["RtkAntennas"]
