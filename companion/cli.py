@@ -71,7 +71,8 @@ def _add_gnss(sub) -> None:
                         "RINEX header names.  Without it they are taken at the antenna reference point, which "
                         "puts centimetres into the height when the two antennas differ")
     p.add_argument("--rover-antenna", metavar="TYPE",
-                   help="rtk with --antennas: the rover antenna's IGS type ('TRM59800.00 SCIS') instead of its header's")
+                   help="rtk with --antennas: the rover antenna's IGS type ('TRM59800.00 SCIS') instead of its "
+                        "header's")
     p.add_argument("--base-antenna", metavar="TYPE",
                    help="rtk with --antennas: the base antenna's IGS type instead of its header's")
     p.add_argument("--start", metavar="GPST", help="process from this time on, GPST as RTKLIB writes it "

@@ -210,3 +210,16 @@ def test_cli_says_which_antennas_and_writes_them(tmp_path, capsys):
     assert head == ["% antenna1  : AERAT2775_150 (calibrated)", "% antenna2  : TRM29659.00 (calibrated)"]
     summary = json.loads(js.read_text())
     assert summary["antennas"]["rover"]["from"] == "asked" and summary["antennas"]["base"]["from"] == "header"
+
+
+def test_without_calibrations_two_different_antennas_are_pointed_out(capsys):
+    """The 5.3-km car's headers name a JAVRINGANT_DM rover and a TRM159900.00 base: without
+    --antennas the run says that their offsets go into the height and what calibrates them;
+    GEONET's two TRM29659.00 are not pointed out."""
+    car = data_path("cssrlib-fujisawa-car-2021")
+    assert main(["gnss", "--mode", "rtk", "--rover", str(car / "rover.crx.gz"), "--base", str(car / "base.crx.gz"),
+                 "--nav", str(car / "nav.rnx.gz"), "--base-xyz=-3959400.631,3385704.533,3667523.111",
+                 "--start", "2021/09/22 06:31:00", "--end", "2021/09/22 06:31:10"]) == 0
+    assert "antennas: rover JAVRINGANT_DM   JVDM, base TRM159900.00    SCIS" in capsys.readouterr().out
+    assert main(["gnss", "--mode", "rtk", "--rover", str(ROVER), "--base", str(BASE), "--nav", str(NAV)]) == 0
+    assert "antennas:" not in capsys.readouterr().out

@@ -61,16 +61,15 @@ class AntennaCalibration:
 
     def frequency(self, system: str, band: str) -> FrequencyCalibration:
         """The calibration of ``band`` ('1', '2', '5' ...) of ``system``, or of GPS's frequency
-        nearest to it (noted once) when the file has none of its own."""
-        code = f"{system}{int(band):02d}"
+        nearest to it (noted once) when the file has none of its own (any frequency of the file
+        when it has no GPS one, its first when the band's frequency is unknown)."""
+        code = f"{system}{band:0>2}"
         cal = self.frequencies.get(code)
         if cal is not None:
             return cal
         f = _carrier_hz(system, band)
-        gps = [(abs(_carrier_hz("G", c[2]) - f), c) for c in self.frequencies if c[0] == "G"]
-        if not gps or not math.isfinite(f):
-            raise KeyError(f"{self.name}: no calibration for {code} nor any GPS frequency to take for it")
-        use = min(gps)[1]
+        have = [c for c in self.frequencies if c[0] == "G"] or list(self.frequencies)
+        use = min(have, key=lambda c: abs(_carrier_hz(c[0], c[1:].lstrip("0")) - f)) if math.isfinite(f) else have[0]
         self.frequencies[code] = self.frequencies[use]
         self.notes.append(f"{code} from {use}")
         return self.frequencies[use]
@@ -80,9 +79,10 @@ class AntennaCalibration:
 
 
 def _carrier_hz(system: str, band: str) -> float:
+    """A band's carrier frequency (GLONASS: channel 0's), NaN when unknown."""
     if system == GLONASS:
         return glonass_carrier_hz(f"L{band}C", 0)
-    return FREQUENCY_HZ.get(system, {}).get(str(int(band)), float("nan"))
+    return FREQUENCY_HZ.get(system, {}).get(band, float("nan"))
 
 
 def antenna_key(name: str) -> tuple[str, str]:
@@ -131,8 +131,8 @@ def receiver_antenna(cals: dict, asked: str | None, header: str | None, who: str
     if cal is None:
         if asked:
             raise ValueError(f"the {who} antenna {asked!r} is not in {path}")
-        info["notes"].append(f"{'no antenna type in the header' if not name.strip() else repr(name) + ' not in the file'}"
-                             f": its phase centres taken at the ARP")
+        why = "no antenna type in the header" if not name.strip() else f"{name!r} not in the file"
+        info["notes"].append(f"{why}: its phase centres taken at the ARP")
         return None, info
     info["calibration"] = f"{Path(path).name}: {cal.name}"
     info["entry"] = cal.entry

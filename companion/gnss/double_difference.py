@@ -52,7 +52,8 @@ class ReceiverSat:
     eph: object = None              # the ephemeris used (both receivers must use the same one)
 
 
-def at_reference_point(sats: dict[str, ReceiverSat], antenna, r_rx_e: np.ndarray, llh=None) -> dict[str, ReceiverSat]:
+def at_reference_point(sats: dict[str, ReceiverSat], antenna, r_rx_e: np.ndarray,
+                       llh=None) -> dict[str, ReceiverSat]:
     """``sats`` with each carrier's phase and code moved from its phase centre to the antenna
     reference point: what ``antenna`` (:class:`~.antenna_calibration.AntennaCalibration`, None:
     ``sats`` as they are) adds to the range along each line of sight from ``r_rx_e`` taken off the
@@ -69,7 +70,8 @@ def at_reference_point(sats: dict[str, ReceiverSat], antenna, r_rx_e: np.ndarray
         u_enu = np.array([e, n, -dn])
         off = {s: antenna.range_offset_m(sat[:1], s[1], u_enu) for s in {*q.code_m, *q.phase_cyc}}
         out[sat] = dataclasses.replace(q, code_m={s: v - off[s] for s, v in q.code_m.items()},
-                                       phase_cyc={s: v - off[s] / q.wavelength_m[s] for s, v in q.phase_cyc.items()})
+                                       phase_cyc={s: v - off[s] / q.wavelength_m.get(s, math.nan)
+                                                  for s, v in q.phase_cyc.items()})
     return out
 
 

@@ -21,6 +21,7 @@ from .postprocess import (GnssProcessingError, base_files, epoch_progress, epoch
                           load_ubx_capture, median_spp_position, parse_systems, parse_xyz, read_navigation,
                           rover_files, satellites_by_system, say_reading_notes, statistics, time_window, write_plot,
                           write_tracks)
+from .antenna_calibration import antenna_key
 from .rinex import read_rinex_nav_header_iono
 from .rinex_obs import read_rinex_obs_files
 from .rtk import RtkConfig
@@ -157,6 +158,16 @@ def _antenna_text(a: dict) -> str:
     """One receiver's antenna as the .pos header and the terminal say it."""
     text = f"{a['type'] or 'no type'} " + ("(calibrated)" if a["calibration"] else "(phase centres at the ARP)")
     return text + (f"; {', '.join(a['notes'])}" if a["notes"] else "")
+
+
+def _antenna_hint(rover_type: str | None, base_type: str | None) -> str | None:
+    """Without --antennas, two different antenna types named: what it costs and what corrects it."""
+    named = [t for t in (rover_type, base_type) if t and t.strip() and t.strip().upper() != "UNKNOWN"]
+    if len(named) < 2 or antenna_key(named[0]) == antenna_key(named[1]):
+        return None
+    return (f"antennas: rover {rover_type}, base {base_type}, both phase centres taken at their reference points: "
+            f"their offsets differ by millimetres to centimetres, mostly in height (--antennas igs20.atx "
+            f"calibrates them)")
 
 
 def _antennas_line(antennas: dict, path: str) -> str:
@@ -322,6 +333,8 @@ def run_rtk(args) -> int:
     if info["antennas"]:
         summary["antennas"] = info["antennas"]
         print(_antennas_line(info["antennas"], args.antennas))
+    elif (hint := _antenna_hint(hr.get("antenna"), hb.get("antenna"))) is not None:
+        print(hint)
     if static:
         summary["static_position"], line = _static_result(sols[-1], len(sols), truth)
         print(line)

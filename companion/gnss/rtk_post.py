@@ -61,7 +61,8 @@ def solve_rtk_rinex(rover_obs, base_obs, navs, *, base_xyz=None, config: RtkConf
 
 def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, config: RtkConfig = RtkConfig(),
                      progress=None, direction: str = "forward", antennas: str | None = None,
-                     rover_antenna: str | None = None, base_antenna: str | None = None) -> tuple[list[RtkSolution], dict]:
+                     rover_antenna: str | None = None,
+                     base_antenna: str | None = None) -> tuple[list[RtkSolution], dict]:
     """:func:`solve_rtk_rinex` on observations already read (``read_rinex_obs``'s headers and
     epochs of rover and base) and the ephemerides.  ``antennas``: an ANTEX or NGS calibration file
     for the receivers' phase centres (:mod:`.antenna_calibration`), of the antenna types their
@@ -132,8 +133,8 @@ def solve_rtk_epochs(hr: dict, rover, hb: dict, base, ephs, *, base_xyz=None, co
             "solutions": len(sols), "fixed": sum(1 for s in sols if s.quality == 1), "direction": direction,
             "base_antenna_e": base_ant.tolist(),
             "rover_antenna_delta_hen_m": [float(v) for v in (hr.get("antenna_delta_hen_m")
-                                                             if hr.get("antenna_delta_hen_m") is not None else (0, 0, 0))], "counters": counters, "glonass_ar": glonass_ar,
-            "antennas": antenna_info}
+                                                             if hr.get("antenna_delta_hen_m") is not None else (0, 0, 0))],
+            "counters": counters, "glonass_ar": glonass_ar, "antennas": antenna_info}
     return sols, info
 
 

@@ -77,7 +77,8 @@ import numpy as np
 from ..gnss.atmosphere import saastamoinen_zenith_m
 from ..gnss.differential_iono import iono_factor, random_walk_psd
 from ..gnss.differential_iono import prior_sigma_m as iono_prior_sigma_m
-from ..gnss.double_difference import at_reference_point, cross_pair, place_at, receiver_sats, sd_variance_m2, transmit_states
+from ..gnss.double_difference import (at_reference_point, cross_pair, place_at, receiver_sats, sd_variance_m2,
+                                       transmit_states)
 from ..rtk_signals import base_signal, signals_for_system
 from ..gnss.lambda_kernel import lambda_ils      # compiled when numba is there, same results
 from ..messages import SPEED_OF_LIGHT_MPS, GnssEpoch
