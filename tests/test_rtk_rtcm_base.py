@@ -94,7 +94,7 @@ def test_the_base_antenna_a_1033_names_is_calibrated(tmp_path, capsys):
         assert main(["gnss", "--rover", str(ROVER), "--base", str(rtcm), "--nav", str(NAV), "--sys", "G,E,C",
                      "--mode", "rtk", "--json", str(js), *extra]) == 0
         out[name] = json.loads(js.read_text())
-    assert "base TESTANT_UP100 NONE (calibrated)" in capsys.readouterr().out
+    assert "base TESTANT_UP100 NONE (calibrated; " in capsys.readouterr().out
     ant = out["calibrated"]["antennas"]
     assert ant["base"]["from"] == "header" and ant["rover"]["calibration"] is None
     # Galileo's and BeiDou's frequencies took GPS's nearest, and that is said

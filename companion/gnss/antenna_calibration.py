@@ -53,11 +53,14 @@ class FrequencyCalibration:
 @dataclass
 class AntennaCalibration:
     """One antenna type's calibration: frequency code (ANTEX's 'G01', 'E05', ...) -> its values."""
-    name: str                             # 'TRM59800.00     SCIS' (model, radome) as asked
+    name: str                             # 'TRM59800.00     SCIS' (model, radome) as the file has it
     source: str                           # the file it came from
     frequencies: dict[str, FrequencyCalibration]
     notes: list[str] = field(default_factory=list)
     entry: str = ""                       # the file's own type text (what RTKLIB is given to find it)
+
+    def __post_init__(self):
+        self._own = tuple(self.frequencies)   # the file's frequencies (substitutes come from these only)
 
     def frequency(self, system: str, band: str) -> FrequencyCalibration:
         """The calibration of ``band`` ('1', '2', '5' ...) of ``system``, or of GPS's frequency
@@ -68,7 +71,7 @@ class AntennaCalibration:
         if cal is not None:
             return cal
         f = _carrier_hz(system, band)
-        have = [c for c in self.frequencies if c[0] == "G"] or list(self.frequencies)
+        have = [c for c in self._own if c[0] == "G"] or list(self._own)
         use = min(have, key=lambda c: abs(_carrier_hz(c[0], c[1:].lstrip("0")) - f)) if math.isfinite(f) else have[0]
         self.frequencies[code] = self.frequencies[use]
         self.notes.append(f"{code} from {use}")
@@ -86,11 +89,23 @@ def _carrier_hz(system: str, band: str) -> float:
 
 
 def antenna_key(name: str) -> tuple[str, str]:
-    """(model, radome) of an IGS antenna name ('TRM59800.00     SCIS', 'TRM29659.00', 'LEIAR25.R4 NONE')."""
+    """(model, radome) of an IGS antenna name as typed ('TRM59800.00 SCIS', 'TRM29659.00',
+    'LEIAR25.R4 NONE')."""
     words = name.split()
     if not words:
         return "", "NONE"
     return words[0].upper(), (words[1].upper() if len(words) > 1 else "NONE")
+
+
+def _keys(name: str) -> list[tuple[str, str]]:
+    """The (model, radome) ``name`` can mean: as typed, and as a RINEX header's 20 columns (model
+    in 16, radome in 4: 'Tallysman TW7972NONE' is the model 'Tallysman TW7972' without a radome)."""
+    keys = [antenna_key(name)]
+    if len(name) > 16:
+        cols = (name[:16].strip().upper(), name[16:20].strip().upper() or "NONE")
+        if cols not in keys:
+            keys.append(cols)
+    return keys
 
 
 def read_antenna_file(path) -> dict[tuple[str, str], AntennaCalibration]:
@@ -109,15 +124,16 @@ def read_antenna_file(path) -> dict[tuple[str, str], AntennaCalibration]:
 def find_antenna(cals: dict[tuple[str, str], AntennaCalibration], name: str) -> AntennaCalibration | None:
     """``name``'s calibration (a copy: its frequency substitutions are its own), the radome-less
     one of its model when its radome is not in the file (noted), or None."""
-    model, radome = antenna_key(name)
-    cal = cals.get((model, radome))
+    keys = _keys(name)
+    cal = next((cals[k] for k in keys if k in cals), None)
     notes = []
-    if cal is None and radome != "NONE" and (model, "NONE") in cals:
-        cal = cals[(model, "NONE")]
-        notes.append(f"radome {radome} not calibrated: {model} without one used")
+    for model, radome in keys:
+        if cal is None and radome != "NONE" and (model, "NONE") in cals:
+            cal = cals[(model, "NONE")]
+            notes.append(f"radome {radome} not calibrated: {model} without one used")
     if cal is None:
         return None
-    return AntennaCalibration(f"{model:<16}{radome}", cal.source, dict(cal.frequencies), notes, cal.entry)
+    return AntennaCalibration(cal.name, cal.source, dict(cal.frequencies), notes, cal.entry)
 
 
 def receiver_antenna(cals: dict, asked: str | None, header: str | None, who: str, path: str) \
@@ -131,8 +147,8 @@ def receiver_antenna(cals: dict, asked: str | None, header: str | None, who: str
     if cal is None:
         if asked:
             raise ValueError(f"the {who} antenna {asked!r} is not in {path}")
-        why = "no antenna type in the header" if not name.strip() else f"{name!r} not in the file"
-        info["notes"].append(f"{why}: its phase centres taken at the ARP")
+        why = "no antenna type in the header" if not name.strip() else "not in the file"
+        info["notes"].append(f"{why}: phase centres taken at the ARP")
         return None, info
     info["calibration"] = f"{Path(path).name}: {cal.name}"
     info["entry"] = cal.entry

@@ -156,18 +156,18 @@ def _antenna_options(args) -> dict:
 
 def _antenna_text(a: dict) -> str:
     """One receiver's antenna as the .pos header and the terminal say it."""
-    text = f"{a['type'] or 'no type'} " + ("(calibrated)" if a["calibration"] else "(phase centres at the ARP)")
-    return text + (f"; {', '.join(a['notes'])}" if a["notes"] else "")
+    if not a["calibration"]:
+        return f"{a['type'] or 'no type'} ({'; '.join(a['notes']) or 'phase centres taken at the ARP'})"
+    return f"{a['type']} (calibrated" + (f"; {', '.join(a['notes'])})" if a["notes"] else ")")
 
 
 def _antenna_hint(rover_type: str | None, base_type: str | None) -> str | None:
     """Without --antennas, two different antenna types named: what it costs and what corrects it."""
     named = [t for t in (rover_type, base_type) if t and t.strip() and t.strip().upper() != "UNKNOWN"]
-    if len(named) < 2 or antenna_key(named[0]) == antenna_key(named[1]):
+    if len(named) < 2 or antenna_key(named[0]) == antenna_key(named[1]) or named[0][:20] == named[1][:20]:
         return None
     return (f"antennas: rover {rover_type}, base {base_type}, both phase centres taken at their reference points: "
-            f"their offsets differ by millimetres to centimetres, mostly in height (--antennas igs20.atx "
-            f"calibrates them)")
+            f"the heights carry their offsets (centimetres to a decimetre; --antennas igs20.atx calibrates them)")
 
 
 def _antennas_line(antennas: dict, path: str) -> str:

@@ -27,7 +27,7 @@ class RtkAntennas:
         self._base_asked = base_type or None
         self.rover, self._rover_info = receiver_antenna(self._table, rover_type or None, None, "rover", path)
         if not rover_type:
-            self._rover_info["notes"] = ["no [filter] rtk_rover_antenna: its phase centres taken at the ARP"]
+            self._rover_info["notes"] = ["no [filter] rtk_rover_antenna: phase centres taken at the ARP"]
         self.base: AntennaCalibration | None = None
         self._base_info: dict = {"type": None, "from": "base's RTCM 1007/1008/1033", "calibration": None,
                                  "notes": ["the base has not named its antenna yet"]}
