@@ -665,8 +665,6 @@ def _cross_checks(cfg: Config, where: str) -> None:
                           f"file: set filter.rtk_antennas (ANTEX or NGS ant_info)")
     if f.rtk_antennas and not f.rtk_enabled:
         raise ConfigError(f"{where}: filter.rtk_antennas: applies to RTK (filter.rtk_enabled = true)")
-    if f.rtk_antennas and not Path(f.rtk_antennas).is_file():
-        raise ConfigError(f"{where}: filter.rtk_antennas: no such file: {f.rtk_antennas}")
     if not cfg.filter.systems:
         raise ConfigError(f"{where}: filter.systems: at least one constellation (e.g. [\"G\"])")
     if c.source == "serial" and cfg.gnss.source == "serial" and c.serial.port == cfg.gnss.serial.port:

@@ -40,6 +40,11 @@ def cmd_check(args) -> int:
             warning = None
         if warning:
             print(f"warning: {warning}", file=sys.stderr)
+        from .nav.rtk_antennas import antennas_preflight
+        problem = antennas_preflight(cfg)
+        if problem:
+            problems.append(problem)
+            print(f"error: {problem}", file=sys.stderr)
         if problems:
             status = 2
         else:

@@ -220,9 +220,14 @@ def solution_records_equal(logged: bytes, produced: bytes) -> bool:
     return logged == produced
 
 
-def config_event(config) -> bytes:
-    """The 'event' record that makes a log self-describing (replay rebuilds the pipeline from it)."""
-    return json.dumps({"event": "config", "toml": config.to_toml(comments=False, redact=True)}).encode()
+def config_event(config, event: str = "config") -> bytes:
+    """The 'event' record that makes a log self-describing (replay rebuilds the pipeline from it):
+    the configuration with its secrets written as ``***`` (replay does not need them; the logs get
+    shared) and the antenna calibration file's SHA-256.  ``event``: 'config' (the start of a file)
+    or 'config_change' (a ground station set a parameter; replay applies it at that record)."""
+    from .nav.rtk_antennas import antennas_digest
+    return json.dumps({"event": event, "toml": config.to_toml(comments=False, redact=True),
+                       **antennas_digest(config)}).encode()
 
 
 class NavPipeline:

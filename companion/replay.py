@@ -123,15 +123,23 @@ class _Progress:
         sys.stderr.flush()
 
 
-def _config_from_event(payload: bytes):
+def _config_from_event(payload: bytes, antennas_path: str | None = None, notes: list | None = None):
+    """The configuration of a 'config' / 'config_change' record (None for another event), its
+    antenna calibration file found here (:func:`companion.nav.rtk_antennas.for_replay`; what it
+    could not find goes to ``notes``)."""
     from .config import loads_config
+    from .nav.rtk_antennas import for_replay
     obj = json.loads(payload.decode())
-    if obj.get("event") in ("config", "config_change"):
-        return loads_config(obj["toml"], "<field log>")
-    return None
+    if obj.get("event") not in ("config", "config_change"):
+        return None
+    cfg, note = for_replay(loads_config(obj["toml"], "<field log>"), obj.get("rtk_antennas_sha256"), antennas_path)
+    if note and notes is not None and note not in notes:
+        notes.append(note)
+    return cfg
 
 
-def replay_field_log(path, config=None, progress: bool = False, smooth: bool = False) -> ReplayResult:
+def replay_field_log(path, config=None, progress: bool = False, smooth: bool = False,
+                     antennas_path: str | None = None) -> ReplayResult:
     from .io.fieldlog import FieldLogReader
     reader = FieldLogReader(path)
     total = sum(f.stat().st_size for f in reader.files)
@@ -158,11 +166,11 @@ def replay_field_log(path, config=None, progress: bool = False, smooth: bool = F
             continue
         if k == "event":
             if pipe is not None and config is None and b'"config_change"' in bytes(rec.payload):
-                pipe.apply_settings(_config_from_event(rec.payload))    # a ground station set a parameter
+                pipe.apply_settings(_config_from_event(rec.payload, antennas_path))   # a ground station set one
                 continue
             if pipe is None:
                 try:
-                    cfg = _config_from_event(rec.payload)
+                    cfg = _config_from_event(rec.payload, antennas_path, res.notes)
                 except Exception as exc:
                     log.warning("unreadable event record: %r", exc)
                     res.config_error = res.config_error or str(exc)
@@ -483,10 +491,11 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
 
 def replay(path, config=None, progress: bool = False, *, needed_imu_hz: float = IMU_RATE_NEEDED_HZ,
            dataflash_options=None, t_start_s: float | None = None, t_end_s: float | None = None,
-           smooth: bool = False) -> ReplayResult:
+           smooth: bool = False, antennas_path: str | None = None) -> ReplayResult:
     """Replay any log: a DataFlash .BIN or a PX4 .ulg (by its first bytes or name), a .tlog, else a
     field log.  ``dataflash_options`` (:class:`~companion.io.dataflash.AdapterOptions`) and the
-    boot-time window apply to DataFlash and ULog logs only."""
+    boot-time window apply to DataFlash and ULog logs only; ``antennas_path``, to field logs: the
+    antenna calibration file the flight used, where it is here."""
     p = str(path)
     if Path(p).is_file() and (p.lower().endswith(".bin") or _is_dataflash(p)):
         return replay_dataflash(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth)
@@ -496,7 +505,7 @@ def replay(path, config=None, progress: bool = False, *, needed_imu_hz: float = 
         if smooth:
             raise ValueError("smoothing is implemented for field logs, DataFlash and ULog replays")
         return replay_tlog(path, config, progress, needed_imu_hz)
-    return replay_field_log(path, config, progress, smooth)
+    return replay_field_log(path, config, progress, smooth, antennas_path)
 
 
 def _cli_options(args) -> dict:
@@ -508,7 +517,7 @@ def _cli_options(args) -> dict:
                           gps_latency_s=None if lat_ms is None else float(lat_ms) * 1e-3)
     return {"needed_imu_hz": float(getattr(args, "min_imu_rate_hz", None) or IMU_RATE_NEEDED_HZ),
             "dataflash_options": opts, "t_start_s": getattr(args, "start", None), "t_end_s": getattr(args, "end", None),
-            "smooth": bool(getattr(args, "smooth", False))}
+            "smooth": bool(getattr(args, "smooth", False)), "antennas_path": getattr(args, "antennas_file", None)}
 
 
 def _is_ulog(p) -> bool:

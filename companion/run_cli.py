@@ -33,6 +33,11 @@ def cmd_run(args) -> int:
     except SigningKeyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    from .nav.rtk_antennas import antennas_preflight
+    problem = antennas_preflight(cfg)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     import asyncio
 
     from .service import Service
@@ -62,6 +67,9 @@ def register(subparsers) -> None:
     r.add_argument("log", help="field log file, rotated-log directory or stem, a .tlog, a DataFlash .BIN, a PX4 "
                    ".ulg, or a u-blox .ubx with --imu-csv")
     r.add_argument("--config", help="TOML configuration (default: the one recorded in the field log)")
+    r.add_argument("--antennas-file", metavar="FILE",
+                   help="field log: the antenna calibration file (filter.rtk_antennas) the flight used, where it "
+                        "is on this machine (default: the logged path; its SHA-256 is checked against the log's)")
     r.add_argument("--json", help="write solutions and the comparison as JSON here")
     r.add_argument("--plot", help="write a PNG of the track and sigmas here")
     r.add_argument("--pos", help="write the replayed solutions in RTKLIB's .pos format (rtkplot, pos2kml)")

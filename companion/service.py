@@ -56,7 +56,7 @@ import signal
 import time
 from collections import Counter
 
-from .pipeline import NavPipeline, encode_solution
+from .pipeline import NavPipeline, config_event, encode_solution
 
 log = logging.getLogger(__name__)
 
@@ -85,11 +85,8 @@ def _json_default(x):
         return str(x)
 
 
-def redacted_config_event(config, event: str = "config") -> bytes:
-    """The config record for the field log, secrets written as ``***`` (replay does not need them;
-    the logs get shared).  ``event``: 'config' (the start of a file) or 'config_change' (a ground
-    station set a parameter; replay applies it at that record)."""
-    return json.dumps({"event": event, "toml": config.to_toml(comments=False, redact=True)}).encode()
+#: the field log's config record (companion.pipeline.config_event: secrets redacted)
+redacted_config_event = config_event
 
 
 class Service:

@@ -92,6 +92,36 @@ def test_replay_of_a_log_whose_config_this_version_cannot_read_says_so(tmp_path)
     assert "--config" in p.stderr
 
 
+def test_replay_of_a_log_made_with_antenna_calibrations_finds_them_or_says_why(tmp_path):
+    """A field log of a service with [filter] rtk_antennas replayed on a machine without that file:
+    the replay runs and its notes say why RTK solutions will differ; given the file
+    (--antennas-file) it says nothing."""
+    from companion.config import loads_config
+    from companion.io.fieldlog import FieldLogWriter
+    from companion.pipeline import config_event
+    from tests.test_rtk_antennas import _antex_text
+    atx = tmp_path / "flight.atx"
+    atx.write_text(_antex_text({"JAVGRANT_G5T    NONE": (0.0, {"G01": ([0.0, 0.0, 60.0], [0.0] * 19, None)})}))
+    cfg = loads_config("[corrections]\nsource = 'file'\n[corrections.file]\npath = 'base.rtcm3'\n"
+                       f"[filter]\nrtk_enabled = true\nrtk_antennas = '{atx}'\n")
+    logdir = tmp_path / "log"
+    w = FieldLogWriter(logdir)
+    w.write("event", config_event(cfg))
+    w.close()
+    kept = tmp_path / "kept.atx"
+    kept.write_bytes(atx.read_bytes())
+    atx.unlink()
+    out = {}
+    for name, extra in (("without", []), ("given", ["--antennas-file", str(kept)])):
+        js = tmp_path / f"{name}.json"
+        subprocess.run([sys.executable, "-m", "companion.run_cli", "replay", str(logdir), "--no-progress",
+                        "--json", str(js), *extra], capture_output=True, text=True, timeout=60)
+        out[name] = json.loads(js.read_text())
+    assert out["without"]["config_from"] == "field log"
+    assert any("replayed without them" in n for n in out["without"]["notes"])
+    assert not any("antenna" in n for n in out["given"]["notes"])
+
+
 def _write_tlog(path, imu_hz: float, duration_s: float = 30.0, system_time: bool = True):
     """A ground-station tlog of a vehicle at rest: HEARTBEAT, SYSTEM_TIME, ATTITUDE and
     GPS_RAW_INT at 1 Hz, RAW_IMU at ``imu_hz`` (as a GCS streams them), 8-byte UNIX-us stamps."""

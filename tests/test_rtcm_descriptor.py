@@ -111,3 +111,42 @@ def test_the_antenna_the_base_names_gets_its_calibration(tmp_path):
     pipe.engine.name_base_antenna("LEIAR25.R4 LEIT")            # (another base) not in the file
     assert pipe.engine.rtk.base_antenna is None
     assert "not in the file" in pipe.health()["rtk_antennas"]["base"]["notes"][0]
+
+
+def test_antenna_calibrations_are_checked_at_start_and_found_again_by_a_replay(tmp_path, capsys):
+    """The service does not start on a calibration file it cannot read or a type it lacks
+    (``companion config check`` says so too); the field log's config record carries the file's
+    SHA-256, and a replay elsewhere uses the file where it is given, says when it is another one,
+    and runs uncalibrated, saying so, when it has none."""
+    import json
+
+    from companion.config import loads_config
+    from companion.config_cli import cmd_check
+    from companion.nav.rtk_antennas import antennas_preflight, for_replay
+    from companion.pipeline import config_event
+    from tests.test_rtk_antennas import _antex_text
+    atx = tmp_path / "ant.atx"
+    atx.write_text(_antex_text({"JAVGRANT_G5T    NONE": (0.0, {"G01": ([0.0, 0.0, 60.0], [0.0] * 19, None)})}))
+    base = "[corrections]\nsource = 'file'\n[corrections.file]\npath = 'base.rtcm3'\n[filter]\nrtk_enabled = true\n"
+    cfg = loads_config(base + f"rtk_antennas = '{atx}'\n")
+    assert antennas_preflight(cfg) is None
+    for extra, needle in ((f"rtk_antennas = '{tmp_path / 'none.atx'}'\n", "cannot read"),
+                          (f"rtk_antennas = '{atx}'\nrtk_rover_antenna = 'TRM59800.00 SCIS'\n", "is not in")):
+        toml = tmp_path / "c.toml"
+        toml.write_text(base + extra)
+        assert needle in antennas_preflight(loads_config(toml.read_text()))
+        assert cmd_check(type("A", (), {"files": [str(toml)]})()) == 2
+        assert needle in capsys.readouterr().err
+    logged = json.loads(config_event(cfg))["rtk_antennas_sha256"]
+    same, note = for_replay(cfg, logged)
+    assert same.filter.rtk_antennas == str(atx) and note is None
+    moved = tmp_path / "elsewhere.atx"
+    moved.write_bytes(atx.read_bytes())
+    atx.unlink()
+    off, note = for_replay(cfg, logged)
+    assert off.filter.rtk_antennas == "" and "replayed without them" in note
+    found, note = for_replay(cfg, logged, str(moved))
+    assert found.filter.rtk_antennas == str(moved) and note is None
+    moved.write_text(moved.read_text().replace("60.00", "61.00"))
+    _, note = for_replay(cfg, logged, str(moved))
+    assert "is not the antenna calibration file the log was made with" in note

@@ -8,11 +8,63 @@ counted and in the health report, as does a base that names none.
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import logging
+from pathlib import Path
 
 from ..gnss.antenna_calibration import AntennaCalibration, read_antenna_file, receiver_antenna
 
 log = logging.getLogger(__name__)
+
+
+def file_sha256(path: str) -> str | None:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def antennas_digest(config) -> dict:
+    """What a field log's config record adds: the calibration file's SHA-256, so that a replay
+    elsewhere knows whether the file it is given is the one the flight used."""
+    path = config.filter.rtk_antennas
+    digest = file_sha256(path) if path else None
+    return {"rtk_antennas_sha256": digest} if digest else {}
+
+
+def antennas_preflight(config) -> str | None:
+    """The start-up's check: None, or why the configured calibrations cannot be used."""
+    f = config.filter
+    if not (f.rtk_enabled and f.rtk_antennas):
+        return None
+    try:
+        RtkAntennas(f.rtk_antennas, f.rtk_rover_antenna, f.rtk_base_antenna)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def for_replay(config, logged_sha256: str | None, path: str | None = None):
+    """(configuration, note or None) to replay a field log made with ``config``: its calibration
+    file where it was (or ``path``, ``companion replay --antennas-file``); without one here the
+    replay runs uncalibrated and says that its solutions will differ from the logged ones, and a
+    file that is not the logged one (another SHA-256) is said to be."""
+    f = config.filter
+    if not (f.rtk_enabled and (f.rtk_antennas or path)):
+        return config, None
+    use = path or f.rtk_antennas
+    digest = file_sha256(use)
+    if digest is None:
+        off = dataclasses.replace(f, rtk_antennas="", rtk_rover_antenna="", rtk_base_antenna="")
+        return (dataclasses.replace(config, filter=off),
+                f"the antenna calibrations the log was made with ({use}) are not here: replayed without them, so "
+                f"RTK solutions differ from the logged ones by the antennas' offsets (give the file with "
+                f"--antennas-file)")
+    note = None
+    if logged_sha256 and digest != logged_sha256:
+        note = f"{use} is not the antenna calibration file the log was made with (another SHA-256)"
+    return dataclasses.replace(config, filter=dataclasses.replace(f, rtk_antennas=use)), note
 
 
 class RtkAntennas:
@@ -53,4 +105,4 @@ class RtkAntennas:
         return {"file": self.path, "rover": dict(self._rover_info), "base": dict(self._base_info)}
 
 
-__all__ = ["RtkAntennas"]
+__all__ = ["RtkAntennas", "antennas_digest", "antennas_preflight", "file_sha256", "for_replay"]
