@@ -84,6 +84,7 @@ class RtkAntennas:
         self._base_info: dict = {"type": None, "from": "base's RTCM 1007/1008/1033", "calibration": None,
                                  "notes": ["the base has not named its antenna yet"]}
         self._base_named: str | None = None
+        self._names_seen = 0                  # the base's antenna names so far (a flapping one is logged 5 times)
         if self._base_asked:
             self.base, self._base_info = receiver_antenna(self._table, self._base_asked, None, "base", path)
 
@@ -96,7 +97,9 @@ class RtkAntennas:
         cal, info = receiver_antenna(self._table, None, name, "base", self.path)
         info["from"] = "base's RTCM 1007/1008/1033"
         self._base_info = info
-        log.info("RTK base antenna %r: %s", name, info["calibration"] or "; ".join(info["notes"]))
+        self._names_seen += 1
+        if self._names_seen <= 5:
+            log.info("RTK base antenna %r: %s", name, info["calibration"] or "; ".join(info["notes"]))
         changed = (cal is None) != (self.base is None) or (cal is not None and cal.name != self.base.name)
         self.base = cal
         return changed
