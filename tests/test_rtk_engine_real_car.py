@@ -16,6 +16,7 @@ from the reference; at RTKLIB's 3 ppm (the default until 2026-12-04) the float s
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -46,18 +47,25 @@ def _without(epoch, drop):
     return dataclasses.replace(epoch, observations=tuple(o for o in epoch.observations if o.signal not in drop))
 
 
+@functools.lru_cache(maxsize=1)
+def _track_imu_and_epochs():
+    """The post-processed track (``--iono est``), the IMU synthesised along it, and the files'
+    epochs: the same for every run of the engine in this module."""
+    sols, _ = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ, config=RtkConfig(iono_states=True))
+    track = [(s.t_gps, s.r_e) for s in sols if s.quality == 1]
+    return (car_imu([a for a, _ in track], [b for _, b in track]), read_rinex_obs(ROVER, "GECJ")[1],
+            read_rinex_obs(BASE, "GECJ")[1])
+
+
 def _run_engine(drop_rover=(), drop_base=(), before=None, **engine_kw):
     """The engine along the car's post-processed track (``--iono est``) with its real GNSS:
     (the track's times and positions, the fix state per rover epoch, the engine's position then,
     the count of epochs with a cross-paired L2, the engine).  ``before(eng)`` runs once the
     engine has its ephemerides and base position."""
-    sols, _ = solve_rtk_rinex(ROVER, BASE, [NAV], base_xyz=BASE_XYZ, config=RtkConfig(iono_states=True))
-    track = [(s.t_gps, s.r_e) for s in sols if s.quality == 1]
-    t, r, v, C_b_e, imu = car_imu([a for a, _ in track], [b for _, b in track])
-    rover = [rtk_epoch(_without(e, drop_rover)) for e in read_rinex_obs(ROVER, "GECJ")[1]
-             if t[0] < e.t_gps <= t[-1] - 0.2]
+    (t, r, v, C_b_e, imu), rover_epochs, base_epochs = _track_imu_and_epochs()
+    rover = [rtk_epoch(_without(e, drop_rover)) for e in rover_epochs if t[0] < e.t_gps <= t[-1] - 0.2]
     base = {round(e.t_gps): dataclasses.replace(rtk_epoch(_without(e, drop_base)), source="base")
-            for e in read_rinex_obs(BASE, "GECJ")[1]}
+            for e in base_epochs}
     eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), systems="GECJ", rtk_enabled=True,
                                  rtk_signals=RTK_SIGNALS, elevation_mask_deg=10.0, **engine_kw))
     for e in read_rinex_nav(NAV):

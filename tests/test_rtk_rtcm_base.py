@@ -92,8 +92,9 @@ def test_the_base_antenna_a_1033_names_is_calibrated(tmp_path, capsys):
     for name, extra in (("plain", []), ("calibrated", ["--antennas", str(atx)])):
         js = tmp_path / f"{name}.json"
         assert main(["gnss", "--rover", str(ROVER), "--base", str(rtcm), "--nav", str(NAV), "--sys", "G,E,C",
-                     "--mode", "rtk", "--json", str(js), *extra]) == 0
+                     "--mode", "rtk", "--end", "2024/06/24 08:20:29", "--json", str(js), *extra]) == 0
         out[name] = json.loads(js.read_text())
+        assert len(out[name]["solutions"]) == 30
     assert "base TESTANT_UP100 NONE (calibrated; " in capsys.readouterr().out
     ant = out["calibrated"]["antennas"]
     assert ant["base"]["from"] == "header" and ant["rover"]["calibration"] is None
