@@ -234,6 +234,7 @@ def test_cli_says_which_antennas_and_writes_them(tmp_path, capsys):
                  "--json", str(js)]) == 0
     out = capsys.readouterr().out
     assert "antennas (ngs_abs_excerpt.pcv): rover AERAT2775_150 (calibrated); base TRM29659.00 (calibrated)" in out
+    assert "GLONASS" not in out                 # GPS-only files: no word of GLONASS's integers
     head = [ln for ln in pos.read_text().splitlines() if ln.startswith("% antenna")]
     assert head == ["% antenna1  : AERAT2775_150 (calibrated)", "% antenna2  : TRM29659.00 (calibrated)"]
     summary = json.loads(js.read_text())

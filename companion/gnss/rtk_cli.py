@@ -322,7 +322,8 @@ def run_rtk(args) -> int:
               f"{info['max_base_age_s']:.1f} s apart (at most {cfg.max_base_age_s:g} s)")
     print("satellites per epoch (common to rover and base, above the mask): "
           + ", ".join(f"{c} {v['mean']:.1f} ({v['min']}-{v['max']})" for c, v in by_sys.items()))
-    if info["glonass_ar"]:
+    glonass_used = bool(info["glonass_ar"]) and "R" in by_sys     # (decided for files with no GLONASS too)
+    if glonass_used:
         print(f"GLONASS integers: {info['glonass_ar']}")
     fix_stats, line = _fix_statistics(sols)
     summary.update(fix_stats)
@@ -367,7 +368,7 @@ def run_rtk(args) -> int:
                               for k, who in enumerate(("rover", "base")) if who in info["antennas"]},
                            "navi sys": ",".join(by_sys) or ",".join(cfg.systems),   # the systems solved with
                            "amb res": f"fix and hold, ratio {cfg.ratio_threshold:g}"
-                                      + (f"; GLONASS {info['glonass_ar'].split()[0]}" if info["glonass_ar"] else "")})
+                                      + (f"; GLONASS {info['glonass_ar'].split()[0]}" if glonass_used else "")})
     return 0
 
 
