@@ -88,7 +88,7 @@ class StatusBoard:
                 "history": list(self.solutions), "sources": sources, "events": list(self.events),
                 "filter": {k: f.get(k) for k in ("status", "mode", "reset_counter") if k in f},
                 # the base as its RTCM 1007 / 1008 / 1033 describe it (printable ASCII already)
-                "base": _base_text((self.health or {}).get("rtcm_base"))}
+                "base": _base_text((self.health or {}).get("rtcm_base"), (self.health or {}).get("rtk_antennas"))}
 
 
 def _satellites_of(label) -> list[str]:
@@ -97,11 +97,15 @@ def _satellites_of(label) -> list[str]:
     return str(label).split(" ")[0].split(":")[0].split("-")
 
 
-def _base_text(desc: dict | None) -> str | None:
+def _base_text(desc: dict | None, antennas: dict | None = None) -> str | None:
+    """'receiver / antenna' of the base, and whether RTK calibrates that antenna ([filter] rtk_antennas)."""
     if not desc:
         return None
     parts = [desc.get("receiver") or "", desc.get("antenna") or ""]
-    return " / ".join(p for p in parts if p) or f"station {desc.get('station_id')}"
+    text = " / ".join(p for p in parts if p) or f"station {desc.get('station_id')}"
+    if antennas and desc.get("antenna"):
+        text += " (calibrated)" if (antennas.get("base") or {}).get("calibration") else " (not calibrated)"
+    return text
 
 
 def _page_html() -> bytes:

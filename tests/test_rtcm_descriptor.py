@@ -108,6 +108,9 @@ def test_the_antenna_the_base_names_gets_its_calibration(tmp_path):
     assert ant["rover"]["calibration"] is None and "rtk_rover_antenna" in ant["rover"]["notes"][0]
     assert pipe.engine.rtk.base_antenna is not None
     assert pipe.engine.counters["rtk base antenna calibration changes"] == 1
+    board = StatusBoard()
+    board.set_health(pipe.health())
+    assert board.snapshot()["base"] == "NOV OEM729 / JAVGRANT_G5T NONE (calibrated)"
     pipe.engine.name_base_antenna("LEIAR25.R4 LEIT")            # (another base) not in the file
     assert pipe.engine.rtk.base_antenna is None
     assert "not in the file" in pipe.health()["rtk_antennas"]["base"]["notes"][0]
