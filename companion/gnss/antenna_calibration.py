@@ -42,9 +42,13 @@ class FrequencyCalibration:
         up = min(max(float(u_enu[2]), -1.0), 1.0)
         zen = math.degrees(math.acos(up))
         if self.pcv_m is not None:
+            # bilinear: the two azimuth rows around the satellite's, each at its zenith angle
             az = math.degrees(math.atan2(float(u_enu[0]), float(u_enu[1]))) % 360.0
-            by_az = [np.interp(zen, self.zenith_deg, row) for row in self.pcv_m]
-            pcv = float(np.interp(az, self.azimuth_deg, by_az))
+            k = min(max(int(np.searchsorted(self.azimuth_deg, az, side="right")) - 1, 0), len(self.azimuth_deg) - 2)
+            a0, a1 = self.azimuth_deg[k], self.azimuth_deg[k + 1]
+            w = min(max((az - a0) / (a1 - a0), 0.0), 1.0)
+            pcv = float((1.0 - w) * np.interp(zen, self.zenith_deg, self.pcv_m[k])
+                        + w * np.interp(zen, self.zenith_deg, self.pcv_m[k + 1]))
         else:
             pcv = float(np.interp(zen, self.zenith_deg, self.pcv_noazi_m))
         return -float(self.pco_enu_m @ u_enu) + pcv
@@ -222,7 +226,7 @@ def _antex_frequency(freq: dict, ant: dict) -> FrequencyCalibration:
         raise ValueError(f"ANTEX {ant.get('key')} {freq['code']}: {len(noazi)} values for {len(zen)} zenith angles"
                          if freq["pco"] is not None else f"ANTEX {ant.get('key')} {freq['code']}: no NORTH / EAST / UP")
     rows = freq["rows"]
-    if ant["dazi"] > 0 and rows and all(len(v) == len(zen) for _, v in rows):
+    if ant["dazi"] > 0 and len(rows) >= 2 and all(len(v) == len(zen) for _, v in rows):
         return FrequencyCalibration(freq["pco"], zen, noazi, np.array([a for a, _ in rows]),
                                     np.array([v for _, v in rows]))
     return FrequencyCalibration(freq["pco"], zen, noazi)

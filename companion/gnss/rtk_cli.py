@@ -164,7 +164,7 @@ def _antenna_text(a: dict) -> str:
 def _antenna_hint(rover_type: str | None, base_type: str | None) -> str | None:
     """Without --antennas, two different antenna types named: what it costs and what corrects it."""
     named = [t for t in (rover_type, base_type) if t and t.strip() and t.strip().upper() != "UNKNOWN"]
-    if len(named) < 2 or antenna_key(named[0]) == antenna_key(named[1]) or named[0][:20] == named[1][:20]:
+    if len(named) < 2 or antenna_key(named[0]) == antenna_key(named[1]):
         return None
     return (f"antennas: rover {rover_type}, base {base_type}, both phase centres taken at their reference points: "
             f"the heights carry their offsets (centimetres to a decimetre; --antennas igs20.atx calibrates them)")
