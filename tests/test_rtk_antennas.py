@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from companion.cli import main
-from companion.gnss.antenna_calibration import (FrequencyCalibration, find_antenna, read_antenna_file,
-                                                receiver_antenna)
+from companion.gnss.antenna_calibration import (FrequencyCalibration, find_antenna, largest_change_m,
+                                                read_antenna_file, receiver_antenna)
 from companion.gnss.rtk import RtkConfig
 from companion.gnss.rtk_post import solve_rtk_rinex
 from companion.nav.earth import ecef_to_ned
@@ -169,6 +169,22 @@ def test_a_real_antex_file_with_azimuth_grids():
     jav = find_antenna(cals, "JAVRINGANT_DM   JVDM")
     assert jav.name == "JAVRINGANT_DM   NONE" and jav.notes == ["radome JVDM not calibrated: JAVRINGANT_DM without "
                                                              "one used"]
+
+
+def test_the_largest_change_between_two_calibrations(tmp_path):
+    """What the engine widens its position by when the base's calibration changes: the most the
+    modelled range moves over the sky, on L1 and L2."""
+    atx = tmp_path / "up.atx"
+    atx.write_text(_antex_text({"TESTANT_UP100   NONE": (0.0, {c: ([0.0, 0.0, 100.0], [0.0] * 19, None)
+                                                                for c in ("G01", "G02")})}))
+    up100 = find_antenna(read_antenna_file(atx), "TESTANT_UP100")
+    assert largest_change_m(None, up100) == pytest.approx(0.100)      # at the zenith
+    assert largest_change_m(up100, up100) == 0.0 and largest_change_m(None, None) == 0.0
+    igs = read_antenna_file(IGS05)
+    leica, trimble = find_antenna(igs, "LEIAR25.R4"), find_antenna(igs, "TRM29659.00")
+    # the two choke rings' L1/L2 offsets differ by 2-7 cm up, with their variations a few mm more
+    assert 0.02 < largest_change_m(trimble, leica) < 0.10
+    assert largest_change_m(trimble, leica) == pytest.approx(largest_change_m(leica, trimble))
 
 
 def test_a_declared_offset_moves_the_solution_by_it(tmp_path):

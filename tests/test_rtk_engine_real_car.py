@@ -57,11 +57,11 @@ def _track_imu_and_epochs():
             read_rinex_obs(BASE, "GECJ")[1])
 
 
-def _run_engine(drop_rover=(), drop_base=(), before=None, **engine_kw):
+def _run_engine(drop_rover=(), drop_base=(), before=None, during=None, **engine_kw):
     """The engine along the car's post-processed track (``--iono est``) with its real GNSS:
     (the track's times and positions, the fix state per rover epoch, the engine's position then,
     the count of epochs with a cross-paired L2, the engine).  ``before(eng)`` runs once the
-    engine has its ephemerides and base position."""
+    engine has its ephemerides and base position, ``during(eng, k)`` before each rover epoch k."""
     (t, r, v, C_b_e, imu), rover_epochs, base_epochs = _track_imu_and_epochs()
     rover = [rtk_epoch(_without(e, drop_rover)) for e in rover_epochs if t[0] < e.t_gps <= t[-1] - 0.2]
     base = {round(e.t_gps): dataclasses.replace(rtk_epoch(_without(e, drop_base)), source="base")
@@ -77,7 +77,9 @@ def _run_engine(drop_rover=(), drop_base=(), before=None, **engine_kw):
     eng.initialize(t[0], r[0] + rng.normal(0, 1.0, 3), v[0] + rng.normal(0, 0.1, 3), C_b_e[0],
                    dict(pos_m=3.0, vel_mps=0.3, tilt_rad=0.02, heading_rad=0.1, ba_mps2=0.05, bg_radps=1e-3))
     k, states, positions, cross = 0, [], [], 0
-    for epoch in rover:
+    for n, epoch in enumerate(rover):
+        if during is not None:
+            during(eng, n)
         while k < len(imu) and imu[k].t_gps < epoch.t_gps + 0.1:
             eng.process(imu[k])
             k += 1
@@ -137,3 +139,49 @@ def test_the_base_antenna_the_base_names_moves_the_engine_with_it(tmp_path):
           f"(per-epoch sd {1e3 * shift.std(axis=0)} mm) over {len(both)} epochs both fixed")
     assert shift[:, 2].mean() == pytest.approx(-0.100, abs=0.003)
     assert np.all(np.abs(shift.mean(axis=0)[:2]) < 0.003)
+
+
+@functools.lru_cache(maxsize=1)
+def _plain_run():
+    return _run_engine()
+
+
+def _up100_file(tmp_path):
+    from tests.test_rtk_antennas import _antex_text
+    atx = tmp_path / "up.atx"
+    atx.write_text(_antex_text({"TESTANT_UP100   NONE": (0.0, {c: ([0.0, 0.0, 100.0], [0.0] * 19, None)
+                                                                for c in ("G01", "G02", "G05")})}))
+    return atx
+
+
+@pytest.mark.parametrize("what", ["base position", "base antenna"])
+def test_a_base_that_moves_mid_drive_moves_the_fixed_track_at_once(what, tmp_path):
+    """At epoch 200 of the drive, fixed and held for minutes, the base's 1005 says it stands 100 mm
+    higher, or its 1033 names an antenna whose phase centres the file puts 100 mm above the ARP:
+    the fixed track moves 100 mm up from the next epoch on and no fix is lost.  The engine widens
+    its position's variance by the move (``NavEngine._base_model_changed``); before, the held fix
+    dropped for an epoch and the track crept up over a minute (62 mm at once, 92 mm after 15 s)."""
+    from companion.nav.earth import ecef_to_ned
+    at = 200
+    up = BASE_XYZ / np.linalg.norm(BASE_XYZ)
+    kw = {}
+    if what == "base position":
+        def during(eng, k):
+            if k == at:
+                eng.process(BaseStationPosition(0, BASE_XYZ + 0.1 * up, 0.0))
+    else:
+        kw["rtk_antennas"] = str(_up100_file(tmp_path))
+
+        def during(eng, k):
+            if k == at:
+                eng.name_base_antenna("TESTANT_UP100 NONE")
+    _, _, plain_states, plain, _, _ = _plain_run()
+    _, _, states, moved, _, eng = _run_engine(during=during, **kw)
+    assert eng.counters["base moved (position or antenna): position variance widened"] == 1
+    lost = [k for k, (a, b) in enumerate(zip(plain_states, states)) if a == "fixed" and b != "fixed"]
+    rise = np.array([-ecef_to_ned(moved[k][1], plain[k][1])[2] for k in range(at, at + 60) if states[k] == "fixed"])
+    print(f"{what} 100 mm up at epoch {at}: fixes lost {lost}; the track {1e3 * rise[:5].round(4)} mm up "
+          f"at the first fixed epochs, {1e3 * rise.min():.1f}-{1e3 * rise.max():.1f} mm over the next 60")
+    assert not lost
+    assert np.all(np.abs(rise - 0.100) < 0.003)          # measured 99.7-100.8 mm
+    assert np.all([ecef_to_ned(moved[k][1], plain[k][1])[2] == 0.0 for k in range(at) if states[k] == "fixed"])

@@ -259,5 +259,31 @@ def _read_ngs(lines: list[str], source: str) -> dict:
     return out
 
 
-__all__ = ["AntennaCalibration", "FrequencyCalibration", "antenna_key", "find_antenna", "read_antenna_file",
-           "receiver_antenna"]
+def _sky_directions() -> np.ndarray:
+    """Unit ENU vectors over the sky above 5 degrees: 8 azimuths x 9 elevations, and the zenith."""
+    out = [np.array([0.0, 0.0, 1.0])]
+    for el in np.radians(np.arange(5.0, 90.0, 10.0)):
+        for az in np.radians(np.arange(0.0, 360.0, 45.0)):
+            out.append(np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)]))
+    return np.array(out)
+
+
+_SKY = _sky_directions()
+
+
+def largest_change_m(before: AntennaCalibration | None, after: AntennaCalibration | None,
+                     system: str = "G", bands: str = "12") -> float:
+    """The most a receiver's modelled range changes from one calibration to the other (None: the
+    phase centre taken at the ARP) over the sky and ``bands`` of ``system``: what a position
+    solved from its observables can move by when it changes."""
+    worst = 0.0
+    for band in bands:
+        for u in _SKY:
+            a = before.range_offset_m(system, band, u) if before is not None else 0.0
+            b = after.range_offset_m(system, band, u) if after is not None else 0.0
+            worst = max(worst, abs(b - a))
+    return worst
+
+
+__all__ = ["AntennaCalibration", "FrequencyCalibration", "antenna_key", "find_antenna", "largest_change_m",
+           "read_antenna_file", "receiver_antenna"]

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..gnss.antenna_calibration import largest_change_m
 from ..gnss.ephemeris_store import EphemerisStore
 from ..gnss.phase import BaseCarrierBook, RoverCarrierBook
 from ..gnss.prepare import prepare_epoch
@@ -72,6 +73,8 @@ log = logging.getLogger(__name__)
 
 
 FLOOR_MAX_HEADING_SIGMA_RAD = math.radians(10.0)   # slow-error floor only once the heading is known
+# a base position (RTCM 1005/1006: 0.1-mm resolution) or antenna model that moves by less is the same
+BASE_MODEL_CHANGE_MIN_M = 0.001
 
 
 @dataclass
@@ -401,6 +404,8 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
             self.ephemerides.add(msg)
             return None
         if isinstance(msg, BaseStationPosition):
+            if self.base is not None:
+                self._base_model_changed(float(np.linalg.norm(msg.r_e - self.base.r_e)))
             self.base = msg
             return None
         if isinstance(msg, GnssFix):
@@ -415,9 +420,23 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
     def name_base_antenna(self, name: str) -> None:
         """The base named its antenna (RTCM 1007/1008/1033): its calibration, if the configured
         file has it, from the next epoch on (counted when it changes)."""
-        if self.rtk_antennas is not None and self.rtk_antennas.base_named(name):
-            self.rtk.set_base_antenna(self.rtk_antennas.base)
-            self.counters["rtk base antenna calibration changes"] += 1
+        if self.rtk_antennas is not None:
+            before = self.rtk_antennas.base
+            if self.rtk_antennas.base_named(name):
+                self.rtk.set_base_antenna(self.rtk_antennas.base)
+                self.counters["rtk base antenna calibration changes"] += 1
+                self._base_model_changed(largest_change_m(before, self.rtk_antennas.base))
+
+    def _base_model_changed(self, shift_m: float) -> None:
+        """The base's position or antenna model moved by up to ``shift_m``: the differential
+        solutions move with it at once, the INS position does not, so its variance is widened by
+        that much (else the held fix drops for an epoch and the position creeps over a minute:
+        measured 62 -> 98 mm in 40 s, a 100-mm base antenna named mid-drive on the real car)."""
+        if shift_m < BASE_MODEL_CHANGE_MIN_M or not self.initialized or self.kf is None:
+            return
+        pos = self.layout.pos
+        self.kf.P[pos, pos] += np.eye(3) * shift_m ** 2
+        self.counters["base moved (position or antenna): position variance widened"] += 1
 
     def process_base(self, epoch: GnssEpoch):
         if self.base is None:
