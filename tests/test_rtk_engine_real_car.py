@@ -185,3 +185,24 @@ def test_a_base_that_moves_mid_drive_moves_the_fixed_track_at_once(what, tmp_pat
     assert not lost
     assert np.all(np.abs(rise - 0.100) < 0.003)          # measured 99.7-100.8 mm
     assert np.all([ecef_to_ned(moved[k][1], plain[k][1])[2] == 0.0 for k in range(at) if states[k] == "fixed"])
+
+
+def test_a_base_that_jumps_by_metres_is_not_followed_at_once():
+    """Metres is another station or a hostile one: the position's variance is left alone, and its
+    rows meet the innovation gates and the integrity monitor as any others (measured on the car,
+    2 m at epoch 200: float from there on, no fix).  Decimetres widen it by the move."""
+    eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), rtk_enabled=True))
+    eng.process(BaseStationPosition(0, BASE_XYZ.copy(), 0.0))
+    eng.initialize(1.3e9, BASE_XYZ + np.array([3000.0, 0.0, 0.0]), np.zeros(3), np.eye(3),
+                   dict(pos_m=3.0, vel_mps=0.3, tilt_rad=0.02, heading_rad=0.1, ba_mps2=0.05, bg_radps=1e-3))
+    pos = eng.layout.pos
+    up = BASE_XYZ / np.linalg.norm(BASE_XYZ)
+    P0 = eng.kf.P.copy()
+    eng.process(BaseStationPosition(0, BASE_XYZ + 2.0 * up, 0.0))
+    assert eng.counters["base moved by more than 0.5 m: not followed at once"] == 1
+    assert np.array_equal(eng.kf.P, P0)
+    eng.process(BaseStationPosition(0, BASE_XYZ + 2.3 * up, 0.0))
+    assert eng.counters["base moved (position or antenna): position variance widened"] == 1
+    np.testing.assert_allclose(np.diag(eng.kf.P)[pos] - np.diag(P0)[pos], 0.09, rtol=1e-6)
+    eng.process(BaseStationPosition(0, BASE_XYZ + 2.3 * up, 0.0))           # the same again: nothing
+    assert eng.counters["base moved (position or antenna): position variance widened"] == 1

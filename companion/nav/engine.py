@@ -75,6 +75,10 @@ log = logging.getLogger(__name__)
 FLOOR_MAX_HEADING_SIGMA_RAD = math.radians(10.0)   # slow-error floor only once the heading is known
 # a base position (RTCM 1005/1006: 0.1-mm resolution) or antenna model that moves by less is the same
 BASE_MODEL_CHANGE_MIN_M = 0.001
+# ... and one that moves by more is not followed at once: a re-survey or an antenna's calibration
+# moves it by centimetres to decimetres; metres is another station or a hostile one, whose rows the
+# innovation gates and the integrity monitor judge as any others
+BASE_MODEL_CHANGE_MAX_M = 0.5
 
 
 @dataclass
@@ -433,6 +437,9 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         that much (else the held fix drops for an epoch and the position creeps over a minute:
         measured 62 -> 98 mm in 40 s, a 100-mm base antenna named mid-drive on the real car)."""
         if shift_m < BASE_MODEL_CHANGE_MIN_M or not self.initialized or self.kf is None:
+            return
+        if shift_m > BASE_MODEL_CHANGE_MAX_M:
+            self.counters["base moved by more than 0.5 m: not followed at once"] += 1
             return
         pos = self.layout.pos
         self.kf.P[pos, pos] += np.eye(3) * shift_m ** 2
