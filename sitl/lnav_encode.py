@@ -95,12 +95,24 @@ def _sc(rad: float) -> float:
     return (rad / PI_GPS + 1.0) % 2.0 - 1.0
 
 
+def transmission_week(e: GpsEphemeris, tow_next_s: float) -> int:
+    """The week a subframe of ``e`` ending at ``tow_next_s`` is sent in: subframe 1's WN
+    (IS-GPS-200 20.3.3.3.1.1), which is ``e``'s week (the week of toe) except across a week
+    boundary, where toe lies within half a week of the transmission time on the other side."""
+    t_tx = (tow_next_s - SUBFRAME_S) % SECONDS_PER_WEEK
+    if e.toe_s - t_tx > SECONDS_PER_WEEK / 2:
+        return e.week + 1          # toe late in the week before, sent early in this one
+    if e.toe_s - t_tx < -SECONDS_PER_WEEK / 2:
+        return e.week - 1          # toe early in the next week, sent late in this one
+    return e.week
+
+
 def ephemeris_subframe(e: GpsEphemeris, sfid: int, tow_next_s: float) -> list[int]:
     """Subframe ``sfid`` (1, 2, 3) of ``e``, transmitted so that it ends at ``tow_next_s``."""
     f = _header(sfid, tow_next_s)
     if sfid == 1:
         ura = next((i for i, v in enumerate(URA_M) if e.ura_m <= v), 15)
-        f.u(3, 1, 10, e.week % 1024).u(3, 11, 2, 1).u(3, 13, 4, ura).u(3, 17, 6, e.health & 0x3F)
+        f.u(3, 1, 10, transmission_week(e, tow_next_s) % 1024).u(3, 11, 2, 1).u(3, 13, 4, ura).u(3, 17, 6, e.health & 0x3F)
         f.u(3, 23, 2, (e.iodc >> 8) & 0x3).s(7, 17, 8, _q(e.tgd_s, 2.0 ** -31))
         f.u(8, 1, 8, e.iodc & 0xFF).u(8, 9, 16, _q(e.toc_s % SECONDS_PER_WEEK, 16.0))
         f.s(9, 1, 8, _q(e.af2_sps2, 2.0 ** -55)).s(9, 9, 16, _q(e.af1_sps, 2.0 ** -43))
@@ -171,4 +183,4 @@ def quantised(e: GpsEphemeris) -> GpsEphemeris:
     return out
 
 
-__all__ = ["ephemeris_subframe", "klobuchar_subframe", "subframe_due", "sfrbx_frame", "quantised"]
+__all__ = ["ephemeris_subframe", "klobuchar_subframe", "subframe_due", "sfrbx_frame", "quantised", "transmission_week"]

@@ -22,7 +22,7 @@ from companion.gnss.ephemeris_store import EphemerisStore
 from companion.gnss.spp import spp_epoch
 from companion.io.rtcm import RtcmDecoder
 from companion.io.ubx import UbxDecoder
-from companion.messages import BaseStationPosition, GnssEpoch, GpsEphemeris, gps_time
+from companion.messages import SECONDS_PER_WEEK, BaseStationPosition, GnssEpoch, GpsEphemeris, gps_time
 from companion.nav.earth import C_n_e, ecef_to_geodetic, geodetic_to_ecef
 from sitl import lnav_encode as L
 from sitl import sky
@@ -60,6 +60,26 @@ def test_sfrbx_subframes_decode_to_the_quantised_ephemeris_with_parity_checked()
         for dt in (0.0, 3600.0):
             a, b = satellite_state(e, e.t_oe_gps + dt), satellite_state(q, e.t_oe_gps + dt)
             assert np.linalg.norm(a[0] - b[0]) < 1e-3 and abs(a[2] - b[2]) * 3e8 < 1e-3
+
+
+def test_subframes_sent_across_a_week_boundary_carry_the_transmission_week():
+    """A toe late in the week before, its subframes sent early in the next (the live sky at the
+    start of a GPS week, Sunday 00:00-02:00 GPST): subframe 1's WN is the week they are sent in, as
+    a satellite's is, and the ephemeris decodes to its own toe.  Before, WN was toe's week: the
+    decoder placed toe a week early, 7 of 16 satellites had no ephemeris and ArduCopter SITL's
+    test flight failed on those two hours of the week."""
+    for e in _geonet()[:3]:
+        e_prev = dataclasses.replace(e, week=e.week - 1, toe_s=SECONDS_PER_WEEK - 1200.0,
+                                     toc_s=SECONDS_PER_WEEK - 1200.0)
+        q = L.quantised(e_prev)
+        for tow0, week_sent in ((1800.0, e.week), (SECONDS_PER_WEEK - 3600.0, e.week - 1)):
+            dec = UbxDecoder(week_hint=week_sent)
+            out = []
+            for sfid in (1, 2, 3):
+                assert L.transmission_week(e_prev, tow0 + 6.0 * sfid) == week_sent
+                out += dec.feed(L.sfrbx_frame(int(e.sat[1:]), L.ephemeris_subframe(e_prev, sfid, tow0 + 6.0 * sfid)))
+            ephs = [m for m in out if isinstance(m, GpsEphemeris)]
+            assert len(ephs) == 1 and ephs[0].t_oe_gps == q.t_oe_gps == e_prev.t_oe_gps, (e.sat, tow0)
 
 
 def test_klobuchar_page_and_the_subframe_schedule():
