@@ -9,6 +9,8 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -20,6 +22,7 @@ def _tracked_files() -> list[Path]:
         return [p for p in REPO.rglob("*") if p.is_file() and ".git" not in p.parts and ".venv" not in p.parts]
 
 
+@pytest.mark.timeout(660)          # the run inside has its own 600-s limit (every real-data test, one process)
 def test_real_data_tests_run_from_anywhere_and_none_skips(tmp_path):
     home = tmp_path / "home"
     home.mkdir()
