@@ -79,7 +79,8 @@ class StatusBoard:
         # satellites whose pseudorange (or double difference) the last update accepted
         used = {lab for name, src in sources.items() if "pseudorange" in name or "rtk" in name
                 for lab, ok in zip(src.get("labels") or (), src.get("accepted") or ()) if ok}
-        f = (self.health or {}).get("filter", {})
+        health = self.health or {}
+        f = health.get("filter", {})
         return {"v": 1, "uptime_s": round(time.time() - self.t_start, 1),
                 "last": self.solutions[-1] if self.solutions else None,
                 "satellites_used": len({sat for lab in used for sat in _satellites_of(lab)}),
@@ -88,7 +89,7 @@ class StatusBoard:
                 "history": list(self.solutions), "sources": sources, "events": list(self.events),
                 "filter": {k: f.get(k) for k in ("status", "mode", "reset_counter") if k in f},
                 # the base as its RTCM 1007 / 1008 / 1033 describe it (printable ASCII already)
-                "base": _base_text((self.health or {}).get("rtcm_base"), (self.health or {}).get("rtk_antennas"))}
+                "base": _base_text(health.get("rtcm_base"), health.get("rtk_antennas"))}
 
 
 def _satellites_of(label) -> list[str]:

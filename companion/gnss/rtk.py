@@ -245,9 +245,10 @@ class RtkFilter:
         self.P = P
         return n
 
-    def _add_amb(self, key, value: float, sigma: float | None = None) -> None:
-        """A new ambiguity state (sat, signal)."""
-        self.amb[key] = self._add_state(value, self.cfg.ambiguity_init_sigma_cycles if sigma is None else sigma)
+    def _add_amb(self, key, value: float, t: float) -> None:
+        """A new ambiguity state (sat, signal), started at ``t``."""
+        self.amb[key] = self._add_state(value, self.cfg.ambiguity_init_sigma_cycles)
+        self.amb_since[key] = t
 
     def _drop_amb(self, keys) -> None:
         self._drop_states(sorted(self.amb.pop(k) for k in keys if k in self.amb))
@@ -375,8 +376,7 @@ class RtkFilter:
                 if ok and key not in self.amb:
                     lam = sr[sat].wavelength_m[s]
                     n0 = (sr[sat].phase_cyc[s] - sb[sat].phase_cyc[s]) - (sr[sat].code_m[s] - sb[sat].code_m[s]) / lam
-                    self._add_amb(key, n0)
-                    self.amb_since[key] = t
+                    self._add_amb(key, n0, t)
                     self._count("ambiguities added")
                 if ok:
                     self.last_seen[key] = t
@@ -589,7 +589,7 @@ class RtkFilter:
         young_s = self.cfg.young_ambiguity_s
 
         def young(sat: str) -> bool:
-            return any(abs(t - self.amb_since.get((sat, s), -math.inf)) < young_s
+            return any(abs(t - self.amb_since[(sat, s)]) < young_s
                        for s in self.sig.get(sat[:1], ()) if (sat, s) in self.amb)
         return sorted((q for q in common if q[:1] not in self._float_only),
                       key=lambda q: (not young(q), sr[q].elevation_rad))
