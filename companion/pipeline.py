@@ -15,7 +15,7 @@ port), ``rtcm`` (correction bytes), ``event`` (JSON: configuration, start/stop; 
 What it does with the inputs
 ----------------------------
 * IMU (HIGHRES_IMU / RAW_IMU / SCALED_IMU2/3) -> :class:`~companion.messages.ImuSample` via
-  :class:`~companion.io.mavlink.ImuDecoder`, GPS time from :class:`~companion.io.mavlink.BootToGpsTime`
+  :class:`~companion.io.mavlink_decode.ImuDecoder`, GPS time from :class:`~companion.io.mavlink_time.BootToGpsTime`
   (SYSTEM_TIME; what it leaves, e.g. ArduPilot's receiver latency, is the filter's ``dt_imu`` state,
   ``filter.imu_time_offset_*``, reported as ``imu_time_offset_s`` in the solution extras and health).  With ``mavlink.imu_cluster`` set, every listed stream has its own decoder and
   the samples go through an :class:`~companion.nav.imu_cluster.ImuCluster` (unit = position in the
@@ -93,7 +93,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from .gnss.glonass import GlonassEphemeris  # noqa: E402
 from .gnss.spp import spp_epoch  # noqa: E402
-from .io.mavlink import BootToGpsTime, ImuDecoder, gps_fix_from_gps_raw_int, parse_imu_stream  # noqa: E402
+from .io.mavlink_time import BootToGpsTime  # noqa: E402
+from .io.mavlink_decode import ImuDecoder, gps_fix_from_gps_raw_int, parse_imu_stream  # noqa: E402
 from .io.mavlink_fast import DatagramParser  # noqa: E402
 from .io.rtcm import RtcmDecoder  # noqa: E402
 from .io.ubx import UbxDecoder  # noqa: E402

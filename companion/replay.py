@@ -229,7 +229,7 @@ def _tlog_imu_stream(msgs, cfg) -> tuple[str, list]:
     """The IMU stream the pipeline would fuse from these messages (its rules: the configured
     message, the cluster's primary, or 'auto' = HIGHRES_IMU if present, else the first seen) and
     its time stamps in microseconds."""
-    from .io.mavlink import parse_imu_stream
+    from .io.mavlink_decode import parse_imu_stream
     target = (cfg.mavlink.target_system, cfg.mavlink.target_component)
     want, want_id = (parse_imu_stream(cfg.mavlink.imu_cluster[0]) if cfg.mavlink.imu_cluster
                      else (None if cfg.mavlink.imu_message == "auto" else cfg.mavlink.imu_message, None))

@@ -478,7 +478,7 @@ class Service:
                                       sentences=nc.sentences, differential=recent))
 
     def _send_estimate(self, sol) -> None:
-        from .io import mavlink as mv
+        from .io import mavlink_encode as mv
         link = self.link
         if link is None or not link.connected:
             self.counters["estimates not sent: link down"] += 1
@@ -513,7 +513,7 @@ class Service:
 
     def _output_origin(self, sol):
         """The origin to send this estimate about (companion.io.origin), or None = not now."""
-        from .io.mavlink import Origin
+        from .io.mavlink_encode import Origin
         mgr = self.origin_mgr
         now = time.monotonic()
         if mgr.ours is None:
@@ -557,7 +557,7 @@ class Service:
 
     def _announce_events(self, events) -> None:
         """(MAV_SEVERITY, text) events of the port claim and the origin: field log and STATUSTEXT."""
-        from .io.mavlink import statustext
+        from .io.mavlink_encode import statustext
         for sev, text in events:
             self._event({"event": "status", "severity": sev, "text": text})
             if self.link is not None:
@@ -565,7 +565,7 @@ class Service:
                 self.counters["sent STATUSTEXT"] += 1
 
     def _announce(self) -> None:
-        from .io.mavlink import statustext
+        from .io.mavlink_encode import statustext
         for sev, text in self.pipeline.drain_events():
             self._event({"event": "status", "severity": sev, "text": text})
             if self.link is not None:
@@ -577,7 +577,7 @@ class Service:
         the flight is not being recorded."""
         if self.fieldlog is None or not self.fieldlog.events:
             return
-        from .io.mavlink import statustext
+        from .io.mavlink_encode import statustext
         for level, text in self.fieldlog.drain_events():
             sev = MAV_SEVERITY_ERROR if level == "error" else MAV_SEVERITY_INFO
             self.counters[f"field log {'paused' if level == 'error' else 'resumed'}"] += 1
@@ -641,7 +641,7 @@ class Service:
         self._record("rtcm", t, raw)
         self.pipeline.feed("rtcm", t, raw)
         if framer is not None and self.link is not None:
-            from .io.mavlink import gps_rtcm_data_messages
+            from .io.mavlink_encode import gps_rtcm_data_messages
             for frame in framer.feed(raw):
                 for msg in gps_rtcm_data_messages(frame, self._fragmenter):
                     self.link.send(msg)

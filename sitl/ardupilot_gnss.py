@@ -45,7 +45,7 @@ from pathlib import Path
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
 
-from companion.io.mavlink import GPS_EPOCH_UNIX_S  # noqa: E402
+from companion.io.mavlink_time import GPS_EPOCH_UNIX_S  # noqa: E402
 
 from .ardupilot_sky import live_scenario  # noqa: E402
 from .ardupilot_truth import Truth, home_e7  # noqa: E402

@@ -220,7 +220,7 @@ def _proc_rss_mb(pid: int) -> tuple[float, float]:
 
 
 def ned_to_ecef_ardupilot(ned, origin_lat_e7: int, origin_lon_e7: int, origin_alt_mm: int) -> np.ndarray:
-    """Inverse of ArduPilot's ``Location::get_distance_NED`` (as encoded by companion.io.mavlink)."""
+    """Inverse of ArduPilot's ``Location::get_distance_NED`` (as encoded by companion.io.mavlink_encode)."""
     lat0 = origin_lat_e7 * 1e-7
     lon0 = origin_lon_e7 * 1e-7
     lat = lat0 + ned[0] / LOCATION_SCALING_FACTOR_M * 1e-7

@@ -25,9 +25,10 @@ import socket
 import time
 
 from companion.io import mavlink as M
+from companion.io import mavlink_codec
 from companion.io.serial_control import UbxFrameScanner
 
-mav = M.mavlink2
+mav = mavlink_codec.mavlink2
 GPS_TIMEOUT_S = 4.0          # AP_GPS GPS_TIMEOUT_MS
 
 

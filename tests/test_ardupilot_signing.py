@@ -13,10 +13,11 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
 import companion.io.mavlink as M  # noqa: E402
+from companion.io import mavlink_codec
 from companion.io.mavlink_signing import LinkSigning, generate_key_file, load_key  # noqa: E402
 from sitl.ardupilot_procs import ArduCopterSitl, binary_problem, find_binary  # noqa: E402
 
-mav = M.mavlink2
+mav = mavlink_codec.mavlink2
 
 
 def _acked(conn, command: int, signing_key: bytes | None, timeout_s: float = 3.0) -> bool:

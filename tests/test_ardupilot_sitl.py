@@ -14,6 +14,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from companion.config import load_config
 from companion.io import mavlink as M
+from companion.io import imu_streams
 from sitl import ardupilot_score as S
 from sitl.ardupilot import DEPLOY, read_parm
 from sitl.ardupilot_procs import binary_problem, companion_config, find_binary
@@ -73,7 +74,7 @@ def test_auto_imu_requests_highres_only():
     cfg = load_config(DEPLOY / "companion.toml").mavlink
     assert cfg.imu_message == "auto"
     rates = M.message_rates_from_config(cfg)
-    assert [k for k in rates if k in M.IMU_MESSAGES] == ["HIGHRES_IMU"]
+    assert [k for k in rates if k in imu_streams.IMU_MESSAGES] == ["HIGHRES_IMU"]
 
 
 class _Autopilot(asyncio.DatagramProtocol):

@@ -281,7 +281,8 @@ def test_imu_time_tag_offset_is_estimated_in_flight():
 def test_time_offset_lookup_and_plausibility():
     """Receiver-timed messages are predicted at t - dt_imu on the IMU's tags, autopilot-timed ones
     (GPS_RAW_INT, ATTITUDE) at their own tag; an estimate beyond 3 prior sigmas is a divergence."""
-    from companion.io.mavlink import BootToGpsTime, gps_fix_from_gps_raw_int
+    from companion.io.mavlink_time import BootToGpsTime
+    from companion.io.mavlink_decode import gps_fix_from_gps_raw_int
     from companion.messages import GnssAttitude
     from pymavlink.dialects.v20 import ardupilotmega as mavlink2
     from companion.nav.integrity import IntegrityState

@@ -183,7 +183,7 @@ def test_deterministic():
 def _lossy(samples, p_lost, seed=7):
     """The samples as they arrive over a link that loses a fraction ``p_lost`` of the frames: the
     autopilot reports *rates*, so the decoder turns the next rate into an increment over the whole
-    time since the last frame it saw (rate x gap), as companion.io.mavlink.ImuDecoder does."""
+    time since the last frame it saw (rate x gap), as companion.io.mavlink_decode.ImuDecoder does."""
     rng = np.random.default_rng(seed)
     last: dict[int, float] = {}
     out = []

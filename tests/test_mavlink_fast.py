@@ -11,10 +11,11 @@ import zlib
 import pytest
 
 import companion.io.mavlink as M
+from companion.io import mavlink_codec
 from companion.io.mavlink_fast import FAST_MESSAGES, DatagramParser, FastFrameDecoder, layouts
 from companion.io.mavlink_signing import sign_encoder
 
-mav = M.mavlink2
+mav = mavlink_codec.mavlink2
 
 
 def encoder(seq=0, sysid=1, compid=1):

@@ -1,4 +1,4 @@
-"""companion.io.mavlink: pure decoders/encoders, and the asyncio link over real UDP sockets on
+"""companion.io.mavlink and its pure parts (mavlink_codec, mavlink_time, mavlink_decode, mavlink_encode):
 127.0.0.1 against a small 'autopilot' endpoint made of pymavlink's encoder/parser."""
 from __future__ import annotations
 
@@ -11,13 +11,18 @@ import numpy as np
 import pytest
 
 import companion.io.mavlink as M
+from companion.io import mavlink_codec
+from companion.io import mavlink_decode
+from companion.io import mavlink_encode
+from companion.io import mavlink_time
+from companion.io import serial_control
 from companion.io.rtcm import GpsRtcmDataFragmenter, RtcmFramer
 from companion.io.ubx import UbxDecoder
 from companion.messages import GnssEpoch, NavSolution
 from companion.nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm, geodetic_to_ecef
 from tests._data import data_path
 
-mav = M.mavlink2
+mav = mavlink_codec.mavlink2
 DATA = data_path("qzsl6tool-hiroshima-rtcm3-ubx")
 UBX_FILE = DATA / "20230919-114418.ubx"
 RTCM_FILE = DATA / "20221213-010900.rtcm"
@@ -34,23 +39,23 @@ def wire(msg, enc=None) -> bytes:
 
 
 def roundtrip(msg):
-    out = M.parse_bytes(wire(msg))
+    out = mavlink_codec.parse_bytes(wire(msg))
     assert len(out) == 1
     return out[0]
 
 
 # ------------------------------------------------------------------------------------------ time
 def test_boot_to_gps_time_system_time_jump_and_reboot():
-    tm = M.BootToGpsTime()
+    tm = mavlink_time.BootToGpsTime()
     assert not tm.synced and tm.to_gps(1.0) is None
     unix0 = 1_700_000_000.0
     tm.update_system_time(0, 500)                       # no UTC yet
     assert tm.counters["no_utc"] == 1 and not tm.synced
     for k in range(10):
         tm.update_system_time(int((unix0 + k) * 1e6), 1000 + 1000 * k)
-    expect_offset = unix0 - M.GPS_EPOCH_UNIX_S + 18 - 1.0
+    expect_offset = unix0 - mavlink_time.GPS_EPOCH_UNIX_S + 18 - 1.0
     assert tm.offset_s == pytest.approx(expect_offset, abs=1e-6)
-    assert tm.to_gps(5.0) == pytest.approx(unix0 + 4.0 - M.GPS_EPOCH_UNIX_S + 18, abs=1e-6)
+    assert tm.to_gps(5.0) == pytest.approx(unix0 + 4.0 - mavlink_time.GPS_EPOCH_UNIX_S + 18, abs=1e-6)
     # a single glitch is only a candidate, a confirmed step is a jump
     tm.update_system_time(int((unix0 + 10 + 5.0) * 1e6), 11000)
     assert tm.jumps == 0 and tm.offset_s == pytest.approx(expect_offset, abs=1e-6)
@@ -62,7 +67,7 @@ def test_boot_to_gps_time_system_time_jump_and_reboot():
     epoch = tm.boot_epoch
     tm.update_system_time(int((unix0 + 100) * 1e6), 2000)
     assert tm.reboots == 1 and tm.boot_epoch == epoch + 1
-    assert tm.offset_s == pytest.approx(unix0 + 100 - M.GPS_EPOCH_UNIX_S + 18 - 2.0, abs=1e-6)
+    assert tm.offset_s == pytest.approx(unix0 + 100 - mavlink_time.GPS_EPOCH_UNIX_S + 18 - 2.0, abs=1e-6)
     # receiver time tags take precedence for a while
     tm.refine(3.0, 1_400_000_000.0)
     off = tm.offset_s
@@ -72,24 +77,24 @@ def test_boot_to_gps_time_system_time_jump_and_reboot():
 
 # ------------------------------------------------------------------------------------------ IMU
 def _synced_time_map():
-    tm = M.BootToGpsTime()
+    tm = mavlink_time.BootToGpsTime()
     tm.update_system_time(int(1_700_000_000 * 1e6), 0)
     return tm
 
 
 def test_raw_imu_scaling_matches_ardupilot_units():
     tm = _synced_time_map()
-    dec = M.ImuDecoder("RAW_IMU", rate_hz=200)
+    dec = mavlink_decode.ImuDecoder("RAW_IMU", rate_hz=200)
     # ArduPilot: xacc = accel * 1000 / GRAVITY_MSS (mG), xgyro = gyro * 1000 (mrad/s), time = micros64
     acc = np.array([0.5, -0.25, -9.80665])
     gyro = np.array([0.1, -0.2, 0.3])
     t0 = 10_000_000
-    assert M.imu_from_mavlink(roundtrip(mav.MAVLink_raw_imu_message(t0, *[int(round(a * 1000 / 9.80665)) for a in acc],
+    assert mavlink_decode.imu_from_mavlink(roundtrip(mav.MAVLink_raw_imu_message(t0, *[int(round(a * 1000 / 9.80665)) for a in acc],
                                                              *[int(round(g * 1000)) for g in gyro], 0, 0, 0, 0, 0)),
                               tm, dec) is None                    # first sample starts the chain
     msg = roundtrip(mav.MAVLink_raw_imu_message(t0 + 5000, *[int(round(a * 1000 / 9.80665)) for a in acc],
                                                 *[int(round(g * 1000)) for g in gyro], 0, 0, 0, 0, 0))
-    s = M.imu_from_mavlink(msg, tm, dec)
+    s = mavlink_decode.imu_from_mavlink(msg, tm, dec)
     assert s.dt_s == pytest.approx(0.005)
     np.testing.assert_allclose(s.dv_b / s.dt_s, acc, atol=0.5 * 9.80665e-3)
     np.testing.assert_allclose(s.dtheta_b / s.dt_s, gyro, atol=0.5e-3)
@@ -98,7 +103,7 @@ def test_raw_imu_scaling_matches_ardupilot_units():
 
 def test_highres_and_scaled_imu_and_rejections():
     tm = _synced_time_map()
-    dec = M.ImuDecoder("HIGHRES_IMU", rate_hz=100)
+    dec = mavlink_decode.ImuDecoder("HIGHRES_IMU", rate_hz=100)
     mk = lambda t_us: roundtrip(mav.MAVLink_highres_imu_message(t_us, 0.1, 0.2, -9.8, 0.01, 0.02, 0.03,
                                                                  0, 0, 0, 0, 0, 0, 0, 0x3F, 0))
     assert dec.decode(mk(1_000_000), tm) is None
@@ -112,7 +117,7 @@ def test_highres_and_scaled_imu_and_rejections():
     assert dec.decode(roundtrip(mav.MAVLink_raw_imu_message(2_000_000, 1, 2, 3, 4, 5, 6, 0, 0, 0, 0, 0)), tm) is None
     assert dec.counters["other_imu"] == 1
     tm = _synced_time_map()                              # (boot time going backwards = reboot)
-    d2 = M.ImuDecoder("SCALED_IMU2")
+    d2 = mavlink_decode.ImuDecoder("SCALED_IMU2")
     mk2 = lambda ms: roundtrip(mav.MAVLink_scaled_imu2_message(ms, 1000, 0, -1000, 100, 0, 0, 0, 0, 0, 0))
     d2.decode(mk2(100), tm)
     s = d2.decode(mk2(105), tm)
@@ -120,7 +125,7 @@ def test_highres_and_scaled_imu_and_rejections():
     np.testing.assert_allclose(s.dtheta_b / s.dt_s, [0.1, 0, 0], rtol=1e-9)
     assert s.imu_id == 1
     # auto prefers HIGHRES_IMU when both arrive
-    da = M.ImuDecoder("auto")
+    da = mavlink_decode.ImuDecoder("auto")
     da.decode(roundtrip(mav.MAVLink_raw_imu_message(3_000_000, 1, 2, 3, 4, 5, 6, 0, 0, 0, 0, 0)), tm)
     da.decode(mk(3_001_000), tm)
     assert da.message == "HIGHRES_IMU"
@@ -131,7 +136,7 @@ def test_gps_raw_int_to_fix():
     msg = roundtrip(mav.MAVLink_gps_raw_int_message(
         12_345_000, 3, 344000000, 1324000000, 50_000, 120, 200, 500, 9000, 14,
         alt_ellipsoid=85_000, h_acc=1500, v_acc=2500, vel_acc=300))
-    fix = M.gps_fix_from_gps_raw_int(msg, tm)
+    fix = mavlink_decode.gps_fix_from_gps_raw_int(msg, tm)
     lat, lon, h = ecef_to_geodetic(fix.r_e)
     assert math.degrees(lat) == pytest.approx(34.4, abs=1e-9) and h == pytest.approx(85.0, abs=1e-6)
     assert fix.sigma_h_m == pytest.approx(1.5) and fix.sigma_v_m == pytest.approx(2.5)
@@ -142,10 +147,10 @@ def test_gps_raw_int_to_fix():
     # without ellipsoid height / accuracies: MSL used as is, DOP x UERE
     msg2 = roundtrip(mav.MAVLink_gps_raw_int_message(12_345_000, 3, 344000000, 1324000000, 50_000, 120, 200,
                                                      65535, 65535, 255))
-    fix2 = M.gps_fix_from_gps_raw_int(msg2, tm, uere_m=3.0)
+    fix2 = mavlink_decode.gps_fix_from_gps_raw_int(msg2, tm, uere_m=3.0)
     assert ecef_to_geodetic(fix2.r_e)[2] == pytest.approx(50.0, abs=1e-6)
     assert fix2.sigma_h_m == pytest.approx(3.6) and fix2.v_e is None and fix2.num_sats == 0
-    assert M.gps_fix_from_gps_raw_int(roundtrip(mav.MAVLink_gps_raw_int_message(0, 1, 0, 0, 0, 0, 0, 0, 0, 0)), tm) is None
+    assert mavlink_decode.gps_fix_from_gps_raw_int(roundtrip(mav.MAVLink_gps_raw_int_message(0, 1, 0, 0, 0, 0, 0, 0, 0, 0)), tm) is None
 
 
 # ------------------------------------------------------------------------------------------ encoders
@@ -156,16 +161,16 @@ def _solution():
     return NavSolution(t_gps=2300 * 604800.0 + 123.456, r_e=r, v_e=Cne @ np.array([3.0, 4.0, -1.0]),
                        C_b_e=Cne @ euler_to_dcm(0.05, -0.1, 2.0), sigma_r_n_m=np.array([0.2, 0.3, 0.5]),
                        sigma_v_n_mps=np.array([0.05, 0.05, 0.1]), sigma_att_rad=np.array([0.01, 0.01, 0.02]),
-                       status="nav"), M.Origin(lat, lon, h)
+                       status="nav"), mavlink_encode.Origin(lat, lon, h)
 
 
 def test_vision_position_estimate_roundtrip():
     sol, origin = _solution()
-    back = roundtrip(M.vision_position_estimate(sol, origin, reset_counter=7, t_boot_us=42_000_000))
+    back = roundtrip(mavlink_encode.vision_position_estimate(sol, origin, reset_counter=7, t_boot_us=42_000_000))
     assert back.get_type() == "VISION_POSITION_ESTIMATE" and back.usec == 42_000_000 and back.reset_counter == 7
     # ArduPilot convention: spherical metres per degree; within 0.5 % of the tangent-plane offset
     lat, lon, h = ecef_to_geodetic(sol.r_e)
-    ned = M.ardupilot_ned_from_origin(lat, lon, h, origin)
+    ned = mavlink_encode.ardupilot_ned_from_origin(lat, lon, h, origin)
     np.testing.assert_allclose([back.x, back.y, back.z], ned, atol=1e-3)
     np.testing.assert_allclose([back.x, back.y, back.z], [30, -20, -5], rtol=5e-3, atol=0.01)
     assert (back.roll, back.pitch) == (pytest.approx(0.05, abs=1e-5), pytest.approx(-0.1, abs=1e-5))
@@ -179,7 +184,7 @@ def test_vision_position_estimate_roundtrip():
 
 def test_odometry_frames_and_body_velocity():
     sol, origin = _solution()
-    back = roundtrip(M.odometry(sol, origin, reset_counter=2, t_boot_us=5, quality=M.quality_from_sigma(0.36, 5.0)))
+    back = roundtrip(mavlink_encode.odometry(sol, origin, reset_counter=2, t_boot_us=5, quality=mavlink_encode.quality_from_sigma(0.36, 5.0)))
     assert back.frame_id == mav.MAV_FRAME_LOCAL_FRD == 20
     assert back.child_frame_id == mav.MAV_FRAME_BODY_FRD == 12
     assert back.estimator_type == mav.MAV_ESTIMATOR_TYPE_VISION
@@ -196,7 +201,7 @@ def test_odometry_frames_and_body_velocity():
 
 def test_gps_input_fields():
     sol, _ = _solution()
-    back = roundtrip(M.gps_input(sol, geoid_undulation_m=30.0, satellites_visible=12))
+    back = roundtrip(mavlink_encode.gps_input(sol, geoid_undulation_m=30.0, satellites_visible=12))
     assert back.time_week == 2300 and back.time_week_ms == 123456
     lat, lon, h = ecef_to_geodetic(sol.r_e)
     assert back.lat == round(math.degrees(lat) * 1e7) and back.lon == round(math.degrees(lon) * 1e7)
@@ -210,14 +215,14 @@ def test_gps_input_fields():
 
 @pytest.mark.real_data
 def test_origin_statustext_and_rtcm_forwarding():
-    o = roundtrip(M.set_gps_global_origin(34.4, 132.4, 123.456, target_system=1))
+    o = roundtrip(mavlink_encode.set_gps_global_origin(34.4, 132.4, 123.456, target_system=1))
     assert (o.latitude, o.longitude, o.altitude) == (344000000, 1324000000, 123456)
-    chunks = M.statustext_chunks(4, "x" * 120, msg_id=9)
+    chunks = mavlink_encode.statustext_chunks(4, "x" * 120, msg_id=9)
     assert len(chunks) == 3 and roundtrip(chunks[2]).chunk_seq == 2
-    assert roundtrip(M.statustext(6, "GNSS/INS ok")).text == "GNSS/INS ok"
+    assert roundtrip(mavlink_encode.statustext(6, "GNSS/INS ok")).text == "GNSS/INS ok"
     frames = RtcmFramer().feed(RTCM_FILE.read_bytes()[:20000])
     big = next(f for f in frames if len(f) > 180)
-    msgs = M.gps_rtcm_data_messages(big, GpsRtcmDataFragmenter())
+    msgs = mavlink_encode.gps_rtcm_data_messages(big, GpsRtcmDataFragmenter())
     backs = [roundtrip(x) for x in msgs]
     assert all(b.flags & 1 for b in backs)
     assert b"".join(bytes(b.data[:b.len]) for b in backs) == big
@@ -227,12 +232,12 @@ def test_corrupt_and_truncated_bytes_are_counted_not_fatal():
     good = wire(mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
     bad = bytearray(good)
     bad[-1] ^= 0xFF                                          # CRC broken
-    out = M.parse_bytes(bytes(bad) + good + good[:7])        # bad CRC, good frame, truncated tail
+    out = mavlink_codec.parse_bytes(bytes(bad) + good + good[:7])        # bad CRC, good frame, truncated tail
     types = [x.get_type() for x in out]
     assert types == ["BAD_DATA", "HEARTBEAT"]
     # a truncated frame *followed* by more bytes swallows them: pymavlink may then report an
     # unknown message id; the link counts UNKNOWN_* as bad data (see the UDP test)
-    types = [x.get_type() for x in M.parse_bytes(good[:7] + good + good)]
+    types = [x.get_type() for x in mavlink_codec.parse_bytes(good[:7] + good + good)]
     assert types.count("HEARTBEAT") >= 1
 
 
@@ -374,7 +379,7 @@ def test_link_over_udp_intervals_timesync_imu_and_bad_bytes():
             ap.send_raw(good[:9])
             for k in range(1, 9):       # the truncated frame swallows (part of) the next datagram
                 ap.send(mav.MAVLink_raw_imu_message(10_000_000 + 5000 * k, 0, 0, -1000, 0, 0, 0, 0, 0, 0, 0, 0))
-            dec = M.ImuDecoder("RAW_IMU")
+            dec = mavlink_decode.ImuDecoder("RAW_IMU")
             samples, raws = [], []
             while len(samples) < 4:
                 lm = await link.recv(timeout=2.0)
@@ -386,7 +391,7 @@ def test_link_over_udp_intervals_timesync_imu_and_bad_bytes():
             assert all(s.dt_s == pytest.approx(0.005) for s in samples)
             assert samples[0].dv_b[2] == pytest.approx(-9.80665 * 0.005)
             assert link.counters["bad_data"] >= 1 and link.time_map.synced
-            assert any(M.parse_bytes(r)[0].get_type() == "RAW_IMU" for r in raws)    # raw bytes re-parse
+            assert any(mavlink_codec.parse_bytes(r)[0].get_type() == "RAW_IMU" for r in raws)    # raw bytes re-parse
             # link loss (no heartbeat) and recovery re-request the streams
             n_cmds = len(cmds)
             assert await _wait(lambda: not link.connected, timeout=2.0)
@@ -439,7 +444,7 @@ def test_serial_control_tunnel_round_trip_real_ubx():
         loop = asyncio.get_running_loop()
         transport, ap = await loop.create_datagram_endpoint(lambda: FakeAutopilot(ubx, uart_rate_bps=200_000),
                                                             remote_addr=("127.0.0.1", port))
-        tunnel = SerialTunnel = M.SerialControlTunnel(link, M.SERIAL_CONTROL_DEV_GPS1, poll_interval_s=0.01)
+        tunnel = SerialTunnel = serial_control.SerialControlTunnel(link, mavlink_codec.SERIAL_CONTROL_DEV_GPS1, poll_interval_s=0.01)
 
         async def heartbeats():          # an autopilot sends HEARTBEAT at 1 Hz for as long as it runs
             while True:

@@ -18,12 +18,13 @@ import pytest
 from pymavlink import mavutil
 
 import companion.io.mavlink as M
+from companion.io import mavlink_codec
 from companion.config import loads_config
 from companion.io.mavlink_signing import (DEFAULT_LINK_ID, LinkSigning, SigningKeyError, generate_key_file,
                                           key_file_warning, key_from_text, load_key, sign_encoder,
                                           signing_preflight, signing_timestamp)
 
-mav = M.mavlink2
+mav = mavlink_codec.mavlink2
 KEY_HEX = "5c" * 8 + "a1b2c3d4" * 6
 KEY = bytes.fromhex(KEY_HEX)
 WRONG = bytes(range(1, 33))
@@ -137,7 +138,7 @@ def test_signed_peer_is_accepted_and_verifies_our_frames():
             assert [lm.msg.time_usec for lm in got] == [t0 + 5000 * k for k in range(20)]
             assert all(lm.msg.get_signed() for lm in got)
             # the logged bytes are the signed frame, and replay parses them without the key
-            assert verify(got[0].raw, KEY) and M.parse_bytes(got[0].raw)[0].time_usec == t0
+            assert verify(got[0].raw, KEY) and mavlink_codec.parse_bytes(got[0].raw)[0].time_usec == t0
             h = link.health()
             assert h["signing: good"] >= 21 and h["signing: rejected unsigned"] == 0
             assert h["signing: bad signature"] == 0 and h["bad_data"] == 0

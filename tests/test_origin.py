@@ -214,7 +214,7 @@ def test_an_origin_that_moves_later_is_followed_as_a_reset():
 
 
 def test_origin_manager_matching_and_altitude_rounding():
-    from companion.io.mavlink import Origin
+    from companion.io.mavlink_encode import Origin
     mgr = OriginManager()
     mgr.propose(Origin(math.radians(LAT0), math.radians(LON0), 584.4567), 0.0)
     assert mgr.ours.alt_mm == 584460 and mgr.output_origin(0.1) is None      # held for the read-back

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from companion.io import mavlink as M
+from companion.io import mavlink_time
 from sitl.px4 import DEPLOY, PARAM_FILE, imu_noise_overrides, param_value
 from sitl.px4_gcs import mode_name
 from sitl.px4_procs import (
@@ -89,13 +89,13 @@ def test_failsafes_from_mode_changes_state_and_text():
 def test_boot_to_gps_time_follows_a_drifting_boot_clock_without_jumps():
     """SITL: the boot clock runs 1.3 % slow against SYSTEM_TIME's UTC (measured on PX4 SIH), with
     a 0.3-s stall once; the mapping must neither lag 0.1 s behind nor 'jump' every 5 s."""
-    tm = M.BootToGpsTime()
+    tm = mavlink_time.BootToGpsTime()
     unix0, t_boot, errs = 1_796_165_576.0, 13.24, []
     for k in range(120):
         unix = unix0 + k * 1.013 + (0.3 if k == 40 else 0.0)
         tm.update_system_time(int(unix * 1e6), int(round(t_boot * 1e3)))
         if k > 10 and k != 40:
-            errs.append(tm.to_gps(t_boot) - M.unix_to_gps_s(unix))
+            errs.append(tm.to_gps(t_boot) - mavlink_time.unix_to_gps_s(unix))
         t_boot += 1.0
     assert tm.jumps == 0 and tm.rate == pytest.approx(0.013, abs=5e-4)
     assert max(abs(e) for e in errs) < 0.01
@@ -104,13 +104,13 @@ def test_boot_to_gps_time_follows_a_drifting_boot_clock_without_jumps():
 
 
 def test_boot_to_gps_time_still_takes_a_real_step():
-    tm = M.BootToGpsTime()
+    tm = mavlink_time.BootToGpsTime()
     for k in range(20):
         tm.update_system_time(int((1.7e9 + k) * 1e6), 1000 * k)
     assert tm.rate == pytest.approx(0.0, abs=1e-6)
     for k in range(20, 23):
         tm.update_system_time(int((1.7e9 + k + 2.0) * 1e6), 1000 * k)
-    assert tm.jumps == 1 and tm.to_gps(22.0) == pytest.approx(M.unix_to_gps_s(1.7e9 + 24.0), abs=1e-3)
+    assert tm.jumps == 1 and tm.to_gps(22.0) == pytest.approx(mavlink_time.unix_to_gps_s(1.7e9 + 24.0), abs=1e-3)
 
 
 # -- the real thing -----------------------------------------------------------------------------

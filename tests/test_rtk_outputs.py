@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from companion.config import ConfigError, config_from_dict
-from companion.io import mavlink as mv
+from companion.io import mavlink_encode as mv
 from companion.messages import GPS_L2_WAVELENGTH_M, GnssEpoch, NavSolution, SatObservation
 from companion.pipeline import (
     _SOL_V2,

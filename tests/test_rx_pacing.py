@@ -12,6 +12,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 import companion.io.mavlink as M
+from companion.io import mavlink_codec
+from companion.io import serial_control
 from companion.io.rx_pacing import OutputPacedReads
 from tests.test_mavlink_io import FakeAutopilot, _wait, free_udp_port
 
@@ -182,7 +184,7 @@ def test_serial_control_poll_keeps_its_period_through_a_paced_reader():
     period = 0.02
 
     async def scenario(link, ap, got):
-        tunnel = M.SerialControlTunnel(link, M.SERIAL_CONTROL_DEV_GPS1, poll_interval_s=period)
+        tunnel = serial_control.SerialControlTunnel(link, mavlink_codec.SERIAL_CONTROL_DEV_GPS1, poll_interval_s=period)
         ap.send(mav.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3))
         assert await _wait(lambda: link.connected)
         poller = asyncio.create_task(tunnel.run())

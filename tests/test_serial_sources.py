@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import companion.io.mavlink as M
+from companion.io import mavlink_codec
+from companion.io import mavlink_encode
 from companion.config import loads_config
 from companion.io.corrections import (CorrectionPipeline, FileCorrectionSource, SerialCorrectionSource,
                                       correction_source_from_config)
@@ -36,7 +37,7 @@ def test_serial_radio_on_pty_to_core_messages_and_forwarding():
         fragmenter = GpsRtcmDataFragmenter()
         forwarded = []
         pipe = CorrectionPipeline(src, week_hint=2240,
-                                  forward=lambda f: forwarded.extend(M.gps_rtcm_data_messages(f, fragmenter)))
+                                  forward=lambda f: forwarded.extend(mavlink_encode.gps_rtcm_data_messages(f, fragmenter)))
         msgs, raw = [], bytearray()
 
         async def consume():
@@ -68,7 +69,7 @@ def test_serial_radio_on_pty_to_core_messages_and_forwarding():
     assert all(e.source == "base" for e in epochs)
     # every frame went to the forwarder as GPS_RTCM_DATA; reassembled they are the frames again
     assert pipe.counters["forwarded"] == pipe.counters["frames"] > 50
-    back = [M.parse_bytes(M.pack(x))[0] for x in forwarded]
+    back = [mavlink_codec.parse_bytes(mavlink_codec.pack(x))[0] for x in forwarded]
     assert all(b.get_type() == "GPS_RTCM_DATA" for b in back)
 
 

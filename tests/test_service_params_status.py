@@ -13,7 +13,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from companion.config import load_config
-from companion.io.mavlink import parse_bytes
+from companion.io.mavlink_codec import parse_bytes
 from companion.io.mavlink_params import PARAMETERS
 from companion.service import Service
 

@@ -12,11 +12,13 @@ import time
 import pytest
 
 import companion.io.mavlink as M
+from companion.io import mavlink_codec
+from companion.io import mavlink_encode
 from companion.io.fieldlog import FieldLogWriter, encode_record, read_field_log
 from companion.io.serial_control import SerialControlTunnel, run_every
 from tests.test_mavlink_io import _start_pair, _wait, free_udp_port
 
-mav = M.mavlink2
+mav = mavlink_codec.mavlink2
 HB = mav.MAVLink_heartbeat_message(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3)
 
 
@@ -118,7 +120,7 @@ def test_send_fixed_is_byte_for_byte_what_send_sends_and_advances_the_sequence()
             for seq0 in (5, 255):                       # the same requests through pymavlink's pack
                 link.conn.mav.seq = seq0
                 for _ in range(2):
-                    link.send(M.serial_control_request(mav.SERIAL_CONTROL_DEV_GPS1, b"", flags=tunnel.flags,
+                    link.send(mavlink_encode.serial_control_request(mav.SERIAL_CONTROL_DEV_GPS1, b"", flags=tunnel.flags,
                                                        target_system=1, target_component=1))
             assert cached == frames and len(frames) == 4
             assert tunnel.counters["polls"] == 4 and link.counters["tx_messages"] >= 8
@@ -363,7 +365,7 @@ def test_send_fixed_packs_every_frame_on_a_signed_link():
             real = link.send
             link.send = lambda msg: (sent.append(msg), real(msg))[1]
             cache = {}
-            msg = M.serial_control_request(mav.SERIAL_CONTROL_DEV_GPS1, b"")
+            msg = mavlink_encode.serial_control_request(mav.SERIAL_CONTROL_DEV_GPS1, b"")
             link.conn.mav.signing.sign_outgoing = True      # what LinkSigning.attach turns on
             link.conn.mav.signing.secret_key = bytes(32)
             assert link.send_fixed(msg, cache) and sent == [msg] and cache == {}

@@ -14,7 +14,7 @@ byte chunks exactly as received; it reconnects by itself and only stops when clo
 decodes each frame (:class:`~companion.io.rtcm.RtcmDecoder`) into core messages
 (``GnssEpoch(source='base')``, ``BaseStationPosition``, ``GpsEphemeris``) and optionally passes each
 whole frame to a forwarder (e.g. GPS_RTCM_DATA to the autopilot via
-:func:`companion.io.mavlink.gps_rtcm_data_messages`).  It yields :class:`CorrectionBatch` items
+:func:`companion.io.mavlink_encode.gps_rtcm_data_messages`).  It yields :class:`CorrectionBatch` items
 (receive time, raw chunk for the field log, frames, messages).
 """
 from __future__ import annotations

@@ -51,7 +51,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from ..messages import SECONDS_PER_WEEK  # noqa: E402
-from .mavlink import gps_to_unix_s  # noqa: E402
+from .mavlink_time import gps_to_unix_s  # noqa: E402
 
 m = mavlink2
 DATAFLASH_MAGIC = b"\xa3\x95"

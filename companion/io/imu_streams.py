@@ -1,6 +1,6 @@
 """Names of the MAVLink IMU streams the companion can fuse: plain data, so the configuration can
 validate ``mavlink.imu_message`` and ``mavlink.imu_cluster`` without importing pymavlink or numpy
-(``companion config check`` answers in a fraction of a second).  :mod:`companion.io.mavlink` uses them.
+(``companion config check`` answers in a fraction of a second).  :mod:`companion.io.mavlink_decode` and :mod:`companion.io.mavlink` use them.
 """
 from __future__ import annotations
 

@@ -28,7 +28,7 @@ from typing import Callable
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from ..config import Config, ConfigError, config_from_dict
-from .mavlink import statustext_chunks
+from .mavlink_encode import statustext_chunks
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ nothing in the data shows it.  So the origin is read back, not assumed:
   fix and then ignores ours -- measured on ArduCopter 4.7.0-dev SITL with EK3_SRC1_POSXY 6; or a
   ground station set one): **adopted**.  Decision and why: the filter runs in ECEF, the origin is
   only the reference point of the final ECEF -> NED conversion (done exactly the way ArduPilot
-  converts back, :func:`~companion.io.mavlink.ardupilot_ned_from_origin`), so expressing our
+  converts back, :func:`~companion.io.mavlink_encode.ardupilot_ned_from_origin`), so expressing our
   positions about the autopilot's origin puts them where they are meant to be in its frame
   while leaving the estimate itself untouched.  Refusing to send would ground a vehicle whose
   autopilot cannot be told another origin (ArduPilot keeps the first one until it reboots) for
@@ -70,7 +70,7 @@ class OriginE7:
 
     @classmethod
     def from_origin(cls, o) -> "OriginE7":
-        """From a :class:`~companion.io.mavlink.Origin`: lat/lon rounded to 1e-7 deg, altitude to cm."""
+        """From a :class:`~companion.io.mavlink_encode.Origin`: lat/lon rounded to 1e-7 deg, altitude to cm."""
         return cls(o.lat_e7(), o.lon_e7(), 10 * round(o.alt_m * 100.0))
 
     @classmethod
@@ -78,7 +78,7 @@ class OriginE7:
         return cls(int(msg.latitude), int(msg.longitude), int(msg.altitude))
 
     def to_origin(self):
-        from .mavlink import Origin
+        from .mavlink_encode import Origin
         return Origin(math.radians(self.lat_e7 * 1e-7), math.radians(self.lon_e7 * 1e-7), self.alt_mm * 1e-3)
 
     def distance_m(self, other: "OriginE7") -> float:
@@ -98,7 +98,7 @@ class OriginE7:
 
 def command_request_message(msg_id: int, target_system: int = 1, target_component: int = 1):
     """COMMAND_LONG MAV_CMD_REQUEST_MESSAGE (param1 = message id)."""
-    from .mavlink import _ENC, m
+    from .mavlink_codec import _ENC, m
     return _ENC.command_long_encode(int(target_system), int(target_component), m.MAV_CMD_REQUEST_MESSAGE, 0,
                                     float(msg_id), 0, 0, 0, 0, 0, 0)
 
@@ -148,7 +148,7 @@ class OriginManager:
             self._decide(now)
 
     def propose(self, origin, now: float) -> None:
-        """Our origin (a :class:`~companion.io.mavlink.Origin`) at the first injectable solution."""
+        """Our origin (a :class:`~companion.io.mavlink_encode.Origin`) at the first injectable solution."""
         if self.ours is not None:
             return
         self.ours = OriginE7.from_origin(origin)
@@ -201,7 +201,7 @@ class OriginManager:
 
     # -- outputs -----------------------------------------------------------------------------
     def output_origin(self, now: float):
-        """The :class:`~companion.io.mavlink.Origin` to send estimates about, or None = hold them."""
+        """The :class:`~companion.io.mavlink_encode.Origin` to send estimates about, or None = hold them."""
         if self.refused or self.ours is None:
             return None
         if self.confirmed and self.used is not None:
@@ -229,7 +229,7 @@ class OriginManager:
             if due or (dt > ORIGIN_REPEAT_S[-1] and now - self._last_set >= RESEND_INTERVAL_S):
                 self._repeats_done.update(i for i, t in enumerate(ORIGIN_REPEAT_S) if dt >= t)
                 self._last_set = now
-                from .mavlink import set_gps_global_origin
+                from .mavlink_encode import set_gps_global_origin
                 o = self.ours
                 out.append(set_gps_global_origin(o.lat_e7 * 1e-7, o.lon_e7 * 1e-7, o.alt_mm * 1e-3,
                                                  self.target_system))

@@ -59,14 +59,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import time
 from typing import TYPE_CHECKING, Callable
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink.dialects.v20 import ardupilotmega as m  # noqa: E402
-
-from .ubx import ubx_checksum  # noqa: E402
+from .mavlink_codec import m
+from .mavlink_encode import serial_control_request
+from .ubx import ubx_checksum
 
 if TYPE_CHECKING:
     from .mavlink import MavlinkLink
@@ -148,12 +146,6 @@ async def run_every(fn: Callable[[], object], delay_s: Callable[[], float], link
             link.rx_hooks.remove(on_rx)
 
 
-def _mavlink():
-    # imported when used: companion.io.mavlink re-exports SerialControlTunnel from here
-    from . import mavlink
-    return mavlink
-
-
 def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
     body = bytes([msg_class, msg_id, len(payload) & 0xFF, len(payload) >> 8]) + bytes(payload)
     return UBX_SYNC + body + bytes(ubx_checksum(body))
@@ -222,7 +214,7 @@ class SerialControlTunnel:
     ArduPilot only sends receiver bytes in reply to a request, so :meth:`run` (or the
     :class:`PortClaim` driving it) polls every ``poll_interval_s`` with a SERIAL_CONTROL request
     (flags RESPOND | EXCLUSIVE | MULTI, timeout 0; see
-    :func:`~companion.io.mavlink.serial_control_request`), carrying up to 70 bytes of pending
+    :func:`~companion.io.mavlink_encode.serial_control_request`), carrying up to 70 bytes of pending
     writes (UBX configuration).  Replies (flag REPLY, same device, from the autopilot) are
     appended, in arrival order, to an internal queue -- iterate the tunnel (``async for chunk in
     tunnel``) to get them -- and handed to every callable in :attr:`listeners`.
@@ -314,7 +306,7 @@ class SerialControlTunnel:
             # per sequence number (pymavlink's pack was most of a poll's CPU)
             key = (self.flags, self.device, link.target_system, link.target_component)
             if self._empty_poll is None or self._empty_poll[0] != key:
-                self._empty_poll = (key, _mavlink().serial_control_request(
+                self._empty_poll = (key, serial_control_request(
                     self.device, b"", flags=self.flags, target_system=link.target_system,
                     target_component=link.target_component))
                 self._poll_frames = {}
@@ -329,7 +321,7 @@ class SerialControlTunnel:
         del self._tx[:len(chunk)]
         baud = self.baudrate if (self.baudrate and not self._baud_sent) else 0
         self._baud_sent = self._baud_sent or bool(baud)
-        link.send(_mavlink().serial_control_request(self.device, chunk, flags=self.flags, baudrate=baud,
+        link.send(serial_control_request(self.device, chunk, flags=self.flags, baudrate=baud,
                                                     target_system=link.target_system,
                                                     target_component=link.target_component))
         self.counters["polls"] += 1
@@ -342,7 +334,7 @@ class SerialControlTunnel:
 
     def release(self) -> None:
         """Unlock the port: no EXCLUSIVE (unlock), no RESPOND (do not read the driver's bytes)."""
-        self.link.send(_mavlink().serial_control_request(self.device, b"", flags=0,
+        self.link.send(serial_control_request(self.device, b"", flags=0,
                                                          target_system=self.link.target_system,
                                                          target_component=self.link.target_component))
         self.counters["releases_sent"] += 1

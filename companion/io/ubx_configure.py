@@ -231,13 +231,14 @@ class TunnelTransport:
         import queue
         import threading
         from . import mavlink as mav_io
+        from . import mavlink_codec
         from .serial_control import RELEASE_REPEATS_S, SerialControlTunnel
         self._asyncio, self._rx = asyncio, queue.Queue()
         self._release_repeats = RELEASE_REPEATS_S
         self.loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self.loop.run_forever, name="ubx-configure-tunnel", daemon=True)
         self._thread.start()
-        dev = {"GPS1": mav_io.m.SERIAL_CONTROL_DEV_GPS1, "GPS2": mav_io.m.SERIAL_CONTROL_DEV_GPS2}[device]
+        dev = {"GPS1": mavlink_codec.m.SERIAL_CONTROL_DEV_GPS1, "GPS2": mavlink_codec.m.SERIAL_CONTROL_DEV_GPS2}[device]
 
         async def start():
             link = mav_io.MavlinkLink(connection, target_system=target_system, timesync_interval_s=0)

@@ -7,7 +7,7 @@ Error-state convention ("correction" form, truth = estimate + error):
 * accelerometer bias ``dba`` (m/s^2, body), gyro bias ``dbg`` (rad/s, body): b(true) = b(est) + db
 * receiver clock bias ``dclk`` (m) and drift ``ddrift`` (m/s)
 * IMU time-tag offset ``dt_imu`` (s): the GPS time of an IMU sample is its mapped time tag (autopilot
-  boot time through :class:`~companion.io.mavlink.BootToGpsTime`) plus ``dt_imu``.  The INS runs on
+  boot time through :class:`~companion.io.mavlink_time.BootToGpsTime`) plus ``dt_imu``.  The INS runs on
   the tags; a GNSS measurement at receiver time t is compared with the INS at tag t - dt_imu (see
   :mod:`.engine`).  ArduPilot's SYSTEM_TIME lags GPS time by the receiver's output latency, so a
   lagging clock gives a positive ``dt_imu``.  Observable when the motion changes (accelerations,
