@@ -46,7 +46,7 @@ def export_field_log(log, *, ubx=None, rtcm=None, kml=None, gpx=None, csv_path=N
     session on the same link) would corrupt the UBX stream: skipped and counted."""
     from .io.fieldlog import read_field_log
     from .nav.earth import ecef_to_geodetic
-    from .pipeline import decode_solution
+    from .log_records import decode_solution
     counts = {"records": 0, "ubx_bytes": 0, "serial_control_replies": 0, "serial_control_other_devices": 0,
               "serial_control_device": None, "rtcm_bytes": 0, "solutions": 0, "solutions_skipped": 0}
     if device not in ("auto", *SERIAL_CONTROL_GPS_DEVICES):

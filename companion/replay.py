@@ -48,7 +48,8 @@ import numpy as np
 from .aid_status_record import KIND as AID_KIND
 from .aid_status_record import AidStatusPacer
 from .nav.smoother import SmootherRecorder
-from .pipeline import NavPipeline, encode_solution, solution_records_equal
+from .pipeline import NavPipeline
+from .log_records import encode_solution, solution_records_equal
 
 log = logging.getLogger(__name__)
 

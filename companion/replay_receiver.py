@@ -170,7 +170,8 @@ def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", ubx:
     from .io.dataflash import AdapterOptions, DataFlashLog, TimeBase, iter_mavlink_messages
     from .nav.earth import ecef_to_geodetic
     from .nav.smoother import SmootherRecorder
-    from .pipeline import NavPipeline, encode_solution
+    from .pipeline import NavPipeline
+    from .log_records import encode_solution
     from .replay import _Progress
     t_start = time.perf_counter() if t_start is None else t_start
     t0 = math.floor(imu[0, 0])

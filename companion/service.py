@@ -15,7 +15,7 @@
   produces solutions by decimating the IMU stream, so ``companion replay`` of the log reproduces
   every ``solution`` record bit for bit.  Frames that fail the MAVLink CRC are counted by the link
   and never reach the log or the pipeline (they carry nothing usable).
-* **Outputs**: each solution is logged (kind ``solution``, :func:`~companion.pipeline.encode_solution`;
+* **Outputs**: each solution is logged (kind ``solution``, :func:`~companion.log_records.encode_solution`;
   the per aid source status at ``log.aid_status_rate_hz`` as kind ``aid_status``,
   :mod:`companion.aid_status_record`, also on MQTT ``<prefix>/aid_status``)
   and, when the pipeline marks it injectable (status nav/coasting within the configured sigmas),
@@ -56,7 +56,8 @@ import signal
 import time
 from collections import Counter
 
-from .pipeline import NavPipeline, config_event, encode_solution
+from .pipeline import NavPipeline
+from .log_records import config_event, encode_solution
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +86,7 @@ def _json_default(x):
         return str(x)
 
 
-#: the field log's config record (companion.pipeline.config_event: secrets redacted)
+#: the field log's config record (companion.log_records.config_event: secrets redacted)
 redacted_config_event = config_event
 
 

@@ -317,7 +317,7 @@ WRONG_FIX_H_M = 0.1      # a fixed estimate whose true horizontal error exceeds 
 def _fix_states_by_boot_us(field_log_dir) -> dict:
     """t_boot_us -> (fix_state, n_fixed) of every solution the companion logged."""
     from companion.io.fieldlog import read_field_log
-    from companion.pipeline import decode_solution
+    from companion.log_records import decode_solution
     out = {}
     for rec in read_field_log(field_log_dir):
         if rec.kind == "solution":

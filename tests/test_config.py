@@ -342,9 +342,16 @@ def test_config_check_names_a_missing_extra(tmp_path, capsys, monkeypatch):
 
 
 def test_imu_stream_names_agree_with_the_mavlink_decoder():
-    from companion.io import imu_streams, mavlink
-    assert mavlink.IMU_CLUSTER_STREAMS == imu_streams.IMU_CLUSTER_STREAMS
-    assert mavlink.IMU_MESSAGES == imu_streams.IMU_MESSAGES
+    """Every stream name the configuration accepts is one the decoder parses and decodes."""
+    from companion.io import imu_streams, mavlink_decode
+    for name in imu_streams.IMU_CLUSTER_STREAMS:
+        message, unit = mavlink_decode.parse_imu_stream(name)
+        assert unit is None or unit >= 0
+        mavlink_decode.ImuDecoder(message, imu_id=unit)      # raises for a message it cannot decode
+    with pytest.raises(ValueError):
+        mavlink_decode.ImuDecoder("IMU_DATA")
+    with pytest.raises(ValueError, match="unknown IMU stream"):
+        mavlink_decode.parse_imu_stream("IMU_DATA")
 
 
 def test_every_command_reports_a_config_error_without_traceback(tmp_path, capsys):

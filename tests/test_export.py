@@ -15,7 +15,7 @@ from companion.cli import main
 from companion.io.fieldlog import FieldLogWriter
 from companion.messages import NavSolution
 from companion.nav.earth import geodetic_to_ecef
-from companion.pipeline import encode_solution
+from companion.log_records import encode_solution
 from tests._data import data_path
 
 os.environ.setdefault("MAVLINK20", "1")

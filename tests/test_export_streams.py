@@ -113,7 +113,7 @@ def test_logged_solutions_as_rtklib_pos(tmp_path):
 
     from companion.messages import NavSolution
     from companion.nav.earth import ecef_to_geodetic, geodetic_to_ecef
-    from companion.pipeline import encode_solution
+    from companion.log_records import encode_solution
     rng = np.random.default_rng(3)
     sols = []
     for k in range(30):

@@ -128,7 +128,7 @@ def _heading_errors_deg(field_log_dir, duration_s):
     import numpy as np
     from companion.io.fieldlog import read_field_log
     from companion.nav.earth import C_n_e, ecef_to_geodetic
-    from companion.pipeline import decode_solution
+    from companion.log_records import decode_solution
     from sitl.fly import load_sim
     sim = load_sim("uav", 0, duration_s + 3.0)
     out = []

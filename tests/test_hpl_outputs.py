@@ -17,14 +17,8 @@ from companion.aid_status_record import (
 )
 from companion.config import config_from_dict
 from companion.messages import NavSolution
-from companion.pipeline import (
-    _SOL_V1,
-    SOLUTION_RECORD_VERSION,
-    NavPipeline,
-    decode_solution,
-    encode_solution,
-    solution_records_equal,
-)
+from companion.pipeline import NavPipeline
+from companion.log_records import _SOL_V1, SOLUTION_RECORD_VERSION, decode_solution, encode_solution, solution_records_equal
 
 R_E = np.array([-3976219.5, 3382372.6, 3652513.0])
 

@@ -28,7 +28,7 @@ def test_replay_bit_for_bit_and_tlog(tmp_path):
 
     # an old field log (solution records version 1, no aid_status records) still replays bit for bit
     from companion.io.fieldlog import FieldLogWriter
-    from companion.pipeline import _SOL_V1
+    from companion.log_records import _SOL_V1
     old = tmp_path / "old_log"
     w = FieldLogWriter(old)
     for rec in read_field_log(logdir):
@@ -77,7 +77,7 @@ def test_replay_of_a_log_whose_config_this_version_cannot_read_says_so(tmp_path)
     silently replayed with defaults: the CLI names the problem and the way out (--config)."""
     from companion.config import config_from_dict
     from companion.io.fieldlog import FieldLogWriter
-    from companion.pipeline import config_event
+    from companion.log_records import config_event
     logdir = tmp_path / "log"
     w = FieldLogWriter(logdir)
     ev = json.loads(config_event(config_from_dict({})))
@@ -98,7 +98,7 @@ def test_replay_of_a_log_made_with_antenna_calibrations_finds_them_or_says_why(t
     (--antennas-file) it says nothing."""
     from companion.config import loads_config
     from companion.io.fieldlog import FieldLogWriter
-    from companion.pipeline import config_event
+    from companion.log_records import config_event
     from tests.test_rtk_antennas import _antex_text
     atx = tmp_path / "flight.atx"
     atx.write_text(_antex_text({"JAVGRANT_G5T    NONE": (0.0, {"G01": ([0.0, 0.0, 60.0], [0.0] * 19, None)})}))

@@ -126,7 +126,7 @@ def test_antenna_calibrations_are_checked_at_start_and_found_again_by_a_replay(t
     from companion.config import loads_config
     from companion.config_cli import cmd_check
     from companion.nav.rtk_antennas import antennas_preflight, for_replay
-    from companion.pipeline import config_event
+    from companion.log_records import config_event
     from tests.test_rtk_antennas import _antex_text
     atx = tmp_path / "ant.atx"
     atx.write_text(_antex_text({"JAVGRANT_G5T    NONE": (0.0, {"G01": ([0.0, 0.0, 60.0], [0.0] * 19, None)})}))

@@ -14,14 +14,8 @@ import pytest
 from companion.config import ConfigError, config_from_dict
 from companion.io import mavlink_encode as mv
 from companion.messages import GPS_L2_WAVELENGTH_M, GnssEpoch, NavSolution, SatObservation
-from companion.pipeline import (
-    _SOL_V2,
-    FIX_ANNOUNCE_HOLD_S,
-    NavPipeline,
-    decode_solution,
-    encode_solution,
-    solution_records_equal,
-)
+from companion.pipeline import FIX_ANNOUNCE_HOLD_S, NavPipeline
+from companion.log_records import _SOL_V2, decode_solution, encode_solution, solution_records_equal
 from companion.rtk_signals import RTK_SIGNALS, canonical_signal, rtk_epoch
 
 R_E = np.array([-3976219.5, 3382372.6, 3652513.0])

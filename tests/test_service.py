@@ -53,7 +53,7 @@ def test_gnss_outage_coasts_then_stops_injecting(tmp_path):
     assert h["outputs"]["estimates withheld"] > 25
     assert not h["filter"]["inject"]
     # estimates continued into the outage (coasting) before they stopped
-    from companion.pipeline import decode_solution
+    from companion.log_records import decode_solution
     from companion.io.fieldlog import read_field_log
     sols = [decode_solution(rec.payload) for rec in read_field_log(r["field_log_dir"]) if rec.kind == "solution"]
     t0 = sols[0].t_gps

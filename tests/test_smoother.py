@@ -196,7 +196,7 @@ def test_replay_smooth_on_a_real_ulog():
     """`replay(..., smooth=True)` on the PX4 SIH box flight (tests/data): every solution is the
     smoothed counterpart of a forward one (same time), with a covariance no larger than the
     forward filter's, and the forward pass is scored beside it."""
-    from companion.pipeline import decode_solution
+    from companion.log_records import decode_solution
     from companion.replay import replay
     from tests._data import data_path
     res = replay(data_path("px4-sih-ulog/box-flight.ulg.xz"), smooth=True)

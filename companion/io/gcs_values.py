@@ -28,7 +28,7 @@ RTK_CODES = {"none": 0, "float": 1, "fixed": 2}
 
 def named_values(sol: NavSolution, time_boot_ms: int) -> list:
     """NAMED_VALUE_FLOAT messages describing one solution."""
-    from ..pipeline import MODE_CODES, STATUS_CODES      # the field log's codes: one table
+    from ..log_records import MODE_CODES, STATUS_CODES      # the field log's codes: one table
     sig = np.asarray(sol.sigma_r_n_m, float)
     x = sol.extras
     vals = [("CC_STAT", float(STATUS_CODES.get(sol.status, 255))), ("CC_INJ", 1.0 if x.get("inject") else 0.0),
