@@ -72,10 +72,11 @@ def _renamed(epochs):
 
 
 def run_rtk(seed: int = 0, duration_s: float | None = None, scenario_name: str = "rtk", cfg=None,
-            rover_hook=None, keep_engine: bool = False, hook=None) -> dict:
-    """One run of the rtk scenario (optionally only its first ``duration_s``).  ``rover_hook``:
-    a function rewriting the list of rover epochs (a test strips the receiver's slip flags);
-    ``hook(engine, t_s)``: called after every IMU sample (a test meddles with the state)."""
+            rover_hook=None, keep_engine: bool = False, hook=None, base_hook=None) -> dict:
+    """One run of the rtk scenario (optionally only its first ``duration_s``).  ``rover_hook``,
+    ``base_hook``: functions rewriting the list of rover / base epochs (a test strips the
+    receiver's slip flags, another switches base stations); ``hook(engine, t_s)``: called after
+    every IMU sample (a test meddles with the state)."""
     from .paper import initial_errors
     from .scenario import build_scenario
     from .simulate import simulate
@@ -114,7 +115,8 @@ def run_rtk(seed: int = 0, duration_s: float | None = None, scenario_name: str =
     step = max(1, int(round(1.0 / (truth.t_gps[1] - truth.t_gps[0]))))
     ts, err_h = [], []
     t_eng = time.process_time()
-    for k, s in feed_engine(eng, sim, lat, rover=rover, base=_renamed(sim.base_epochs)):
+    base = base_hook(sim.base_epochs) if base_hook is not None else sim.base_epochs
+    for k, s in feed_engine(eng, sim, lat, rover=rover, base=_renamed(base)):
         if hook is not None:
             hook(eng, s.t_gps - t0)
         if k % step == 0:

@@ -155,13 +155,14 @@ def _up100_file(tmp_path):
     return atx
 
 
-@pytest.mark.parametrize("what", ["base position", "base antenna"])
-def test_a_base_that_moves_mid_drive_moves_the_fixed_track_at_once(what, tmp_path):
+@pytest.mark.parametrize("what, up_m", [("base position", 0.1), ("base position", 2.0), ("base antenna", 0.1)])
+def test_a_base_that_moves_mid_drive_moves_the_fixed_track_at_once(what, up_m, tmp_path):
     """At epoch 200 of the drive, fixed and held for minutes, the base's 1005 says it stands 100 mm
-    higher, or its 1033 names an antenna whose phase centres the file puts 100 mm above the ARP:
-    the fixed track moves 100 mm up from the next epoch on and no fix is lost.  The engine widens
-    its position's variance by the move (``NavEngine._base_model_changed``); before, the held fix
-    dropped for an epoch and the track crept up over a minute (62 mm at once, 92 mm after 15 s)."""
+    (or 2 m: re-surveyed) higher, or its 1033 names an antenna whose phase centres the file puts
+    100 mm above the ARP: the fixed track moves as much up from the next epoch on and no fix is
+    lost.  The engine widens its position's variance by the move (``NavEngine._base_model_changed``);
+    before, the held fix dropped for an epoch and the track crept up over a minute (100 mm: 62 mm
+    at once, 92 mm after 15 s; 2 m: float for the rest of the drive, 1.4 m up after 40 s)."""
     from companion.nav.earth import ecef_to_ned
     at = 200
     up = BASE_XYZ / np.linalg.norm(BASE_XYZ)
@@ -169,7 +170,7 @@ def test_a_base_that_moves_mid_drive_moves_the_fixed_track_at_once(what, tmp_pat
     if what == "base position":
         def during(eng, k):
             if k == at:
-                eng.process(BaseStationPosition(0, BASE_XYZ + 0.1 * up, 0.0))
+                eng.process(BaseStationPosition(0, BASE_XYZ + up_m * up, 0.0))
     else:
         kw["rtk_antennas"] = str(_up100_file(tmp_path))
 
@@ -181,17 +182,42 @@ def test_a_base_that_moves_mid_drive_moves_the_fixed_track_at_once(what, tmp_pat
     assert eng.counters["base moved (position or antenna): position variance widened"] == 1
     lost = [k for k, (a, b) in enumerate(zip(plain_states, states)) if a == "fixed" and b != "fixed"]
     rise = np.array([-ecef_to_ned(moved[k][1], plain[k][1])[2] for k in range(at, at + 60) if states[k] == "fixed"])
-    print(f"{what} 100 mm up at epoch {at}: fixes lost {lost}; the track {1e3 * rise[:5].round(4)} mm up "
+    print(f"{what} {1e3 * up_m:.0f} mm up at epoch {at}: fixes lost {lost}; the track {1e3 * rise[:5].round(4)} mm up "
           f"at the first fixed epochs, {1e3 * rise.min():.1f}-{1e3 * rise.max():.1f} mm over the next 60")
     assert not lost
-    assert np.all(np.abs(rise - 0.100) < 0.003)          # measured 99.7-100.8 mm
+    assert np.all(np.abs(rise - up_m) < 0.003)           # measured 99.7-100.8 mm
     assert np.all([ecef_to_ned(moved[k][1], plain[k][1])[2] == 0.0 for k in range(at) if states[k] == "fixed"])
 
 
-def test_a_base_that_jumps_by_metres_is_not_followed_at_once():
-    """Metres is another station or a hostile one: the position's variance is left alone, and its
-    rows meet the innovation gates and the integrity monitor as any others (measured on the car,
-    2 m at epoch 200: float from there on, no fix).  Decimetres widen it by the move."""
+def test_a_base_position_far_from_the_base_own_code_is_not_believed():
+    """At epoch 200 a 1005 puts the base 5 km from where its own pseudoranges place it (a
+    mistyped, stale or hostile position): not believed (companion.nav.base_check), the drive stays
+    as fixed as before.  Before, the engine took it: its rows mostly gated away, the INS drifted
+    62 m by the end of the drive while it called itself float."""
+    at = 200
+    _, _, plain_states, plain, _, _ = _plain_run()
+
+    def during(eng, k):
+        if k == at:
+            eng.process(BaseStationPosition(7, BASE_XYZ + np.array([-3300.0, -3800.0, 0.0]), 0.0))
+    t, r, states, positions, _, eng = _run_engine(during=during)
+    assert eng.counters["base position not believed: far from the base's own pseudoranges"] == 1
+    assert eng.base.station_id == 0 and eng.base_check.candidate.station_id == 7
+    assert "base epochs not used: far from the base position" not in eng.counters
+    errors = [float(np.linalg.norm(r_e - r[min(int(round((t_e - t[0]) * 200.0)), len(t) - 1)]))
+              for t_e, r_e in positions[at:]]
+    fixed_after = [e for e, s in zip(errors, states[at:]) if s == "fixed"]
+    print(f"a 1005 5 km off at epoch {at}: {len(fixed_after)} of {len(states) - at} fixed after it "
+          f"(as recorded: {plain_states[at:].count('fixed')}), {max(errors):.3f} m at most from the track")
+    assert len(fixed_after) >= plain_states[at:].count("fixed") - 2
+    assert max(errors) < 0.1
+
+
+def test_a_base_that_moves_further_than_its_code_can_tell_is_another_station():
+    """Without the base's code to judge by (no base epoch yet), a base position kilometres from
+    the last one is another station: the rover stays where it is, so its position's variance is
+    left alone, and the ambiguities go.  Metres is the same place re-surveyed: the variance is
+    widened by the move (the fixed track follows it: ``-k moves_mid_drive``)."""
     eng = NavEngine(EngineConfig(noise=ProcessNoise(1e-4, 1e-3, 1e-6, 1e-5), rtk_enabled=True))
     eng.process(BaseStationPosition(0, BASE_XYZ.copy(), 0.0))
     eng.initialize(1.3e9, BASE_XYZ + np.array([3000.0, 0.0, 0.0]), np.zeros(3), np.eye(3),
@@ -199,11 +225,11 @@ def test_a_base_that_jumps_by_metres_is_not_followed_at_once():
     pos = eng.layout.pos
     up = BASE_XYZ / np.linalg.norm(BASE_XYZ)
     P0 = eng.kf.P.copy()
-    eng.process(BaseStationPosition(0, BASE_XYZ + 2.0 * up, 0.0))
-    assert eng.counters["base moved by more than 0.5 m: not followed at once"] == 1
-    assert np.array_equal(eng.kf.P, P0)
-    eng.process(BaseStationPosition(0, BASE_XYZ + 2.3 * up, 0.0))
+    eng.process(BaseStationPosition(1, BASE_XYZ + 5000.0 * up, 0.0))
+    assert eng.counters["base station changed: ambiguities and corrections restarted"] == 1
+    assert np.array_equal(eng.kf.P, P0) and eng.base.station_id == 1
+    eng.process(BaseStationPosition(1, BASE_XYZ + 5002.3 * up, 0.0))
     assert eng.counters["base moved (position or antenna): position variance widened"] == 1
-    np.testing.assert_allclose(np.diag(eng.kf.P)[pos] - np.diag(P0)[pos], 0.09, rtol=1e-6)
-    eng.process(BaseStationPosition(0, BASE_XYZ + 2.3 * up, 0.0))           # the same again: nothing
+    np.testing.assert_allclose(np.diag(eng.kf.P)[pos] - np.diag(P0)[pos], 2.3 ** 2, rtol=1e-6)
+    eng.process(BaseStationPosition(1, BASE_XYZ + 5002.3 * up, 0.0))        # the same again: nothing
     assert eng.counters["base moved (position or antenna): position variance widened"] == 1

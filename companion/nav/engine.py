@@ -47,6 +47,7 @@ from ..gnss.antenna_calibration import largest_change_m
 from ..gnss.ephemeris_store import EphemerisStore
 from ..gnss.phase import BaseCarrierBook, RoverCarrierBook
 from ..gnss.prepare import prepare_epoch
+from ..gnss.spp import spp_epoch
 from ..gnss.glonass import GlonassEphemeris
 from ..gnss.signals import clock_group
 from ..messages import (SPEED_OF_LIGHT_MPS, BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
@@ -58,6 +59,7 @@ from .state_layout import DEFAULT_LAYOUT, REFERENCE_SYSTEM, StateLayout, isb_blo
 from .measurements import (InsPoint, LatencyTransition, antenna_state, doppler_batch, pseudorange_batch,
                            single_difference, tdcp_batch)
 from .aid_status import AidSourceBook
+from .base_check import ADOPT, BASE_POSITION_MAX_SPP_DIFF_M, SKIP, BaseStationCheck
 from .imu_screen import ImuScreen
 from .stillness import StillnessDetector
 from .integrity import POSITION_SOURCES, IntegrityLimits, IntegrityMonitor, IntegrityState
@@ -75,10 +77,6 @@ log = logging.getLogger(__name__)
 FLOOR_MAX_HEADING_SIGMA_RAD = math.radians(10.0)   # slow-error floor only once the heading is known
 # a base position (RTCM 1005/1006: 0.1-mm resolution) or antenna model that moves by less is the same
 BASE_MODEL_CHANGE_MIN_M = 0.001
-# ... and one that moves by more is not followed at once: a re-survey or an antenna's calibration
-# moves it by centimetres to decimetres; metres is another station or a hostile one, whose rows the
-# innovation gates and the integrity monitor judge as any others
-BASE_MODEL_CHANGE_MAX_M = 0.5
 
 
 @dataclass
@@ -259,6 +257,7 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.dgps = None
         self.base: BaseStationPosition | None = None
         self.counters: Counter = Counter()
+        self.base_check = BaseStationCheck(self.counters)   # the announced base position against its code
         self.initialized = False
         self.kf: ErrorStateKalmanFilter | None = None
         self.t_gps = math.nan
@@ -408,9 +407,8 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
             self.ephemerides.add(msg)
             return None
         if isinstance(msg, BaseStationPosition):
-            if self.base is not None:
-                self._base_model_changed(float(np.linalg.norm(msg.r_e - self.base.r_e)))
-            self.base = msg
+            if self.base_check.announced(msg):
+                self._adopt_base(msg)
             return None
         if isinstance(msg, GnssFix):
             return self.process_fix(msg)
@@ -438,14 +436,55 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         measured 62 -> 98 mm in 40 s, a 100-mm base antenna named mid-drive on the real car)."""
         if shift_m < BASE_MODEL_CHANGE_MIN_M or not self.initialized or self.kf is None:
             return
-        if shift_m > BASE_MODEL_CHANGE_MAX_M:
-            self.counters["base moved by more than 0.5 m: not followed at once"] += 1
-            return
         pos = self.layout.pos
         self.kf.P[pos, pos] += np.eye(3) * shift_m ** 2
         self.counters["base moved (position or antenna): position variance widened"] += 1
 
+    def _adopt_base(self, msg: BaseStationPosition, elsewhere: bool = False) -> None:
+        """A believed base position.  ``elsewhere``: the base's own code moved with it (its epochs
+        agree with it and not with the last one), or it moved further than that code can tell:
+        another station, the rover stays where it is.  Else the base's code places it where it
+        was: the same place re-surveyed, every differential solution moves with it (the INS
+        position's variance widened by the move), or a receiver beside it, whose other integers
+        the slip tests see."""
+        if self.base is not None:
+            shift_m = float(np.linalg.norm(msg.r_e - self.base.r_e))
+            if elsewhere or shift_m > BASE_POSITION_MAX_SPP_DIFF_M:
+                self._base_station_changed(shift_m)
+            else:
+                self._base_model_changed(shift_m)
+        self.base = msg
+
+    def _base_station_changed(self, shift_m: float) -> None:
+        """Another station: its carriers have other integers, so every DD ambiguity and the base's
+        carrier history go; its DGPS corrections start from its own first epoch."""
+        self.counters["base station changed: ambiguities and corrections restarted"] += 1
+        log.warning("base station changed (%.0f m away): RTK ambiguities and DGPS corrections restarted", shift_m)
+        if self.rtk is not None:
+            self.rtk.base_changed(self)
+        self.dgps = None
+        self.base_carrier = BaseCarrierBook()
+
+    def _base_spp_r_e(self, epoch: GnssEpoch):
+        """The base's single-point position from its own code (None: too few satellites yet)."""
+        near = self.base_check.spp_r_e
+        if near is None:
+            near = (self.base or self.base_check.candidate).r_e
+        cfg = self.cfg
+        sol = spp_epoch(epoch, self.ephemerides, klobuchar=cfg.klobuchar, r_init_e=near, systems=cfg.systems,
+                        signal=cfg.pseudorange_signal)
+        return None if sol is None else sol.r_e
+
     def process_base(self, epoch: GnssEpoch):
+        if self.base is None and self.base_check.candidate is None:
+            self.counters["base epoch without station position"] += 1
+            return None
+        verdict = self.base_check.judge_epoch(self._base_spp_r_e(epoch), self.base)
+        if verdict == SKIP:
+            return None
+        if verdict == ADOPT:
+            self._adopt_base(self.base_check.candidate, elsewhere=True)
+            self.base_check.candidate = None
         if self.base is None:
             self.counters["base epoch without station position"] += 1
             return None

@@ -216,6 +216,13 @@ class RtkUpdate:
         self._rover_lock.clear()
         self.status = RtkStatus()
 
+    def base_changed(self, eng) -> None:
+        """Another base station: its carriers' integers are others, its lock times its own."""
+        self._drop_all(eng)
+        self._base.clear()
+        self._base_slips.clear()
+        self._base_lock.clear()
+
     def add_base(self, epoch: GnssEpoch) -> None:
         """A base epoch (its station position must be known to the engine); base slips counted."""
         for o in epoch.observations:
