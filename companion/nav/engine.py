@@ -441,12 +441,11 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.counters["base moved (position or antenna): position variance widened"] += 1
 
     def _adopt_base(self, msg: BaseStationPosition, elsewhere: bool = False) -> None:
-        """A believed base position.  ``elsewhere``: the base's own code moved with it (its epochs
-        agree with it and not with the last one), or it moved further than that code can tell:
-        another station, the rover stays where it is.  Else the base's code places it where it
-        was: the same place re-surveyed, every differential solution moves with it (the INS
-        position's variance widened by the move), or a receiver beside it, whose other integers
-        the slip tests see."""
+        """A believed base position.  Another station, the rover staying where it is: its epochs
+        agree with it and not with the last position (``elsewhere``), or it lies further from the
+        last one than the base's code can resolve.  Else the same place re-surveyed (every
+        differential solution moves with it: the INS position's variance widened by the move) or
+        a receiver beside it, whose other integers the slip tests see."""
         if self.base is not None:
             shift_m = float(np.linalg.norm(msg.r_e - self.base.r_e))
             if elsewhere or shift_m > BASE_POSITION_MAX_SPP_DIFF_M:
