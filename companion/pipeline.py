@@ -213,6 +213,7 @@ class NavPipeline:
         self.last_init_reason = ""
         self.base_seen = False
         self._base_override_sent = False
+        self._base_check_state = (False, False, 0)   # (candidate waiting, epochs unused, station changes) announced
         self._held: list[GnssEpoch] = []          # rover epochs waiting for their base epoch
         self._base_times: list[float] = []        # recent base epoch times
         self.wait_for_base = config.corrections.source != "none" and config.filter.use_dgps
@@ -461,6 +462,7 @@ class NavPipeline:
                     msg = self._rtk_epoch(msg)
                 if msg.source == "base":
                     self.engine.process(msg)       # counts an epoch it cannot use yet
+                    self._announce_base_check()
                     if self.engine.base is None:
                         # joining a running caster: observations before the station position
                         # (1005/1006) are not corrections yet; taking them for a base flipped the
@@ -473,6 +475,8 @@ class NavPipeline:
                     self._rover_epoch(msg)
             elif isinstance(msg, (GpsEphemeris, GlonassEphemeris, BaseStationPosition)):
                 self.engine.process(msg)
+                if isinstance(msg, BaseStationPosition):
+                    self._announce_base_check()
             elif isinstance(msg, GnssFix):
                 self.counters["receiver fixes (NAV-PVT, not fused)"] += 1
             elif isinstance(msg, GnssBaseline):
@@ -482,6 +486,19 @@ class NavPipeline:
                     if msg.carrier_fixed and self.cfg.gnss.moving_baseline_b_m is not None:
                         self._last_trusted_heading_t = msg.t_gps
         return []
+
+    def _announce_base_check(self) -> None:
+        """One event when the base's position stops being believed, its epochs stop being used,
+        or another station takes over (companion.nav.base_check): not one per 1005 or epoch."""
+        chk, c = self.engine.base_check, self.engine.counters
+        now = (chk.candidate is not None, chk.skipping, c["base station changed: ambiguities and corrections restarted"])
+        before, self._base_check_state = self._base_check_state, now
+        if now[0] and not before[0]:
+            self._event(m.MAV_SEVERITY_WARNING, "base position far from its own code: not believed")
+        if now[1] and not before[1]:
+            self._event(m.MAV_SEVERITY_WARNING, "base epochs far from base position: unused")
+        if now[2] > before[2]:
+            self._event(m.MAV_SEVERITY_WARNING, "base station changed: RTK restarts")
 
     def _rtk_epoch(self, epoch: GnssEpoch) -> GnssEpoch:
         """With RTK on: GPS tracking families renamed to one code on both receivers (a u-blox

@@ -23,6 +23,7 @@ import numpy as np
 
 from companion.gnss.ephemeris_store import EphemerisStore
 from companion.gnss.spp import spp_epoch
+from companion.nav.base_check import BASE_POSITION_MAX_SPP_DIFF_M
 from companion.nav.engine import EngineConfig, NavEngine
 from companion.nav.earth import C_n_e, ecef_to_geodetic, rotation_from_rotvec
 from companion.nav.chi2 import chi2_ppf
@@ -60,6 +61,10 @@ class FilterTuning:
     gnss_latency_s: float = 0.0
     # standalone pseudoranges: error floor the per-satellite model does not know about (e.g. SA)
     sigma_pseudorange_standalone_floor_m: float = 0.0
+    # the base position check's reach (companion.nav.base_check): SA moves the base's single-point
+    # solution by hundreds of metres (paper scenario, seeds 0-5: 137-443 m at the median, 549 m at
+    # most); sitl.tuning gives it twenty times the standalone range floor (1158 m there)
+    base_max_spp_diff_m: float = BASE_POSITION_MAX_SPP_DIFF_M
     klobuchar: tuple | None = None       # broadcast (alpha, beta) for the standalone modes
     pseudorange_correlation_time_s: float = 0.0
     zupt_enabled: bool = False
@@ -79,7 +84,8 @@ def mode_config(mode: str, tuning: FilterTuning, lever_arm_b, systems: str = "G"
                   elevation_mask_deg=5.0, klobuchar=tuning.klobuchar,
                   pseudorange_correlation_time_s=tuning.pseudorange_correlation_time_s,
                   zupt_enabled=tuning.zupt_enabled,
-                  sigma_phase_elevation_scaling=tuning.sigma_phase_elevation_scaling)
+                  sigma_phase_elevation_scaling=tuning.sigma_phase_elevation_scaling,
+                  base_max_spp_diff_m=tuning.base_max_spp_diff_m)
     if systems != "G" and _engine_has_systems():
         common["systems"] = systems
     standalone = dict(use_dgps=False, sigma_pseudorange_floor_m=tuning.sigma_pseudorange_standalone_floor_m)

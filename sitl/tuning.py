@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+from companion.nav.base_check import BASE_POSITION_MAX_SPP_DIFF_M
 from companion.nav.filter import ProcessNoise
 
 from .paper import FilterTuning
@@ -60,6 +61,7 @@ def tuning_for(scenario) -> FilterTuning:
                         zupt_enabled=not paper_like,
                         sigma_phase_elevation_scaling=rx.el_scaling,
                         sigma_pseudorange_standalone_floor_m=standalone_floor,
+                        base_max_spp_diff_m=max(BASE_POSITION_MAX_SPP_DIFF_M, 20.0 * standalone_floor),
                         # TDCP differences consecutive epochs: of the multipath only what changed in
                         # an epoch interval (1 s) is left, 2 (1 - rho) of its variance instead of 2
                         sigma_phase_m=math.hypot(rx.carrier_noise_m, rx.carrier_mp_m * math.sqrt(

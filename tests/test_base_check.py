@@ -20,9 +20,11 @@ EAST_3KM = np.array([-2130.0, -2490.0, 0.0])          # 3.28 km away
 def test_a_position_is_believed_when_the_base_code_agrees_or_cannot_tell_yet():
     c = BaseStationCheck(Counter())
     assert c.announced(BaseStationPosition(1, HERE))                 # no epoch yet: its epochs judge it
-    assert c.judge_epoch(None, BaseStationPosition(1, HERE)) == USE  # no SPP: used, counted
-    assert c.counters["base epochs not checked: no single-point solution"] == 1
+    assert c.judge_epoch(None, BaseStationPosition(1, HERE)) == SKIP  # no SPP: never checked, not used
+    assert c.counters["base epochs not used: position not checked yet"] == 1
     assert c.judge_epoch(HERE + 9.0, BaseStationPosition(1, HERE)) == USE
+    assert c.judge_epoch(None, BaseStationPosition(1, HERE)) == USE   # checked once: used, counted
+    assert c.counters["base epochs not checked: no single-point solution"] == 1
     assert c.announced(BaseStationPosition(1, HERE + 0.5 * BASE_POSITION_MAX_SPP_DIFF_M))
     assert not c.announced(BaseStationPosition(2, HERE + EAST_3KM))
     assert c.candidate.station_id == 2 and c.counters["base position not believed: far from the base's own pseudoranges"] == 1
@@ -101,3 +103,36 @@ def test_a_network_switching_base_stations_mid_flight(announced_after_s):
     assert c.get("base epochs not used: far from the base position", 0) == (4 if announced_after_s > 0 else 0)
     assert r["wrong_fixes"] == 0 and c["integrity.diverged"] == 0
     assert all(e[1] == "fixed" for e in after)
+
+
+def test_a_real_base_stream_checked_against_a_configured_position():
+    """The real Hiroshima base (RTCM3 MSM7, 1005, ephemerides; 60 s).  As sent: every epoch with a
+    single-point solution is used, that solution 9 m from its 1005 (measured).  With
+    ``corrections.base_position_ecef_m`` mistyped 3 km east: no epoch is used, and one STATUSTEXT
+    says so, not one per 1005."""
+    import calendar
+
+    from companion.config import config_from_dict
+    from companion.io.mavlink_time import unix_to_gps_s
+    from companion.io.rtcm import RtcmDecoder
+    from companion.pipeline import NavPipeline
+    from tests._data import data_path
+    t_gps = unix_to_gps_s(calendar.timegm((2022, 12, 13, 1, 9, 0)))
+    dec = RtcmDecoder(week_hint=lambda: t_gps)
+    msgs = dec.feed(data_path("qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm").read_bytes()) + dec.flush()
+    sent = NavPipeline(config_from_dict({}))
+    sent._feed_rtcm_messages(msgs)
+    c = sent.engine.counters
+    n_base = sum(1 for x in msgs if getattr(x, "source", "") == "base")
+    print(f"as sent: {c['base epochs']} of {n_base} base epochs used, "
+          f"{c['base epochs not used: position not checked yet']} before the ephemerides; SPP "
+          f"{np.linalg.norm(sent.engine.base_check.spp_r_e - sent.engine.base.r_e):.1f} m from the 1005")
+    assert c["base epochs"] >= 0.85 * n_base and sent.events == []
+    assert np.linalg.norm(sent.engine.base_check.spp_r_e - sent.engine.base.r_e) < 20.0
+    wrong = (sent.engine.base.r_e + np.array([-2130.0, -2490.0, 0.0])).tolist()
+    typo = NavPipeline(config_from_dict({"corrections": {"base_position_ecef_m": wrong}}))
+    typo._feed_rtcm_messages(msgs)
+    c = typo.engine.counters
+    assert c["base epochs"] == 0 and c["base epochs not used: far from the base position"] >= 0.85 * n_base
+    assert [text for _, text in typo.events] == ["base epochs far from base position: unused",
+                                                 "base position far from its own code: not believed"]

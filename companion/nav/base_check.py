@@ -45,6 +45,7 @@ class BaseStationCheck:
         self.max_diff_m = float(max_diff_m)
         self.spp_r_e: np.ndarray | None = None          # the base's last single-point solution
         self.candidate: BaseStationPosition | None = None
+        self.confirmed_r_e: np.ndarray | None = None    # the last position a base epoch's SPP agreed with
         self.skipping = False                             # the last base epoch was not used
 
     def _agrees(self, r_e, spp_r_e) -> bool:
@@ -56,22 +57,33 @@ class BaseStationCheck:
         if self.spp_r_e is None or self._agrees(msg.r_e, self.spp_r_e):
             self.candidate = None
             return True
-        self.candidate = msg
         self.counters["base position not believed: far from the base's own pseudoranges"] += 1
-        log.warning("base position (station %d) %.0f m from the base's own pseudoranges: not believed until its "
-                    "epochs agree", msg.station_id, float(np.linalg.norm(np.asarray(msg.r_e, float) - self.spp_r_e)))
+        if self.candidate is None or not np.array_equal(self.candidate.r_e, msg.r_e):
+            log.warning("base position (station %d) %.0f m from the base's own pseudoranges: not believed until "
+                        "its epochs agree", msg.station_id, float(np.linalg.norm(np.asarray(msg.r_e, float)
+                                                                                 - self.spp_r_e)))
+        self.candidate = msg
         return False
 
     def judge_epoch(self, spp_r_e, believed: BaseStationPosition | None) -> str:
-        """USE the epoch, SKIP it, or ADOPT the candidate (it agrees with the epoch) and use it."""
+        """USE the epoch, SKIP it, or ADOPT the candidate (it agrees with the epoch) and use it.
+        An epoch without a single-point solution (too few satellites with ephemerides) is used
+        only once an earlier epoch confirmed the believed position: at the start a mistyped
+        configured position would otherwise be used until the ephemerides come."""
         if spp_r_e is None:
-            self.counters["base epochs not checked: no single-point solution"] += 1
-            return USE
+            if believed is not None and self.confirmed_r_e is not None and np.array_equal(believed.r_e,
+                                                                                          self.confirmed_r_e):
+                self.counters["base epochs not checked: no single-point solution"] += 1
+                return USE
+            self.counters["base epochs not used: position not checked yet"] += 1
+            return SKIP
         self.spp_r_e = np.asarray(spp_r_e, float)
         if believed is not None and self._agrees(believed.r_e, self.spp_r_e):
             # a candidate stays: a network's next station may announce itself before its epochs
+            self.confirmed_r_e = np.asarray(believed.r_e, float)
             return self._verdict(USE)
         if self.candidate is not None and self._agrees(self.candidate.r_e, self.spp_r_e):
+            self.confirmed_r_e = np.asarray(self.candidate.r_e, float)
             return self._verdict(ADOPT)
         self.counters["base epochs not used: far from the base position"] += 1
         if not self.skipping and believed is not None:

@@ -155,6 +155,9 @@ class EngineConfig:
     # BeiDou B1I, with Klobuchar standalone) or the dual-frequency iono-free pair ('IF', per system
     # as companion.gnss.signals; x3 the code noise, no ionosphere model error)
     pseudorange_signal: str = "L1C"
+    # a base position further than this from the base's own single-point solution is not believed
+    # (companion.nav.base_check); the simulator's Selective Availability era needs kilometres
+    base_max_spp_diff_m: float = BASE_POSITION_MAX_SPP_DIFF_M
     # inter-system bias blocks (companion.nav.state_layout): systems among E, C, J whose
     # pseudoranges carry their clock minus GPS's as a state, with this prior 1-sigma; its random
     # walk is in ProcessNoise.  Empty: one per clock group of ``systems`` after the first
@@ -257,7 +260,7 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.dgps = None
         self.base: BaseStationPosition | None = None
         self.counters: Counter = Counter()
-        self.base_check = BaseStationCheck(self.counters)   # the announced base position against its code
+        self.base_check = BaseStationCheck(self.counters, config.base_max_spp_diff_m)   # against the base's code
         self.initialized = False
         self.kf: ErrorStateKalmanFilter | None = None
         self.t_gps = math.nan
@@ -448,7 +451,7 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         a receiver beside it, whose other integers the slip tests see."""
         if self.base is not None:
             shift_m = float(np.linalg.norm(msg.r_e - self.base.r_e))
-            if elsewhere or shift_m > BASE_POSITION_MAX_SPP_DIFF_M:
+            if elsewhere or shift_m > self.base_check.max_diff_m:
                 self._base_station_changed(shift_m)
             else:
                 self._base_model_changed(shift_m)
