@@ -28,7 +28,8 @@ What it does with the inputs
   output rate gives one solution per sample.
 * SERIAL_CONTROL replies from the autopilot's GPS port, or ``ubx`` records -> UBX decoder ->
   rover epochs (RXM-RAWX), ephemerides (RXM-SFRBX), receiver fixes (NAV-PVT, unused for fusion).
-* ``rtcm`` -> RTCM decoder -> base epochs, base position, ephemerides.
+* ``rtcm`` -> RTCM decoder -> base epochs, base position (checked against the base's own code:
+  :mod:`companion.nav.base_check`), ephemerides.
 * GPS_RAW_INT -> :class:`~companion.messages.GnssFix`: the loosely coupled fallback when no raw
   observations arrived for ``raw_timeout_s`` of IMU time (or ``gnss.source = 'none'``).
 * ATTITUDE -> initial attitude.  Ground mode (ZUPT/NHC, ``filter.nhc_enabled``): a rover or boat
