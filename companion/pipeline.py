@@ -491,8 +491,8 @@ class NavPipeline:
     def _announce_base_check(self) -> None:
         """One event when the base's position stops being believed, its epochs stop being used,
         or another station takes over (companion.nav.base_check): not one per 1005 or epoch."""
-        chk, c = self.engine.base_check, self.engine.counters
-        now = (chk.candidate is not None, chk.skipping, c["base station changed: ambiguities and corrections restarted"])
+        chk = self.engine.base_check
+        now = (chk.candidate is not None, chk.skipping, self.engine.base_station_changes)
         before, self._base_check_state = self._base_check_state, now
         if now[0] and not before[0]:
             self._event(m.MAV_SEVERITY_WARNING, "base position far from its own code: not believed")

@@ -97,7 +97,7 @@ def test_rover_tagged_x99_is_held_for_the_base_epoch_of_the_next_whole_second():
     got = []
     eng = pipe.engine
     fake = SimpleNamespace(initialized=True, base=object(), cfg=eng.cfg, ephemerides=SimpleNamespace(sats=[]),
-                           base_check=eng.base_check, counters=eng.counters,
+                           base_check=eng.base_check, base_station_changes=0,
                            process=lambda m: got.append(m))
     pipe.engine = fake
     pipe.base_seen = True

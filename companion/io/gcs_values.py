@@ -13,22 +13,16 @@ extras' ``rtk_fix``).
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink.dialects.v20 import ardupilotmega as _m  # noqa: E402
-
-from ..messages import NavSolution  # noqa: E402
-
-_ENC = _m.MAVLink(None, srcSystem=1, srcComponent=_m.MAV_COMP_ID_ONBOARD_COMPUTER)
-RTK_CODES = {"none": 0, "float": 1, "fixed": 2}
+from ..log_records import FIX_CODES, MODE_CODES, STATUS_CODES      # the field log's codes: one table
+from ..messages import NavSolution
+from .mavlink_codec import ENCODER
 
 
 def named_values(sol: NavSolution, time_boot_ms: int) -> list:
     """NAMED_VALUE_FLOAT messages describing one solution."""
-    from ..log_records import MODE_CODES, STATUS_CODES      # the field log's codes: one table
     sig = np.asarray(sol.sigma_r_n_m, float)
     x = sol.extras
     vals = [("CC_STAT", float(STATUS_CODES.get(sol.status, 255))), ("CC_INJ", 1.0 if x.get("inject") else 0.0),
@@ -39,9 +33,9 @@ def named_values(sol: NavSolution, time_boot_ms: int) -> list:
             vals.append((name, float(x[key])))
             break
     fix = sol.fix_state if sol.fix_state != "none" else x.get("rtk_fix", "none")   # the filter's RTK state
-    vals.append(("CC_RTK", float(RTK_CODES.get(fix, 0))))
+    vals.append(("CC_RTK", float(FIX_CODES.get(fix, 0))))
     t = int(time_boot_ms) & 0xFFFFFFFF
-    return [_ENC.named_value_float_encode(t, name.encode("ascii"), v if math.isfinite(v) else -1.0)
+    return [ENCODER.named_value_float_encode(t, name.encode("ascii"), v if math.isfinite(v) else -1.0)
             for name, v in vals]
 
 

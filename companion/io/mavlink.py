@@ -32,7 +32,7 @@ from typing import AsyncIterator, Callable
 os.environ.setdefault("MAVLINK20", "1")        # mavutil picks its dialect when imported: MAVLink 2
 from pymavlink import mavutil  # noqa: E402
 
-from .mavlink_codec import _ENC, MAV_COMP_ID_ONBOARD_COMPUTER, m  # noqa: E402
+from .mavlink_codec import ENCODER, MAV_COMP_ID_ONBOARD_COMPUTER, m  # noqa: E402
 from .mavlink_decode import parse_imu_stream  # noqa: E402
 from .mavlink_encode import command_set_message_interval, heartbeat  # noqa: E402
 from .mavlink_time import BootToGpsTime  # noqa: E402
@@ -559,7 +559,7 @@ class MavlinkLink:
     def _on_timesync(self, msg, t_ns: int) -> None:
         if msg.tc1 == 0:
             ours_ns = t_ns if self.timesync_offset_ns is None else t_ns + self._timesync_offset_at(t_ns)
-            reply = _ENC.timesync_encode(ours_ns, msg.ts1)
+            reply = ENCODER.timesync_encode(ours_ns, msg.ts1)
             if hasattr(reply, "target_system"):
                 reply.target_system = msg.get_srcSystem()
                 reply.target_component = msg.get_srcComponent()
@@ -713,7 +713,7 @@ class MavlinkLink:
             self._ts_reply_by = now + TIMESYNC_REPLY_WAIT_S     # read it on arrival: its RTT counts
             if len(self._ts_sent) > 32:
                 self._ts_sent.pop(next(iter(self._ts_sent)))
-            req = _ENC.timesync_encode(0, ts1)
+            req = ENCODER.timesync_encode(0, ts1)
             if hasattr(req, "target_system"):
                 req.target_system = self.target_system
                 req.target_component = self.target_component

@@ -20,7 +20,7 @@ def _encoder(src_system: int = 1, src_component: int = MAV_COMP_ID_ONBOARD_COMPU
     return mavlink2.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
 
 
-_ENC = _encoder()
+ENCODER = _encoder()
 
 
 def pack(msg, src_system: int = 1, src_component: int = MAV_COMP_ID_ONBOARD_COMPUTER, seq: int = 0) -> bytes:

@@ -38,7 +38,6 @@ def parse_imu_stream(name: str) -> tuple[str, int | None]:
     return msg, (int(unit) if unit else None)
 
 
-
 def imu_rates_from_mavlink(msg) -> tuple[int, np.ndarray, np.ndarray, int] | None:
     """Pure: ``(time_us, gyro_radps (3,), accel_mps2 (3,), imu_id)`` from an IMU message, else None.
 

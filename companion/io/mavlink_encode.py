@@ -17,7 +17,7 @@ import numpy as np
 
 from ..messages import SECONDS_PER_WEEK, NavSolution, gps_week_tow
 from ..nav.earth import C_n_e, dcm_to_euler, ecef_to_geodetic
-from .mavlink_codec import _ENC, SERIAL_CONTROL_DATA_LEN, m
+from .mavlink_codec import ENCODER, SERIAL_CONTROL_DATA_LEN, m
 from .rtcm import GPS_RTCM_DATA_LEN, GpsRtcmDataFragmenter
 
 LOCATION_SCALING_FACTOR_M = 0.011131884502145034   # ArduPilot: metres per 1e-7 degree of latitude
@@ -125,7 +125,7 @@ def vision_position_estimate(sol: NavSolution, origin: Origin, reset_counter: in
     vr, vp, vy = _att_var_rpy(sol, Cne)
     s = np.asarray(sol.sigma_r_n_m, float) ** 2
     cov = upper_triangle_covariance([s[0], s[1], s[2], vr, vp, vy])
-    return _ENC.vision_position_estimate_encode(int(t_boot_us), float(ned[0]), float(ned[1]), float(ned[2]),
+    return ENCODER.vision_position_estimate_encode(int(t_boot_us), float(ned[0]), float(ned[1]), float(ned[2]),
                                                 roll, pitch, yaw, cov, int(reset_counter) & 0xFF)
 
 
@@ -149,7 +149,7 @@ def odometry(sol: NavSolution, origin: Origin, reset_counter: int, t_boot_us: in
     vmax = float(np.max(sv))
     vel_cov = upper_triangle_covariance([vmax, vmax, vmax, math.nan, math.nan, math.nan])
     nan = math.nan
-    return _ENC.odometry_encode(int(t_boot_us), m.MAV_FRAME_LOCAL_FRD, m.MAV_FRAME_BODY_FRD,
+    return ENCODER.odometry_encode(int(t_boot_us), m.MAV_FRAME_LOCAL_FRD, m.MAV_FRAME_BODY_FRD,
                                 float(ned[0]), float(ned[1]), float(ned[2]), _rot_to_quat(Cbn),
                                 float(v_b[0]), float(v_b[1]), float(v_b[2]), nan, nan, nan,
                                 pose_cov, vel_cov, int(reset_counter) & 0xFF,
@@ -193,7 +193,7 @@ def gps_input(sol: NavSolution, t_gps: float | None = None, *, t_boot_us: int = 
     sig_h = float(math.hypot(sr[0], sr[1]))
     if fix_type is None:
         fix_type = gps_fix_type(sol)
-    return _ENC.gps_input_encode(
+    return ENCODER.gps_input_encode(
         int(t_boot_us), int(gps_id), 0, int(round(tow * 1000.0)) % int(SECONDS_PER_WEEK * 1000), int(week),
         int(fix_type), int(round(math.degrees(lat) * 1e7)), int(round(math.degrees(lon) * 1e7)),
         float(h - geoid_undulation_m), max(min_dop, sig_h / uere_m), max(min_dop, float(sr[2]) / uere_m),
@@ -205,7 +205,7 @@ def set_gps_global_origin(lat_deg: float, lon_deg: float, alt_m: float, target_s
                           time_usec: int = 0):
     """SET_GPS_GLOBAL_ORIGIN (lat/lon 1e7 deg, altitude mm; ArduPilot treats it as AMSL and only
     accepts it while no origin is set)."""
-    return _ENC.set_gps_global_origin_encode(int(target_system), int(round(lat_deg * 1e7)),
+    return ENCODER.set_gps_global_origin_encode(int(target_system), int(round(lat_deg * 1e7)),
                                              int(round(lon_deg * 1e7)), int(round(alt_m * 1000.0)),
                                              int(time_usec))
 
@@ -219,14 +219,14 @@ def statustext_chunks(severity: int, text: str, msg_id: int = 0) -> list:
     """STATUSTEXT, split into 50-byte chunks (MAVLink 2 ``id``/``chunk_seq``) when longer."""
     raw = text.encode("utf-8", "replace")
     if len(raw) <= 50:
-        return [_ENC.statustext_encode(int(severity), raw, 0, 0)]
+        return [ENCODER.statustext_encode(int(severity), raw, 0, 0)]
     parts = [raw[i:i + 50] for i in range(0, len(raw), 50)]
-    return [_ENC.statustext_encode(int(severity), p, (msg_id or 1) & 0xFFFF, k) for k, p in enumerate(parts)]
+    return [ENCODER.statustext_encode(int(severity), p, (msg_id or 1) & 0xFFFF, k) for k, p in enumerate(parts)]
 
 
 def statustext(severity: int, text: str):
     """One STATUSTEXT (text truncated to 50 bytes)."""
-    return _ENC.statustext_encode(int(severity), text.encode("utf-8", "replace")[:50], 0, 0)
+    return ENCODER.statustext_encode(int(severity), text.encode("utf-8", "replace")[:50], 0, 0)
 
 
 def gps_rtcm_data_messages(frame: bytes, fragmenter: GpsRtcmDataFragmenter) -> list:
@@ -234,12 +234,12 @@ def gps_rtcm_data_messages(frame: bytes, fragmenter: GpsRtcmDataFragmenter) -> l
     out = []
     for flags, data in fragmenter.fragments(frame):
         padded = list(data) + [0] * (GPS_RTCM_DATA_LEN - len(data))
-        out.append(_ENC.gps_rtcm_data_encode(flags, len(data), padded))
+        out.append(ENCODER.gps_rtcm_data_encode(flags, len(data), padded))
     return out
 
 
 def heartbeat():
-    return _ENC.heartbeat_encode(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, m.MAV_STATE_ACTIVE)
+    return ENCODER.heartbeat_encode(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, m.MAV_STATE_ACTIVE)
 
 
 def command_set_message_interval(message_id: int, rate_hz: float, target_system: int = 1,
@@ -247,7 +247,7 @@ def command_set_message_interval(message_id: int, rate_hz: float, target_system:
     """COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL: param1 message id, param2 interval in us
     (-1 = disable; 0 = default rate)."""
     interval_us = -1.0 if rate_hz <= 0 else 1e6 / rate_hz
-    return _ENC.command_long_encode(int(target_system), int(target_component),
+    return ENCODER.command_long_encode(int(target_system), int(target_component),
                                     m.MAV_CMD_SET_MESSAGE_INTERVAL, confirmation,
                                     float(message_id), float(interval_us), 0, 0, 0, 0, 0)
 
@@ -268,7 +268,7 @@ def serial_control_request(device: int, data: bytes = b"", *, flags: int | None 
         flags = (m.SERIAL_CONTROL_FLAG_RESPOND | m.SERIAL_CONTROL_FLAG_EXCLUSIVE
                  | m.SERIAL_CONTROL_FLAG_MULTI)
     payload = list(data) + [0] * (SERIAL_CONTROL_DATA_LEN - len(data))
-    msg = _ENC.serial_control_encode(int(device), int(flags), int(timeout_ms), int(baudrate), len(data), payload)
+    msg = ENCODER.serial_control_encode(int(device), int(flags), int(timeout_ms), int(baudrate), len(data), payload)
     if hasattr(msg, "target_system"):
         msg.target_system = int(target_system)
         msg.target_component = int(target_component)

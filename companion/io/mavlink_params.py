@@ -72,7 +72,7 @@ PARAMETERS: tuple[Parameter, ...] = (
 assert all(len(p.param_id) <= PARAM_ID_LEN for p in PARAMETERS)
 assert len({p.param_id for p in PARAMETERS}) == len(PARAMETERS)
 
-_ENC = mav.MAVLink(None)
+ENCODER = mav.MAVLink(None)
 
 
 def _float32_decimal(x: float) -> float:
@@ -128,7 +128,7 @@ class ParameterServer:
 
     def param_value(self, index: int):
         p = PARAMETERS[index]
-        return _ENC.param_value_encode(p.param_id.encode("ascii"), self.value(p), p.param_type,
+        return ENCODER.param_value_encode(p.param_id.encode("ascii"), self.value(p), p.param_type,
                                        len(PARAMETERS), index)
 
     # ------------------------------------------------------------------ protocol

@@ -98,8 +98,8 @@ class OriginE7:
 
 def command_request_message(msg_id: int, target_system: int = 1, target_component: int = 1):
     """COMMAND_LONG MAV_CMD_REQUEST_MESSAGE (param1 = message id)."""
-    from .mavlink_codec import _ENC, m
-    return _ENC.command_long_encode(int(target_system), int(target_component), m.MAV_CMD_REQUEST_MESSAGE, 0,
+    from .mavlink_codec import ENCODER, m
+    return ENCODER.command_long_encode(int(target_system), int(target_component), m.MAV_CMD_REQUEST_MESSAGE, 0,
                                     float(msg_id), 0, 0, 0, 0, 0, 0)
 
 

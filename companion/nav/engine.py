@@ -261,6 +261,7 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
         self.base: BaseStationPosition | None = None
         self.counters: Counter = Counter()
         self.base_check = BaseStationCheck(self.counters, config.base_max_spp_diff_m)   # against the base's code
+        self.base_station_changes = 0                    # another station took over (_base_station_changed)
         self.initialized = False
         self.kf: ErrorStateKalmanFilter | None = None
         self.t_gps = math.nan
@@ -460,6 +461,7 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
     def _base_station_changed(self, shift_m: float) -> None:
         """Another station: its carriers have other integers, so every DD ambiguity and the base's
         carrier history go; its DGPS corrections start from its own first epoch."""
+        self.base_station_changes += 1
         self.counters["base station changed: ambiguities and corrections restarted"] += 1
         log.warning("base station changed (%.0f m away): RTK ambiguities and DGPS corrections restarted", shift_m)
         if self.rtk is not None:
