@@ -45,15 +45,9 @@ GPS_RAW_INT fix in loose mode; attitude from the autopilot's latest ATTITUDE; ve
 epoch's Doppler (SPP), else zero when the autopilot is disarmed (on the ground), else GPS_RAW_INT.
 The engine starts at the newest IMU sample; ``engine.reset_counter`` counts (re)initialisations.
 
-Heading from motion (companion.nav.yaw_gsf, health ``yaw_gsf``): a Gaussian-sum yaw estimator
-runs from the first screened IMU sample on the SPP Doppler velocity of every rover epoch (or
-GPS_RAW_INT's in loose mode).  ATTITUDE's yaw initialises with ``mavlink.attitude_yaw_sigma_deg``;
-without ATTITUDE the filter starts once the estimator has settled, from its roll, pitch and yaw.
-A converged estimator that disagrees with our heading beyond 3 combined sigma resets it (event,
-counted; the filter goes on probation) and ATTITUDE's yaw is not used again in the run.  Not
-injected while our heading sigma exceeds ``output.max_sigma_yaw_deg`` (unless the estimator or a
-dual-antenna heading vouches), while the estimator contradicts it, nor in horizontal motion before
-the estimator confirmed it once (at rest a wrong heading costs the lever arm only).
+Heading (companion.heading_watch, health ``yaw_gsf``): a yaw from motion runs beside the filter
+from the first screened IMU sample on; it gives the initial heading when ATTITUDE's is missing or
+contradicted, confirms ours, resets it when it runs away, and gates the injection on it.
 
 Re-initialisation (logged, counted, announced): autopilot reboot, IMU time jump larger than
 ``REINIT_GAP_S`` in either direction (clock jump, long link loss), an untrusted solution, or a
@@ -92,6 +86,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from .gnss.glonass import GlonassEphemeris  # noqa: E402
 from .gnss.spp import spp_epoch  # noqa: E402
+from .heading_watch import HeadingWatch  # noqa: E402
 from .io.mavlink_time import BootToGpsTime  # noqa: E402
 from .io.mavlink_decode import ImuDecoder, gps_fix_from_gps_raw_int, parse_imu_stream  # noqa: E402
 from .io.mavlink_fast import DatagramParser  # noqa: E402
@@ -99,20 +94,16 @@ from .io.rtcm import RtcmDecoder  # noqa: E402
 from .io.ubx import UbxDecoder  # noqa: E402
 from .messages import (BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix,  # noqa: E402
                        GpsEphemeris, ImuSample, NavSolution)
-from .nav.earth import C_n_e, ecef_to_geodetic, euler_to_dcm  # noqa: E402
 from .nav.engine import NavEngine  # noqa: E402
 from .nav.rtk_update import FIX_FIXED  # noqa: E402
 from .nav.imu_cluster import ClusterConfig, ImuCluster, UnitNoise  # noqa: E402
-from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale, ImuScreen  # noqa: E402
-from .nav.integrity import GNSS_SOURCES, POSITION_SOURCES  # noqa: E402
-from .nav.yaw_gsf import YawGsf  # noqa: E402
+from .nav.imu_screen import FULL_SCALE_BY_MESSAGE, ImuFullScale  # noqa: E402
 from .rtk_signals import RTK_SYSTEMS, rtk_epoch  # noqa: E402
 
 log = logging.getLogger(__name__)
 m = mavlink2
 GROUND_VEHICLE_TYPES = (m.MAV_TYPE_GROUND_ROVER, m.MAV_TYPE_SURFACE_BOAT)
 
-HEADING_RESET_QUIET_S = 60.0   # a heading reset skips probation only this long after the last one or a re-init
 REINIT_GAP_S = 1.0            # IMU time step (either direction) that restarts the filter
 CLUSTER_OUTPUT_ID = 100       # imu_id of the fused samples of an IMU cluster
 RAW_TIMEOUT_S = 3.0           # no RXM-RAWX for this long (IMU time) -> loose GPS_RAW_INT fusion
@@ -126,19 +117,6 @@ GPS_FIX_GAP_S = 2.0
 ATTITUDE_MAX_AGE_S = 1.0      # ATTITUDE older than this (boot time) is not used to initialise
 BASE_WAIT_S = 0.8             # hold a rover epoch (IMU time) until the base epoch of the same time
                               # arrived (DGPS without extrapolation, base-corrected TDCP), at most this
-MOTION_HOLD_S = 0.5           # the unconfirmed-heading gate stays shut this long after the last sign of motion
-GSF_CONFIRM_SIGMA_RAD = math.radians(20.0)   # a yaw from motion this narrow may confirm an ATTITUDE heading
-GSF_AGREE_SIGMAS = 3.0        # our heading and the yaw from motion agree within this x their combined sigma
-GSF_RESET_AFTER = 1           # ... disagree at this many GNSS velocities in a row: reset our heading
-                              # (the GSF's convergence took several already; at 1 Hz a wrong heading
-                              # in motion costs metres per second)
-TRUSTED_HEADING_MAX_AGE_S = 5.0   # a dual-antenna heading fused this recently vouches for our heading
-#: a GNSS velocity this much older than the IMU's time is not fused by the yaw from motion: its
-#: bank predicts the velocity at the IMU's time, and a burst of epochs delivered late (the GPS port
-#: re-claimed after an outage: 4 s of them at once) converged it 125 deg off in a straight leg
-GSF_MAX_VELOCITY_AGE_S = 1.0
-GSF_RESTART_PROBATION_S = 30.0    # a yaw-from-motion bank restarted after a GNSS gap does not overrule
-                                  # a heading more certain than its own for this long (GPS time)
 
 
 @dataclass(frozen=True)
@@ -200,7 +178,6 @@ class NavPipeline:
         self.attitude = None                      # (time_boot_ms, roll, pitch, yaw)
         self._last_ap_heading_boot_s = -1e9       # last autopilot heading fused on the ground
         self.on_ground = False
-        self._last_trouble_t = -math.inf
         self.engine.ground_mode = False            # no NHC until the autopilot says we are on the ground
         self.vehicle_type: int | None = None       # HEARTBEAT type (MAV_TYPE)
         self.disarmed = False
@@ -228,7 +205,6 @@ class NavPipeline:
         self._position_hold = False               # the engine holds the GNSS position back
         self._keep_biases_next = False            # ... follows a re-init of the same IMU in flight
         self._sigma_hold = False                  # injection stopped on sigma: resume below the hysteresis
-        self._heading_gate = ""                   # the heading gate's reason for the last withheld solution
         self._hpl_hold = False                    # ... on the protection level (its own hysteresis)
         self._imu_full_scale_for: str | None = None
         # GPS_RAW_INT time_usec is when the autopilot got the fix: the receiver's output latency later
@@ -237,28 +213,12 @@ class NavPipeline:
         self.resume_sigma_fraction = float(getattr(config.output, "resume_sigma_fraction", 0.8))
         self.max_hpl_m = float(getattr(config.output, "max_hpl_m", math.inf))
         self.resume_hpl_fraction = float(getattr(config.output, "resume_hpl_fraction", 0.8))
-        # heading from motion (companion.nav.yaw_gsf): runs from the first screened IMU sample on
-        # the GNSS velocity, initialises the heading without ATTITUDE and checks ours all along
-        ec = self.engine.cfg
-        self.gsf = YawGsf()
-        self.gsf_screen_counters: Counter = Counter()      # its own screen: not counted twice in the engine's
-        self.gsf_screen = ImuScreen(clip_fraction=ec.imu_clip_fraction, accel_jump_mps2=ec.imu_accel_jump_mps2,
-                                    gyro_jump_radps=ec.imu_gyro_jump_radps, window=ec.imu_median_window,
-                                    counters=self.gsf_screen_counters) if ec.imu_screen_enabled else None
-        self._gsf_t_imu: float | None = None
-        self._gsf_r_e = None                      # last SPP position of the GSF's velocities (next start)
-        self._gsf_disagreements = 0
-        self.gsf_heading_resets = 0
-        self._gsf_gap_restarts = 0                # the estimator's bank restarts after GNSS gaps seen so far
-        self._gsf_restart_t = -math.inf           # GPS time of the last one
-        self.attitude_yaw_trusted = True          # False for the run once the yaw from motion contradicted it
-        self.heading_confirmed = False            # the filter's heading came from, or agreed with, the yaw from motion
-        self._t_last_motion = -math.inf           # last solution in (or starting) horizontal motion
-        self.attitude_yaw_confirmed = False       # ... and a filter started on the ATTITUDE yaw agreed with it once
-        self._heading_from_attitude = False       # the filter's heading was initialised from ATTITUDE
-        self._last_trusted_heading_t = -math.inf  # GPS time of the last dual-antenna heading fused
-        self.attitude_yaw_sigma_rad = math.radians(float(getattr(mc, "attitude_yaw_sigma_deg", 5.0)))
-        self.max_sigma_yaw_rad = math.radians(float(getattr(config.output, "max_sigma_yaw_deg", 10.0)))
+        # the yaw from motion watching our heading (companion.heading_watch)
+        self.heading = HeadingWatch(self.engine, counters=self.counters, event=self._event, gap_s=REINIT_GAP_S,
+                                    elevation_mask_deg=config.filter.elevation_mask_deg,
+                                    attitude_yaw_sigma_deg=float(getattr(mc, "attitude_yaw_sigma_deg", 5.0)),
+                                    max_sigma_yaw_deg=float(getattr(config.output, "max_sigma_yaw_deg", 10.0)),
+                                    lever_b_m=self.lever_b, on_attitude_yaw_distrusted=self._biases_not_to_keep)
         if self.cluster_streams:
             self._set_imu_full_scale(tuple(t for t, _, _ in self.cluster_streams))
 
@@ -284,7 +244,7 @@ class NavPipeline:
             # reboot, which may have re-initialised the sensors)
             self._keep_biases_next = reason != "autopilot reboot"
             self.counters[f"re-init: {reason}"] += 1
-            self._last_trouble_t = self.engine.t_gps
+            self.heading.note_trouble(self.engine.t_gps)
             self._event(m.MAV_SEVERITY_WARNING, f"nav re-init: {reason}" + (f" ({detail})" if detail else ""))
 
     # ------------------------------------------------------------------ input
@@ -295,6 +255,7 @@ class NavPipeline:
         engine's too) follow from the next record on; the rest keeps its start-up value."""
         self.cfg = cfg
         self.lever_b = np.asarray(cfg.gnss.lever_arm_b_m, float)
+        self.heading.lever_b = self.lever_b
         self.engine.set_installation(cfg.gnss.lever_arm_b_m, cfg.gnss.moving_baseline_b_m)
 
     def feed_decoded(self, t_rx_ns: int, msgs) -> list[NavSolution]:
@@ -433,8 +394,7 @@ class NavPipeline:
             self.counters["autopilot reboots"] += 1
             self.attitude = None
             self.last_imu = None
-            self.gsf.reset()
-            self._gsf_t_imu = None
+            self.heading.restart()
             if self.cluster is not None:
                 self._restart_cluster()
             self._reinit("autopilot reboot")
@@ -485,7 +445,7 @@ class NavPipeline:
                 if self.engine.initialized:
                     self.engine.process(msg)
                     if msg.carrier_fixed and self.cfg.gnss.moving_baseline_b_m is not None:
-                        self._last_trusted_heading_t = msg.t_gps
+                        self.heading.trusted_heading_fused(msg.t_gps)
         return []
 
     def _announce_base_check(self) -> None:
@@ -559,8 +519,7 @@ class NavPipeline:
         acc = float(getattr(self.cfg.mavlink, "imu_accel_full_scale_mps2", 0.0) or min(f.accel_mps2 for f in fs))
         gyro = float(getattr(self.cfg.mavlink, "imu_gyro_full_scale_radps", 0.0) or min(f.gyro_radps for f in fs))
         scr.set_full_scale(ImuFullScale(acc, gyro))
-        if self.gsf_screen is not None:
-            self.gsf_screen.set_full_scale(ImuFullScale(acc, gyro))
+        self.heading.set_full_scale(ImuFullScale(acc, gyro))
 
     def _imu_finite(self, s: ImuSample, unit: str = "") -> bool:
         if all(math.isfinite(x) for x in (*s.dtheta_b.tolist(), *s.dv_b.tolist())):
@@ -606,7 +565,7 @@ class NavPipeline:
         """One IMU sample (of the single stream or fused) into the engine; a solution at the first
         sample of each output slot."""
         self.imu_count += 1
-        self._gsf_imu(s)
+        self.heading.imu(s)
         eng = self.engine
         if eng.initialized:
             step = s.t_gps - eng.t_gps
@@ -647,208 +606,6 @@ class NavPipeline:
             return None
         return (self._last_output_slot + 1) / self.output_rate_hz
 
-    def _gsf_imu(self, s: ImuSample) -> None:
-        """The yaw estimator's IMU: every sample, screened like the engine's (its own screen)."""
-        if self._gsf_t_imu is not None:
-            if abs(s.t_gps - self._gsf_t_imu) > REINIT_GAP_S:
-                self.gsf.reset()
-                self.counters["yaw from motion restarted: IMU time jump"] += 1
-            elif not s.t_gps > self._gsf_t_imu:
-                return
-        th, dv = s.dtheta_b.tolist(), s.dv_b.tolist()
-        scr = self.gsf_screen
-        if scr is not None and not scr.check(th, dv, s.dt_s, s.t_gps):
-            if not scr.bridged:
-                return
-            th, dv = scr.dtheta_b, scr.dv_b
-        self._gsf_t_imu = s.t_gps
-        self.gsf.update_imu(th, dv, s.dt_s, s.t_gps)
-
-    def _gsf_epoch_velocity(self, epoch: GnssEpoch) -> None:
-        """The SPP Doppler velocity of a rover epoch for the yaw estimator (no base needed)."""
-        eng = self.engine
-        sol = spp_epoch(epoch, eng.ephemerides, klobuchar=eng.cfg.klobuchar, r_init_e=self._gsf_r_e,
-                        elevation_mask_rad=math.radians(self.cfg.filter.elevation_mask_deg),
-                        systems=eng.cfg.systems, signal=eng.cfg.pseudorange_signal)
-        if sol is None or sol.v_e is None or not (np.all(np.isfinite(sol.v_e)) and math.isfinite(sol.hdop)):
-            self.counters["yaw from motion: epoch without SPP velocity"] += 1
-            return
-        self._gsf_r_e = sol.r_e
-        self._gsf_velocity(epoch.t_gps, sol.r_e, np.asarray(sol.v_e, float),
-                           eng.cfg.sigma_doppler_mps * sol.hdop / math.sqrt(2.0))
-
-    def _gsf_velocity(self, t_gps: float, r_e, v_ant_e, sigma_mps: float) -> None:
-        """One GNSS antenna velocity (ECEF) into the yaw estimator, then our heading checked
-        against it.  The lever-arm velocity (rate x lever arm) and the fix's age (times the
-        acceleration) are not modelled: they widen the sigma."""
-        g = self.gsf
-        lat, lon, _ = ecef_to_geodetic(r_e)
-        Cne = C_n_e(lat, lon)
-        v_n = Cne.T @ v_ant_e
-        lag = max(0.0, self.last_imu.t_gps - t_gps) if self.last_imu is not None else 0.0
-        if lag > GSF_MAX_VELOCITY_AGE_S or t_gps <= g.t_last_vel:
-            self.counters["yaw from motion: velocity too old or out of order (not fused)"] += 1
-            return
-        extra = float(np.linalg.norm(g.omega_b_radps)) * float(np.linalg.norm(self.lever_b)) \
-            + g.kinematic_accel_mps2 * lag
-        sig = math.hypot(sigma_mps, extra)
-        if not g.fuse_velocity(t_gps, v_n[:2], sig):
-            return
-        self.counters["yaw from motion: velocities fused"] += 1
-        self._gsf_check_heading(v_n, sig, Cne)
-
-    def _gsf_disagrees(self, heading_rad: float, sigma_rad: float) -> bool:
-        g = self.gsf
-        d = (g.yaw_rad - heading_rad + math.pi) % (2.0 * math.pi) - math.pi
-        return abs(d) > GSF_AGREE_SIGMAS * math.hypot(sigma_rad, g.yaw_sigma_rad)
-
-    def _gsf_check_heading(self, v_ant_n, sigma_mps: float, Cne) -> None:
-        """Converged yaw from motion against our heading: a disagreement beyond their combined
-        uncertainty at GSF_RESET_AFTER velocities in a row resets our heading onto it (a linear
-        update cannot turn a heading by tens of degrees), its velocity onto the GNSS one; the
-        autopilot's ATTITUDE yaw is not trusted again in this run."""
-        g, eng = self.gsf, self.engine
-        restarts = int(getattr(g, "gap_restarts", 0))
-        if restarts != self._gsf_gap_restarts:
-            self._gsf_gap_restarts = restarts
-            self._gsf_restart_t = eng.t_gps if eng.initialized else -math.inf
-        if not (eng.initialized and g.converged):
-            self._gsf_disagreements = 0
-            self._confirm_attitude_heading()
-            return
-        heading, sigma = eng.heading_and_sigma()
-        unknown = sigma > self.max_sigma_yaw_rad and g.yaw_sigma_rad < sigma     # started without a heading
-        if not (unknown or self._gsf_disagrees(heading, sigma)):
-            self._gsf_disagreements = 0
-            self.heading_confirmed = True
-            if self._heading_from_attitude and self.attitude_yaw_trusted:
-                self.attitude_yaw_confirmed = True
-            return
-        if self._gsf_restarted_and_less_certain(sigma):
-            # the bank started over after a GNSS gap and converged again within seconds: a heading
-            # it has not yet watched for long, against ours that is more certain and was fused
-            # through the gap (rtk flight, 30-s outage: a restarted bank converged 164 deg off at
-            # 9.5 deg sigma and its reset of a 1-deg heading brought a 0.26-m wrong RTK fix)
-            self._gsf_disagreements = 0
-            self.counters["heading reset refused: yaw from motion restarted recently, less certain"] += 1
-            return
-        self._gsf_disagreements += 1
-        if self._gsf_disagreements < GSF_RESET_AFTER:
-            return
-        self._gsf_disagreements = 0
-        delta = (g.yaw_rad - heading + math.pi) % (2.0 * math.pi) - math.pi
-        # horizontal velocity from the GNSS, vertical kept (GPS_RAW_INT has none)
-        cov_v_n = Cne.T @ eng.kf.P[eng.layout.vel, eng.layout.vel] @ Cne
-        v_n = np.array([v_ant_n[0], v_ant_n[1], float((Cne.T @ eng.v_e)[2])])
-        cov_n = np.diag([sigma_mps ** 2, sigma_mps ** 2, max(float(cov_v_n[2, 2]), 1e-4)])
-        eng.reset_heading(delta, g.yaw_sigma_rad, v_imu_e=Cne @ v_n, cov_v_e=Cne @ cov_n @ Cne.T)
-        # the position was integrated along the wrong heading too: on probation (status
-        # 'converging', not injected) until a consistent window of GNSS, else a re-init from GNSS --
-        # unless its GNSS rows kept being fused (a 25-deg heading error in a hover cost the velocity
-        # and the lever arm, not the GNSS-bound position; a 5-s pause put PX4 into failsafe) ...
-        # -- once: a reset within HEADING_RESET_QUIET_S of another or of a re-initialisation means
-        # a heading that keeps running away (a gyro fault below every screen: 6 m injected after
-        # its re-init without this), whose position is not to be trusted either
-        repeated = eng.t_gps - self._last_trouble_t < HEADING_RESET_QUIET_S
-        self._last_trouble_t = eng.t_gps
-        probation = eng.cfg.integrity_enabled and (repeated or not self._position_gnss_bound())
-        eng.aid.clear_windows()
-        eng.integrity.restart(eng.t_gps, probation)
-        if not probation:
-            self.counters["heading reset without probation (position GNSS-bound)"] += 1
-        self.gsf_heading_resets += 1
-        self.counters["heading reset onto the yaw from motion"] += 1
-        self.heading_confirmed = True
-        if self._heading_from_attitude:
-            self._distrust_attitude_yaw()
-            self._heading_from_attitude = False
-        self._event(m.MAV_SEVERITY_WARNING, f"heading reset {math.degrees(delta):+.0f} deg onto the yaw from "
-                                            f"motion (sigma {math.degrees(g.yaw_sigma_rad):.1f} deg)")
-
-    def _gsf_restarted_and_less_certain(self, our_sigma_rad: float) -> bool:
-        """The yaw from motion restarted after a GNSS gap less than GSF_RESTART_PROBATION_S ago
-        and is less certain than our heading: it does not reset ours.  While the two disagree
-        nothing is injected all the same (which one is wrong is not known: after the fault
-        matrix's 60-s outage, letting ours through put 46 estimates beyond their protection level)."""
-        return (our_sigma_rad < self.gsf.yaw_sigma_rad
-                and self.engine.t_gps - self._gsf_restart_t < GSF_RESTART_PROBATION_S)
-
-    def _confirm_attitude_heading(self) -> None:
-        """A heading taken from the autopilot's ATTITUDE is confirmed in motion by a yaw from motion
-        that is not converged yet (sigma below GSF_CONFIRM_SIGMA_RAD after one velocity in motion,
-        not 10 deg after two) but agrees with it: two independent sources agreeing.  A 180-deg wrong
-        autopilot heading disagrees with any bank that narrow.  Waiting for convergence withheld
-        the output for 1.3 s at the start of PX4 SIH's first leg (its 0.4-m/s velocity sigma
-        slows the bank down) and EKF2 dropped our position."""
-        g, eng = self.gsf, self.engine
-        if self.heading_confirmed or not (self._heading_from_attitude and self.attitude_yaw_trusted):
-            return
-        if g.n_moving_fusions < 1 or g.yaw_sigma_rad > GSF_CONFIRM_SIGMA_RAD:
-            return
-        heading, sigma = eng.heading_and_sigma()
-        if sigma <= self.max_sigma_yaw_rad and not self._gsf_disagrees(heading, sigma):
-            self.heading_confirmed = True
-            self.counters["heading from ATTITUDE confirmed by the yaw from motion (not yet converged)"] += 1
-
-    def _position_gnss_bound(self) -> bool:
-        """Over the last integrity window a position source (pseudoranges, GNSS fixes) was fused
-        at least ``min_updates`` times and no GNSS source rejected more than a probation allows
-        (a 180-deg heading in motion left the fused pseudoranges 10-20 m off at a mean NIS of 0.2:
-        their inflated variance hides it, the TDCP rows, half rejected, do not)."""
-        eng = self.engine
-        lim = eng.integrity.limits
-        bound = False
-        for src in GNSS_SOURCES:
-            w = eng.aid.window(src, eng.t_gps)
-            if w.n_updates == 0:
-                continue
-            if w.rejected_fraction > lim.probation_max_rejected_fraction:
-                return False
-            bound = bound or (src in POSITION_SOURCES and w.n_updates >= lim.min_updates)
-        return bound
-
-    def _distrust_attitude_yaw(self) -> None:
-        if self.attitude_yaw_trusted:
-            self.attitude_yaw_trusted = False
-            self.attitude_yaw_confirmed = False
-            self.counters["ATTITUDE yaw no longer trusted"] += 1
-        # biases a filter learnt on a wrong heading explain its errors, not the sensors
-        self._keep_biases_next = False
-
-    def _heading_known(self) -> bool:
-        """Injection gate on the heading: a settled yaw from motion (companion.nav.yaw_gsf; not
-        necessarily observed lately) that disagrees with ours objects (a reset follows once it is
-        observed again); a converged one that agrees vouches, as does a dual-antenna heading fused
-        in the last TRUSTED_HEADING_MAX_AGE_S.  Otherwise our own heading sigma must be below
-        ``output.max_sigma_yaw_deg``, and in horizontal motion the heading must have been
-        confirmed by the yaw from motion once: at rest, in a hover or a vertical climb a wrong
-        heading costs the lever arm only (centimetres), in motion the INS integrates along it."""
-        eng = self.engine
-        if not eng.initialized or eng.kf is None:
-            return True           # no heading to judge (the status gate decides)
-        heading, sigma = eng.heading_and_sigma()
-        if self.gsf.settled and self._gsf_disagrees(heading, sigma):
-            self.counters["solutions withheld: heading contradicts the yaw from motion"] += 1
-            self._heading_gate = "heading disputed"
-            return False
-        if self.gsf.converged:
-            return True
-        if eng.t_gps - self._last_trusted_heading_t <= TRUSTED_HEADING_MAX_AGE_S:
-            return True
-        if sigma > self.max_sigma_yaw_rad:
-            self.counters["solutions withheld: heading unknown"] += 1
-            self._heading_gate = "heading unknown"
-            return False
-        if self.gsf.in_motion:
-            self._t_last_motion = eng.t_gps
-        # held for MOTION_HOLD_S after the last sign of motion: the IMU's velocity change restarts
-        # at every GNSS velocity, and a start of motion below the moving speed must not toggle
-        if not self.heading_confirmed and eng.t_gps - self._t_last_motion < MOTION_HOLD_S:
-            self.counters["solutions withheld: heading not yet confirmed in motion"] += 1
-            self._heading_gate = "heading unconfirmed"
-            return False
-        return True
-
     AP_HEADING_PERIOD_S = 0.1
     AP_HEADING_SIGMA_RAD = math.radians(5.0)
 
@@ -860,7 +617,7 @@ class NavPipeline:
         ``mavlink.autopilot_heading_on_ground`` or a dual-antenna heading."""
         eng = self.engine
         if not (eng.initialized and self.on_ground and self.cfg.mavlink.autopilot_heading_on_ground) \
-                or self.cfg.gnss.moving_baseline_b_m is not None or not self.attitude_yaw_trusted:
+                or self.cfg.gnss.moving_baseline_b_m is not None or not self.heading.attitude_yaw_trusted:
             return
         t_boot = msg.time_boot_ms * 1e-3
         if t_boot - self._last_ap_heading_boot_s < self.AP_HEADING_PERIOD_S:
@@ -898,8 +655,9 @@ class NavPipeline:
         good = (sol.status in ("nav", "coasting") and bool(np.all(np.isfinite(sol.r_e)))
                 and bool(np.all(np.isfinite(sr))))
         inject = bool(good and sigma_ok)
-        self._heading_gate = ""                       # why the heading gate withheld this one (STATUSTEXT)
-        inject = inject and self._heading_known()      # heading gate (yaw from motion, companion.nav.yaw_gsf)
+        heading_gate = ""                             # why the heading gate withheld this one (STATUSTEXT)
+        if inject and not self.heading.gate():         # companion.heading_watch
+            inject, heading_gate = False, self.heading.gate_reason
         if good and not sigma_ok and self.output_state == "injecting":
             self._sigma_hold = True       # stopped on sigma (not the first convergence after an init)
         elif inject:
@@ -922,8 +680,8 @@ class NavPipeline:
                 self._event(m.MAV_SEVERITY_INFO, f"nav OK {self.mode}: sigma_h {sig_h:.2f} m")
             elif sol.status not in ("diverged", "converging") and (
                     self.output_state in ("init", "injecting")):     # not every change of the reason
-                if self._heading_gate:       # the position is good: say what held it back
-                    self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {self._heading_gate}")
+                if heading_gate:       # the position is good: say what held it back
+                    self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {heading_gate}")
                 else:
                     self._event(m.MAV_SEVERITY_WARNING, f"nav not injected: {sol.status} sigma_h {sig_h:.1f} m"
                                 + ("" if hpl_ok else f" HPL {float(sol.extras.get('hpl_m', math.nan)):.1f} m"))
@@ -982,7 +740,7 @@ class NavPipeline:
         if self.last_imu is not None and usable:
             self.last_raw_t = self.last_imu.t_gps    # raw observations are usable: no loose fallback
         if usable:
-            self._gsf_epoch_velocity(epoch)
+            self.heading.epoch_velocity(epoch, self._t_imu())
         if self.wait_for_base and self.base_seen and self.engine.initialized:
             self._held.append(epoch)
             self._release_held()
@@ -1043,33 +801,18 @@ class NavPipeline:
         return roll, pitch, yaw
 
     def _initial_attitude(self, r_e):
-        """(C_b_e, tilt sigma, heading sigma) to initialise with, or None (counted): the autopilot's
-        ATTITUDE with ``mavlink.attitude_yaw_sigma_deg`` unless the converged yaw from motion
-        contradicts its yaw (then that yaw is dropped for the run) or it is missing; then the yaw
-        from motion, with the ATTITUDE's roll and pitch if there is one, else its own."""
-        lat, lon, _ = ecef_to_geodetic(r_e)
-        Cne = C_n_e(lat, lon)
-        g = self.gsf
-        att = self._fresh_attitude()
-        if att is not None and self.attitude_yaw_trusted:
-            if g.settled and self._gsf_disagrees(att[2], self.attitude_yaw_sigma_rad):
-                self._distrust_attitude_yaw()
-                self._event(m.MAV_SEVERITY_WARNING, "autopilot yaw contradicts the yaw from motion: not used")
-            else:
-                # confirmed now, or earlier in this run (a re-init in flight, the yaw from motion
-                # possibly out of date on a straight leg)
-                self.heading_confirmed = g.converged or self.attitude_yaw_confirmed
-                self._heading_from_attitude = True
-                return Cne @ euler_to_dcm(*att), self.init_sigmas.att_rad, self.attitude_yaw_sigma_rad
-        if not g.settled:         # (settled suffices: nothing else to go by; its sigma says how good)
-            self.counters["init: waiting for the yaw from motion"] += 1
-            return None
-        self.counters["init: heading from the yaw from motion"] += 1
-        self.heading_confirmed = True
-        self._heading_from_attitude = False
-        if att is not None:
-            return Cne @ euler_to_dcm(att[0], att[1], g.yaw_rad), self.init_sigmas.att_rad, g.yaw_sigma_rad
-        return Cne @ g.C_b_n_estimate(), g.tilt_sigma_rad, g.yaw_sigma_rad
+        """(C_b_e, tilt sigma, heading sigma) to initialise with, or None (counted): the fresh
+        ATTITUDE or the yaw from motion, as companion.heading_watch decides."""
+        return self.heading.initial_attitude(r_e, self._fresh_attitude(), self.init_sigmas.att_rad)
+
+    def _t_imu(self) -> float | None:
+        """GPS time of the newest IMU sample (None before the first)."""
+        return self.last_imu.t_gps if self.last_imu is not None else None
+
+    def _biases_not_to_keep(self) -> None:
+        """The ATTITUDE yaw proved wrong: biases a filter learnt on a wrong heading explain its
+        errors, not the sensors; the next initialisation starts them from zero."""
+        self._keep_biases_next = False
 
     def _try_init_tight(self, epoch: GnssEpoch) -> None:
         s = self.last_imu
@@ -1144,13 +887,13 @@ class NavPipeline:
             if eng.initialized:
                 eng.process(GnssAttitude(fix.t_gps, heading_rad=math.radians((yaw_cdeg % 36000) / 100.0),
                                          sigma_heading_rad=math.radians(sig_yaw), autopilot_clock=True))
-                self._last_trusted_heading_t = fix.t_gps
+                self.heading.trusted_heading_fused(fix.t_gps)
         s = self.last_imu
         loose = not self.raw_expected or (s is not None and s.t_gps - self.last_raw_t > RAW_TIMEOUT_S)
         if not loose:
             return []
         if fix.v_e is not None:
-            self._gsf_velocity(fix.t_gps, fix.r_e, np.asarray(fix.v_e, float), fix.sigma_vel_mps)
+            self.heading.velocity(fix.t_gps, fix.r_e, np.asarray(fix.v_e, float), fix.sigma_vel_mps, self._t_imu())
         if not eng.initialized:
             self._try_init_loose()
             return []
@@ -1290,9 +1033,7 @@ class NavPipeline:
             engine_counters[f"ephemerides rejected: {why}"] = n
         return {"filter": filt, "pipeline": dict(self.counters), "engine": engine_counters,
                 "aid_sources": self.engine.aid.snapshot(),
-                "yaw_gsf": {**self.gsf.snapshot(), "heading_resets": self.gsf_heading_resets,
-                            "attitude_yaw_trusted": self.attitude_yaw_trusted,
-                            "imu_screen": dict(self.gsf_screen_counters)},
+                "yaw_gsf": self.heading.snapshot(),
                 "imu": dict(self.imu_dec.counters), "time_map": dict(self.time_map.counters),
                 **({"imu_cluster": self.cluster_health()} if self.cluster is not None else {}),
                 "ubx": dict(self.ubx.counters), "rtcm": dict(self.rtcm.counters),

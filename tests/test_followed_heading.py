@@ -96,6 +96,6 @@ def test_the_pipeline_follows_the_autopilot_heading_on_the_ground_only():
     pipe.on_ground = False                         # in the air our own heading (see the README)
     assert not reading()
     pipe.on_ground = True
-    pipe.attitude_yaw_trusted = False              # the yaw from motion contradicted the compass
+    pipe.heading.attitude_yaw_trusted = False              # the yaw from motion contradicted the compass
     assert not reading()
     assert pipe.counters["autopilot heading fused (on the ground)"] == 2

@@ -275,54 +275,21 @@ def test_statustext_once_per_fix_state_change_that_holds():
     assert _run(off, [("fixed", 5.0)]) == [] and "rtk" not in off.health()["filter"]
 
 
-def test_a_restarted_yaw_from_motion_does_not_overrule_a_more_certain_heading():
-    """After a GNSS gap the yaw-from-motion bank starts over; converged again within seconds it
-    may sit on a wrong mode (the rtk flight's 30-s outage: 164 deg off at 9.5 deg sigma) -- it
-    does not reset a heading more certain than its own for GSF_RESTART_PROBATION_S; while they
-    disagree nothing is injected (which of the two is wrong is not known)."""
-    from companion.pipeline import GSF_RESTART_PROBATION_S
-    pipe = NavPipeline(config_from_dict(RTK_ON))
-    gsf = SimpleNamespace(gap_restarts=0, converged=True, settled=True, yaw_rad=math.radians(164.0),
-                          yaw_sigma_rad=math.radians(9.5))
-    class ResetReached(Exception):
-        pass
-
-    class Kf:                                  # the reset's first step reads the covariance
-        @property
-        def P(self):
-            raise ResetReached
-
-    eng = SimpleNamespace(initialized=True, t_gps=1000.0, kf=Kf(), layout=SimpleNamespace(vel=slice(3, 6)),
-                          heading_and_sigma=lambda: (0.0, math.radians(1.0)))
-    pipe.gsf, pipe.engine = gsf, eng
-    Cne = np.eye(3)
-    with pytest.raises(ResetReached):          # no restart: a converged, disagreeing bank resets ours
-        pipe._gsf_check_heading(np.array([10.0, 0.0, 0.0]), 0.1, Cne)
-    assert not pipe._gsf_restarted_and_less_certain(math.radians(1.0))
-    gsf.gap_restarts = 1                                                     # the bank restarted (a gap)
-    pipe._gsf_disagreements = 0
-    pipe._gsf_check_heading(np.array([10.0, 0.0, 0.0]), 0.1, Cne)
-    assert pipe.counters["heading reset refused: yaw from motion restarted recently, less certain"] == 1
-    assert pipe.gsf_heading_resets == 0 and not pipe._heading_known()
-    assert not pipe._gsf_restarted_and_less_certain(math.radians(12.0))     # ours less certain: it may
-    eng.t_gps += GSF_RESTART_PROBATION_S + 0.1
-    assert not pipe._gsf_restarted_and_less_certain(math.radians(1.0))       # watched long enough
-
-
 def test_a_solution_withheld_by_the_heading_gate_says_so():
     """A good position held back by the heading gate is announced with that reason, not as
     'nav sigma_h 0.0 m' (what an rtk-gec flight's operator read after its first fix)."""
     pipe = NavPipeline(config_from_dict(RTK_ON))
     pipe.mode = "tight"
-    pipe.gsf = SimpleNamespace(gap_restarts=0, converged=True, settled=True, yaw_rad=math.radians(164.0),
-                               yaw_sigma_rad=math.radians(9.5))
+    pipe.heading.gsf = SimpleNamespace(gap_restarts=0, converged=True, settled=True, yaw_rad=math.radians(164.0),
+                                       yaw_sigma_rad=math.radians(9.5))
     real_engine = pipe.engine
-    pipe.engine = SimpleNamespace(initialized=True, t_gps=100.0, kf=object(), rtk=real_engine.rtk,
-                                  heading_and_sigma=lambda: (0.0, math.radians(1.0)))
+    pipe.engine = pipe.heading.engine = SimpleNamespace(initialized=True, t_gps=100.0, kf=object(),
+                                                        rtk=real_engine.rtk,
+                                                        heading_and_sigma=lambda: (0.0, math.radians(1.0)))
     pipe._finish(_sol(t=100.0, fix="fixed", ratio=9.0))
     texts = [text for _, text in pipe.drain_events()]
     assert "nav not injected: heading disputed" in texts, texts
     assert not any("sigma_h" in t for t in texts)
-    pipe.gsf.yaw_rad = 0.0                                   # agrees: injected, announced as usual
+    pipe.heading.gsf.yaw_rad = 0.0                                   # agrees: injected, announced as usual
     pipe._finish(_sol(t=100.04, fix="fixed", ratio=9.0))
     assert any(t.startswith("nav OK tight") for _, t in pipe.drain_events())

@@ -87,13 +87,13 @@ def test_multirotor_heading_from_motion(uav70, uav_records, fault):
     assert all(abs(h) < 60.0 for t, i, _, h in rows if i and t > t_move)
     assert max(e for _, i, e, _ in rows if i) < 2.0
     resets = sum("heading reset" in text for _, text in events)
-    assert resets == pipe.gsf_heading_resets
+    assert resets == pipe.heading.heading_resets
     if fault == "none":
         assert pipe.counters["init: heading from the yaw from motion"] >= 1
         assert not any(i for t, i, _, _ in rows if t < t_move)     # no heading at all before the motion
     else:
         assert resets >= 1 or pipe.counters["ATTITUDE yaw no longer trusted"] == 1
-        assert not pipe.attitude_yaw_trusted
+        assert not pipe.heading.attitude_yaw_trusted
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,7 @@ def test_car_heading_from_motion(car60, fault):
     assert all(abs(h) < 60.0 for t, i, _, h in rows if i and t > t_move)
     assert max(e for _, i, e, _ in rows if i) < 2.0
     if fault == "yaw180":
-        assert not pipe.attitude_yaw_trusted
+        assert not pipe.heading.attitude_yaw_trusted
 
 
 def _outage_then_backlog(records, t0, outage_s, backlog_s):
@@ -153,7 +153,7 @@ def test_a_late_burst_of_epochs_after_an_outage_does_not_mislead_the_yaw_from_mo
     records = _outage_then_backlog(uav_records, t0, (20.0, 35.0), 40.0)
     pipe, rows, events, _ = _run(sim, records, pipeline_config(sim))
     print(pipe.health()["yaw_gsf"], events[-6:])
-    assert pipe.gsf.gap_restarts >= 1
+    assert pipe.heading.gsf.gap_restarts >= 1
     assert pipe.counters["yaw from motion: velocity too old or out of order (not fused)"] >= 3
     assert pipe.counters["solutions withheld: heading contradicts the yaw from motion"] < 25    # 1 s at 25 Hz
     assert all(abs(h) < 10.0 for t, _, _, h in rows if t > 42.0)

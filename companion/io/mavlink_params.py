@@ -25,9 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from pymavlink.dialects.v20 import ardupilotmega as mav
-
 from ..config import Config, ConfigError, config_from_dict
+from .mavlink_codec import ENCODER, mavlink2 as mav
 from .mavlink_encode import statustext_chunks
 
 log = logging.getLogger(__name__)
@@ -71,9 +70,6 @@ PARAMETERS: tuple[Parameter, ...] = (
 )
 assert all(len(p.param_id) <= PARAM_ID_LEN for p in PARAMETERS)
 assert len({p.param_id for p in PARAMETERS}) == len(PARAMETERS)
-
-ENCODER = mav.MAVLink(None)
-
 
 def _float32_decimal(x: float) -> float:
     """A float32 value as the decimal number the user typed (7 significant digits)."""
