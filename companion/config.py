@@ -222,6 +222,13 @@ class CorrectionsConfig:
     base_position_ecef_m: tuple[float, float, float] | None = _f(
         None, min=-6.5e6, max=6.5e6, norm=(6.3e6, 6.45e6),
         doc="override the base station position (ECEF, m); default: from RTCM 1005/1006")
+    base_max_spp_diff_m: float = _f(
+        100.0, min=30.0, max=1e7,
+        doc="a base position (1005/1006 or the override) further than this from the base's own single-point "
+            "solution is not believed, and base epochs this far from the believed position are not used "
+            "(the single-point solution is 5-10 m off on real bases). Raise it only for a base whose "
+            "coordinates are deliberately in another frame than its code's (a local datum): the rover's "
+            "position then follows them")
     ntrip: NtripConfig = field(default_factory=NtripConfig)
     serial: SerialPortConfig = field(default_factory=lambda: SerialPortConfig("/dev/ttyUSB1", 57600))
     mqtt: CorrectionsMqttConfig = field(default_factory=CorrectionsMqttConfig)
@@ -528,6 +535,7 @@ class Config:
         return dataclasses.replace(self.filter.engine_config(g.lever_arm_b_m),
                                    moving_baseline_b_m=g.moving_baseline_b_m,
                                    baseline_length_tol_m=g.baseline_length_tol_m,
+                                   base_max_spp_diff_m=self.corrections.base_max_spp_diff_m,
                                    # the canonical tracking families the pipeline renames to
                                    **({"rtk_signals": RTK_SIGNALS} if self.filter.rtk_enabled else {}))
 

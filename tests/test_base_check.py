@@ -109,7 +109,8 @@ def test_a_real_base_stream_checked_against_a_configured_position():
     """The real Hiroshima base (RTCM3 MSM7, 1005, ephemerides; 60 s).  As sent: every epoch with a
     single-point solution is used, that solution 9 m from its 1005 (measured).  With
     ``corrections.base_position_ecef_m`` mistyped 3 km east: no epoch is used, and one STATUSTEXT
-    says so, not one per 1005."""
+    says so, not one per 1005; the same position with ``corrections.base_max_spp_diff_m`` above
+    its distance is used."""
     import calendar
 
     from companion.config import config_from_dict
@@ -136,3 +137,10 @@ def test_a_real_base_stream_checked_against_a_configured_position():
     assert c["base epochs"] == 0 and c["base epochs not used: far from the base position"] >= 0.85 * n_base
     assert [text for _, text in typo.events] == ["base epochs far from base position: unused",
                                                  "base position far from its own code: not believed"]
+    # a position deliberately 3.3 km from the base's code (another datum) with the limit raised past
+    # it (corrections.base_max_spp_diff_m): believed, its epochs used as sent, nothing announced
+    datum = NavPipeline(config_from_dict({"corrections": {"base_position_ecef_m": wrong,
+                                                          "base_max_spp_diff_m": 5000.0}}))
+    datum._feed_rtcm_messages(msgs)
+    assert datum.engine.counters["base epochs"] == sent.engine.counters["base epochs"] and datum.events == []
+    assert np.allclose(datum.engine.base.r_e, wrong)

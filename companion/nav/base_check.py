@@ -10,8 +10,8 @@ stale one whose station another has replaced on the mountpoint.
 
 The base's single-point solution from its own code is good to metres (measured on the three real
 bases here: 5.4-9.5 m from their surveyed positions at the median, 10.4 m at most, without an
-ionosphere model), so an announced position more than :data:`BASE_POSITION_MAX_SPP_DIFF_M` from
-it is not believed.  It waits as a candidate, adopted once the base's epochs agree with it: a new
+ionosphere model), so an announced position more than :data:`BASE_POSITION_MAX_SPP_DIFF_M`
+(``corrections.base_max_spp_diff_m``) from it is not believed.  It waits as a candidate, adopted once the base's epochs agree with it: a new
 station's 1005 that arrives before its first epochs.  Base epochs that disagree with the believed
 position and with the candidate are not used: a new station's epochs before its 1005.  A base
 position metres off is within what the code can tell: the rover moves with it, as in every RTK
