@@ -173,13 +173,28 @@ def test_a_real_antex_file_with_azimuth_grids():
 
 def test_the_largest_change_between_two_calibrations(tmp_path):
     """What the engine widens its position by when the base's calibration changes: the most the
-    modelled range moves over the sky, on L1 and L2."""
+    modelled range moves over the sky, on the bands of the systems used (GPS L1 and L2 unless told)."""
     atx = tmp_path / "up.atx"
     atx.write_text(_antex_text({"TESTANT_UP100   NONE": (0.0, {c: ([0.0, 0.0, 100.0], [0.0] * 19, None)
                                                                 for c in ("G01", "G02")})}))
     up100 = find_antenna(read_antenna_file(atx), "TESTANT_UP100")
     assert largest_change_m(None, up100) == pytest.approx(0.100)      # at the zenith
     assert largest_change_m(up100, up100) == 0.0 and largest_change_m(None, None) == 0.0
+    # on the bands the engine uses: GPS L1/L2 alike, Galileo E5a raised by 10 cm (E1 from GPS L1)
+    atx = tmp_path / "e5.atx"
+    atx.write_text(_antex_text({"TESTANT_E5UP    NONE": (0.0, {"G01": ([0.0] * 3, [0.0] * 19, None),
+                                                              "G02": ([0.0] * 3, [0.0] * 19, None),
+                                                              "E05": ([0.0, 0.0, 100.0], [0.0] * 19, None)})}))
+    e5up = find_antenna(read_antenna_file(atx), "TESTANT_E5UP")
+    assert e5up is not None
+    assert largest_change_m(None, e5up) == 0.0                              # GPS L1/L2 alone
+    assert largest_change_m(None, e5up, {"G": "12", "E": "15"}) == pytest.approx(0.100)
+    # the engine asks for the bands its RTK rows use (companion.rtk_signals), per system it fuses
+    from companion.config import config_from_dict
+    from companion.nav.engine import NavEngine
+    eng = NavEngine(config_from_dict({"corrections": {"source": "file", "file": {"path": "base.rtcm"}},
+                                      "filter": {"rtk_enabled": True, "systems": ["G", "E"]}}).engine_config())
+    assert eng._rtk_bands() == {"G": "125", "E": "157"}
     igs = read_antenna_file(IGS05)
     leica, trimble = find_antenna(igs, "LEIAR25.R4"), find_antenna(igs, "TRM29659.00")
     # the two choke rings' L1/L2 offsets differ by 2-7 cm up, with their variations a few mm more

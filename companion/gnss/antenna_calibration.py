@@ -272,16 +272,18 @@ _SKY = _sky_directions()
 
 
 def largest_change_m(before: AntennaCalibration | None, after: AntennaCalibration | None,
-                     system: str = "G", bands: str = "12") -> float:
+                     bands_by_system: dict[str, str] | None = None) -> float:
     """The most a receiver's modelled range changes from one calibration to the other (None: the
-    phase centre taken at the ARP) over the sky and ``bands`` of ``system``: what a position
-    solved from its observables can move by when it changes."""
+    phase centre taken at the ARP) over the sky and the bands each system is used on
+    (``bands_by_system``, e.g. ``{'G': '12', 'E': '15'}``; GPS L1/L2 when not given): what a
+    position solved from its observables can move by when it changes."""
     worst = 0.0
-    for band in bands:
-        for u in _SKY:
-            a = before.range_offset_m(system, band, u) if before is not None else 0.0
-            b = after.range_offset_m(system, band, u) if after is not None else 0.0
-            worst = max(worst, abs(b - a))
+    for system, bands in (bands_by_system or {"G": "12"}).items():
+        for band in bands:
+            for u in _SKY:
+                a = before.range_offset_m(system, band, u) if before is not None else 0.0
+                b = after.range_offset_m(system, band, u) if after is not None else 0.0
+                worst = max(worst, abs(b - a))
     return worst
 
 

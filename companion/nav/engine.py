@@ -50,6 +50,7 @@ from ..gnss.prepare import prepare_epoch
 from ..gnss.spp import spp_epoch
 from ..gnss.glonass import GlonassEphemeris
 from ..gnss.signals import clock_group
+from ..rtk_signals import signals_for_system
 from ..messages import (SPEED_OF_LIGHT_MPS, BaseStationPosition, GnssAttitude, GnssBaseline, GnssEpoch, GnssFix, GpsEphemeris,
                         ImuSample, NavSolution)
 from .earth import OMEGA_IE_RADPS, C_n_e, ecef_to_geodetic, gravity_ecef, rotation_from_rotvec
@@ -431,7 +432,16 @@ class NavEngine(ImuPath, ReceiverAiding, HeadingAlignment, ClockSeeding):
             if self.rtk_antennas.base_named(name):
                 self.rtk.set_base_antenna(self.rtk_antennas.base)
                 self.counters["rtk base antenna calibration changes"] += 1
-                self._base_model_changed(largest_change_m(before, self.rtk_antennas.base))
+                self._base_model_changed(largest_change_m(before, self.rtk_antennas.base, self._rtk_bands()))
+
+    def _rtk_bands(self) -> dict[str, str]:
+        """system -> the bands ('1', '2', '5' ...) its RTK rows use: where an antenna model counts."""
+        out = {}
+        for system in self.cfg.systems:
+            bands = "".join(dict.fromkeys(sig[1] for sig in signals_for_system(system, self.cfg.rtk_signals)))
+            if bands:
+                out[system] = bands
+        return out
 
     def _base_model_changed(self, shift_m: float) -> None:
         """The base's position or antenna model moved by up to ``shift_m``: the differential
