@@ -404,15 +404,22 @@ class NavPipeline:
         decoder's LNAV assembler exposes them as ``klobuchar``) for the standalone pseudorange
         models, unless the configuration gave its own (``filter.klobuchar``) or
         ``gnss.broadcast_klobuchar`` is false.  DGPS-corrected ranges never use it."""
-        klob = getattr(getattr(self.ubx, "ephemerides", None), "klobuchar", None)
+        self.adopt_klobuchar(getattr(getattr(self.ubx, "ephemerides", None), "klobuchar", None),
+                             "the navigation message")
+
+    def adopt_klobuchar(self, klob, source: str) -> None:
+        """Klobuchar coefficients ``(alpha[4], beta[4])`` from ``source`` (the navigation message, a
+        RINEX navigation header in post-processing) for the standalone pseudorange models, unless
+        the configuration gave its own or ``gnss.broadcast_klobuchar`` is false."""
         eng = self.engine
-        if klob is None or klob == eng.cfg.klobuchar or not getattr(self.cfg.gnss, "broadcast_klobuchar", True):
+        if klob is None or not getattr(self.cfg.gnss, "broadcast_klobuchar", True):
             return
-        if getattr(self.cfg.filter, "klobuchar", None) is not None:
+        klob = tuple(tuple(float(x) for x in part) for part in klob)
+        if klob == eng.cfg.klobuchar or getattr(self.cfg.filter, "klobuchar", None) is not None:
             return
         eng.cfg = dataclasses.replace(eng.cfg, klobuchar=klob)
-        self.counters["klobuchar from the navigation message"] += 1
-        log.info("ionosphere: Klobuchar coefficients from the navigation message")
+        self.counters[f"klobuchar from {source}"] += 1
+        log.info("ionosphere: Klobuchar coefficients from %s", source)
 
     def _feed_messages(self, msgs) -> list[NavSolution]:
         if msgs:

@@ -28,13 +28,17 @@ ArduPilot DataFlash logs (``.BIN``, recognised by their first bytes): the record
 MAVLink messages the service would have received (:mod:`companion.io.dataflash`) and go through
 the same pipeline.  Without ``--config`` the configuration is the default one adapted to what the
 log holds (:func:`dataflash_config`: loose coupling on the GPS fixes, the IMU rate found, the lever
-arm from ``GPS_POS``/``INS_POS``, SITL's simulated gyro drift).  When the log has the simulator's
+arm from ``GPS_POS``/``INS_POS``, SITL's simulated gyro drift).  A log with its u-blox's raw
+observations (``GPS_RAW_DATA = 1``: ``GRXH``/``GRXS``) and ``--nav`` RINEX ephemerides is tightly
+coupled instead: the rebuilt RXM-RAWX frames (:mod:`companion.io.dataflash_raw`) are the receiver's
+stream at their ``TimeUS``; ``--base`` adds a base station's RINEX observations.  When the log has the simulator's
 truth (``SIM``) the trajectory is scored against it beside the autopilot EKF's ``POS`` over the
 same span (:mod:`companion.post_report`).  With ``smooth`` (``--smooth``) the solutions are the
 RTS-smoothed ones (:mod:`companion.nav.smoother`) and the forward pass is scored beside them.
 """
 from __future__ import annotations
 
+import heapq
 import json
 import logging
 import math
@@ -294,12 +298,14 @@ def replay_tlog(path, config=None, progress: bool = False, needed_imu_hz: float 
     return res
 
 
-def dataflash_config(dlog, imu_rate_hz: float, base=None):
+def dataflash_config(dlog, imu_rate_hz: float, base=None, raw_observations: bool = False):
     """The configuration for a DataFlash log without ``--config``: the defaults, adapted to what
     the log holds.  Returns ``(config, notes)``; every adaptation is named in the notes.
 
-    * no raw observations decoded from DataFlash yet: ``gnss.source = 'none'`` (loose coupling on
-      the GPS fixes from the first one, not after waiting for raw data);
+    * ``raw_observations`` (the log's GRXH/GRXS with a navigation file): ``gnss.source = 'serial'``,
+      the receiver's stream as on the companion's own port (tightly coupled; the GPS fixes only if
+      it stops); else ``'none'`` (loose coupling on the GPS fixes from the first one, not after
+      waiting for raw data);
     * ``mavlink.imu_message = 'HIGHRES_IMU'``, ``imu_rate_hz`` = the rate found;
     * ``gnss.lever_arm_b_m`` = ``GPS_POS{n}`` - ``INS_POS{n}`` when the log sets them;
     * a SITL log with ``SIM_DRIFT_SPEED`` (deg/s per minute; ArduPilot's simulated gyro drifts on
@@ -317,8 +323,11 @@ def dataflash_config(dlog, imu_rate_hz: float, base=None):
     cfg = base or Config()
     if base is not None:
         return cfg, ["configuration from --config, used as it is"]
-    g = dataclasses.replace(cfg.gnss, source="none")
-    notes.append("GPS fixes only (GPS/GPA records, loosely coupled): no raw GNSS observations used")
+    if raw_observations:
+        g = dataclasses.replace(cfg.gnss, source="serial")
+    else:
+        g = dataclasses.replace(cfg.gnss, source="none")
+        notes.append("GPS fixes only (GPS/GPA records, loosely coupled): no raw GNSS observations used")
     lever = lever_arm_from_params(dlog)
     if lever is not None and any(abs(x) > 0 for x in lever):
         g = dataclasses.replace(g, lever_arm_b_m=lever)
@@ -375,12 +384,16 @@ def imu_noise_at_rest(dlog, instance: int = 0, min_s: float = 10.0):
 
 def replay_dataflash(path, config=None, progress: bool = False, t_start_s: float | None = None,
                      t_end_s: float | None = None, options=None,
-                     needed_imu_hz: float = IMU_RATE_NEEDED_HZ, smooth: bool = False) -> ReplayResult:
-    """Post-process an ArduPilot DataFlash log through the pipeline (boot-time window optional)."""
+                     needed_imu_hz: float = IMU_RATE_NEEDED_HZ, smooth: bool = False, nav_path=None,
+                     base_path=None) -> ReplayResult:
+    """Post-process an ArduPilot DataFlash log through the pipeline (boot-time window optional);
+    with ``nav_path`` (RINEX navigation) its u-blox raw observations (GRXH/GRXS) tightly coupled,
+    with ``base_path`` (RINEX observations) against that base station."""
     from .io.dataflash import read_dataflash
     t0 = time.perf_counter()
     dlog = read_dataflash(path, t_start_s, t_end_s)
-    return _replay_autopilot_log(dlog, "dataflash", t0, config, progress, options, needed_imu_hz, smooth=smooth)
+    return _replay_autopilot_log(dlog, "dataflash", t0, config, progress, options, needed_imu_hz, smooth=smooth,
+                                 raw=_logged_raw(dlog, nav_path, base_path))
 
 
 def replay_ulog(path, config=None, progress: bool = False, t_start_s: float | None = None,
@@ -409,9 +422,58 @@ _AUTOPILOT_LOG = {"dataflash": {"imu": "IMU", "estimate": "EKF3 POS", "truth": "
                            "no_time": "no GPS fix in the log (vehicle_gps_position)"}}
 
 
+def _logged_raw(dlog, nav_path, base_path) -> dict:
+    """What the log's GRXH/GRXS records give (companion.io.dataflash_raw) with ``nav_path``'s
+    ephemerides and ``base_path``'s base station: ``frames`` ((TimeUS, RXM-RAWX) list), ``first``
+    (the messages to feed before them), ``base`` (base epochs), ``notes``, ``counters``; or why not
+    (``reason``)."""
+    from .io.dataflash_raw import rawx_frames
+    from .replay_receiver import nav_klobuchar, read_base, read_nav
+    if not dlog.raw_epochs:
+        return {"reason": "", "notes": []}
+    frames, counters = rawx_frames(dlog.raw_epochs)
+    if dlog.raw_orphans:
+        counters["GRXS records without their GRXH (not used)"] = dlog.raw_orphans
+    n = len(dlog.raw_epochs)
+    if nav_path is None:
+        return {"reason": f"{n} raw GNSS epochs (GRXH/GRXS) in the log, not used: give --nav (a RINEX navigation "
+                          f"file of the day, e.g. IGS BRDC) to use them tightly coupled", "notes": [],
+                "counters": counters}
+    if not frames:
+        return {"reason": f"{n} raw GNSS epochs (GRXH/GRXS), none with a usable measurement", "notes": [],
+                "counters": counters}
+    t_first = dlog.raw_epochs[0].week * 604800.0 + dlog.raw_epochs[0].rcv_tow_s
+    first, shifted, channels = read_nav(nav_path, t_first)
+    notes = [f"raw observations: {len(frames)} u-blox epochs from the log's GRXH/GRXS records (RXM-RAWX rebuilt, "
+             f"companion.io.dataflash_raw), ephemerides from {nav_path}: tightly coupled"]
+    if shifted:
+        notes.append(f"{shifted} ephemerides of {nav_path} were 1024 weeks off the observations: moved back")
+    base = []
+    if base_path is not None:
+        position, base = read_base(base_path, channels)
+        first.append(position)
+        notes.append(f"base station from {base_path} ({len(base)} epochs)")
+    return {"reason": "", "frames": frames, "first": first, "base": base, "notes": notes, "counters": counters,
+            "klobuchar": nav_klobuchar(nav_path)}
+
+
+def _raw_records(raw: dict, tb):
+    """(t_boot_us, order, kind, item) of the logged raw stream for the merge with the MAVLink
+    messages: the ephemerides (and base position) just before the first frame, each frame at its
+    TimeUS, each base epoch at its GPS time on the log's boot clock."""
+    frames = raw.get("frames") or []
+    if not frames:
+        return []
+    out = [(frames[0][0] - 1, 1, "decoded", raw["first"])]
+    out += [(t_us, 1, "ubx", frame) for t_us, frame in frames]
+    out += [(tb.to_boot(e.t_gps) * 1e6, 1, "decoded", [e]) for e in raw["base"]]
+    return sorted(out, key=lambda x: x[0])
+
+
 def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options, needed_imu_hz,
-                          notes: list | None = None, smooth: bool = False) -> ReplayResult:
-    """An autopilot's own log (DataFlash or ULog, read into a DataFlashLog) through the pipeline."""
+                          notes: list | None = None, smooth: bool = False, raw: dict | None = None) -> ReplayResult:
+    """An autopilot's own log (DataFlash or ULog, read into a DataFlashLog) through the pipeline;
+    ``raw``: :func:`_logged_raw`'s answer."""
     import dataclasses
     from .io.dataflash import AdapterOptions, iter_mavlink_messages, time_base
     from .nav.earth import ecef_to_geodetic
@@ -432,12 +494,12 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
         res.refusal = res.imu_check["reason"] + names["rate_hint"]
         res.elapsed_s = time.perf_counter() - t0
         return res
-    cfg, res.notes = dataflash_config(dlog, res.imu_check["rate_hz"], config)
-    res.notes += list(notes or ())
+    raw = raw or {"reason": "", "notes": []}
+    cfg, res.notes = dataflash_config(dlog, res.imu_check["rate_hz"], config, raw_observations=bool(raw.get("frames")))
+    res.notes += list(notes or ()) + raw["notes"] + ([raw["reason"]] if raw["reason"] else [])
+    if raw.get("counters"):
+        res.log_stats["raw_gnss"] = dict(raw["counters"])
     res.config_from = "--config" if config is not None else f"defaults adapted to the {kind} log"
-    if dlog.raw_gnss_records:
-        res.notes.append(f"{dlog.raw_gnss_records} GRXH/GRXS raw-observation records not decoded (not supported "
-                         f"yet): loosely coupled")
     opts = dataclasses.replace(opts, leap_seconds=cfg.gnss.leap_seconds, target_system=cfg.mavlink.target_system,
                                target_component=cfg.mavlink.target_component)
     tb = time_base(dlog, opts)
@@ -454,14 +516,23 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
     if earth:
         res.notes.append("simulated gyros do not sense the Earth's rotation: added from the attitude")
     pipe = NavPipeline(cfg)
+    pipe.adopt_klobuchar(raw.get("klobuchar"), "the RINEX navigation header")
     recorder = SmootherRecorder.attached_to(pipe.engine) if smooth else None
     pacer = AidStatusPacer(cfg.log.aid_status_rate_hz)
     prog = _Progress(len(imu), progress)          # about one message per IMU sample
-    for t_us, msg in iter_mavlink_messages(dlog, dataclasses.replace(opts, earth_rate=earth), tb):
+    mav = ((t_us, 0, "mavlink", msg)
+           for t_us, msg in iter_mavlink_messages(dlog, dataclasses.replace(opts, earth_rate=earth), tb))
+    for t_us, _, what, item in heapq.merge(mav, _raw_records(raw, tb), key=lambda x: (x[0], x[1])):
         res.records += 1
         if not res.records & 1023:
             prog.update(res.records)
-        sols = pipe.feed_mavlink_record(t_us * 1000, msg)
+        t_ns = int(t_us * 1000)
+        if what == "mavlink":
+            sols = pipe.feed_mavlink_record(t_ns, item)
+        elif what == "ubx":
+            sols = pipe.feed("ubx", t_ns, item)
+        else:
+            sols = pipe.feed_decoded(t_ns, item)
         for sol in sols:
             res.solutions.append(sol)
             res.produced.append(encode_solution(sol))
@@ -492,14 +563,15 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
 
 def replay(path, config=None, progress: bool = False, *, needed_imu_hz: float = IMU_RATE_NEEDED_HZ,
            dataflash_options=None, t_start_s: float | None = None, t_end_s: float | None = None,
-           smooth: bool = False, antennas_path: str | None = None) -> ReplayResult:
+           smooth: bool = False, antennas_path: str | None = None, nav_path=None, base_path=None) -> ReplayResult:
     """Replay any log: a DataFlash .BIN or a PX4 .ulg (by its first bytes or name), a .tlog, else a
     field log.  ``dataflash_options`` (:class:`~companion.io.dataflash.AdapterOptions`) and the
     boot-time window apply to DataFlash and ULog logs only; ``antennas_path``, to field logs: the
     antenna calibration file the flight used, where it is here."""
     p = str(path)
     if Path(p).is_file() and (p.lower().endswith(".bin") or _is_dataflash(p)):
-        return replay_dataflash(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth)
+        return replay_dataflash(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth,
+                                nav_path, base_path)
     if Path(p).is_file() and (p.lower().endswith((".ulg", ".ulg.xz", ".ulg.gz")) or _is_ulog(p)):
         return replay_ulog(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth)
     if p.endswith(".tlog") or p.endswith(".mavlink"):
@@ -518,7 +590,8 @@ def _cli_options(args) -> dict:
                           gps_latency_s=None if lat_ms is None else float(lat_ms) * 1e-3)
     return {"needed_imu_hz": float(getattr(args, "min_imu_rate_hz", None) or IMU_RATE_NEEDED_HZ),
             "dataflash_options": opts, "t_start_s": getattr(args, "start", None), "t_end_s": getattr(args, "end", None),
-            "smooth": bool(getattr(args, "smooth", False)), "antennas_path": getattr(args, "antennas_file", None)}
+            "smooth": bool(getattr(args, "smooth", False)), "antennas_path": getattr(args, "antennas_file", None),
+            "nav_path": getattr(args, "nav", None), "base_path": getattr(args, "base", None)}
 
 
 def _is_ulog(p) -> bool:

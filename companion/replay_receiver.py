@@ -71,33 +71,62 @@ def _week_of(eph, t_gps_obs: float):
     return dataclasses.replace(eph, week=eph.week - k * GPS_WEEK_ROLLOVER) if k else eph
 
 
+def nav_klobuchar(nav_path):
+    """The Klobuchar coefficients of a RINEX navigation file's header (None: it has none)."""
+    from .gnss.rinex import read_rinex_nav_header_iono
+    try:
+        return read_rinex_nav_header_iono(nav_path)
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def read_nav(nav_path, t_gps_obs: float):
+    """(ephemerides of the RINEX navigation file(s), moved into the 1024-week era of the
+    observations at ``t_gps_obs``; how many were moved; GLONASS frequency channels)."""
+    from .gnss.glonass import frequency_channels
+    from .gnss.rinex import read_rinex_nav
+    from .gnss.signals import PREPARED_SYSTEMS
+    ephs = read_rinex_nav(nav_path, PREPARED_SYSTEMS)
+    moved = [_week_of(e, t_gps_obs) for e in ephs]
+    return moved, sum(1 for a, b in zip(ephs, moved) if a is not b), frequency_channels(ephs)
+
+
+def read_base(base_path, channels):
+    """(the base station's position message, its epochs as base epochs) from a RINEX observation
+    file: the header position plus ``ANTENNA: DELTA H/E/N``."""
+    from .gnss.glonass import with_fdma_wavelengths
+    from .gnss.rinex_obs import read_rinex_obs
+    from .gnss.rtk_post import antenna_delta_e
+    from .gnss.signals import PREPARED_SYSTEMS
+    from .messages import BaseStationPosition
+    hdr, base = read_rinex_obs(base_path, PREPARED_SYSTEMS)
+    base = with_fdma_wavelengths(base, channels)
+    r_b = hdr["approx_position_e"]
+    if r_b is None:
+        raise ValueError(f"{base_path}: no APPROX POSITION XYZ in the header: the base position is unknown")
+    r_b = np.asarray(r_b, float)
+    position = BaseStationPosition(station_id=0, r_e=r_b + antenna_delta_e(r_b, hdr.get("antenna_delta_hen_m")))
+    return position, [dataclasses.replace(e, source="base") for e in base]
+
+
 def _rinex_stream(obs_path, nav_path, base_path):
     """(receiver GPS time, [decoded messages]) of RINEX rover (and base) observations; the
     ephemerides and the base position go with the first epoch."""
-    from .gnss.glonass import frequency_channels, with_fdma_wavelengths
-    from .gnss.rinex import read_rinex_nav
+    from .gnss.glonass import with_fdma_wavelengths
     from .gnss.rinex_obs import read_rinex_obs
     from .gnss.signals import PREPARED_SYSTEMS
-    from .gnss.rtk_post import antenna_delta_e
-    from .messages import BaseStationPosition
     if nav_path is None:
         raise ValueError("RINEX observations need --nav (a RINEX navigation file)")
     _, rover = read_rinex_obs(obs_path, PREPARED_SYSTEMS)       # the filter keeps its filter.systems
-    ephs = read_rinex_nav(nav_path, PREPARED_SYSTEMS)
-    channels = frequency_channels(ephs)              # RINEX leaves GLONASS FDMA wavelengths out
-    rover = with_fdma_wavelengths(rover, channels)
-    first = [_week_of(e, rover[0].t_gps) for e in ephs] if rover else []
-    shifted = sum(1 for a, b in zip(ephs, first) if a is not b)
+    first, shifted, channels = read_nav(nav_path, rover[0].t_gps if rover else 0.0)
+    rover = with_fdma_wavelengths(rover, channels)              # RINEX leaves GLONASS FDMA wavelengths out
+    if not rover:
+        first, shifted = [], 0
     items = [(e.t_gps, [e]) for e in rover]
     if base_path is not None:
-        hdr, base = read_rinex_obs(base_path, PREPARED_SYSTEMS)
-        base = with_fdma_wavelengths(base, channels)
-        r_b = hdr["approx_position_e"]
-        if r_b is None:
-            raise ValueError(f"{base_path}: no APPROX POSITION XYZ in the header: the base position is unknown")
-        r_b = np.asarray(r_b, float)
-        first.append(BaseStationPosition(station_id=0, r_e=r_b + antenna_delta_e(r_b, hdr.get("antenna_delta_hen_m"))))
-        items += [(e.t_gps - 1e-6, [dataclasses.replace(e, source="base")]) for e in base]   # base before rover
+        position, base = read_base(base_path, channels)
+        first.append(position)
+        items += [(e.t_gps - 1e-6, [e]) for e in base]   # base before rover
     items.sort(key=lambda x: x[0])
     if items:
         items[0] = (items[0][0], first + items[0][1])
@@ -157,16 +186,18 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
                                                                  else ", no base station: standalone"))
     res.config_from = "--config" if config is not None else "defaults adapted to a receiver recording + IMU CSV"
     return replay_segments(segments, imu, cfg, res, name=str(obs_path), ubx=ubx, smooth=smooth, progress=progress,
-                           t_start=t_start, ubx_latency_s=ubx_latency_s)
+                           t_start=t_start, ubx_latency_s=ubx_latency_s,
+                           klobuchar=None if ubx or nav_path is None else nav_klobuchar(nav_path))
 
 
 def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", ubx: bool = False, smooth: bool = False,
                     progress: bool = False, t_start: float | None = None, attitude_deg: np.ndarray | None = None,
-                    ubx_latency_s: float = 0.05):
+                    ubx_latency_s: float = 0.05, klobuchar=None):
     """The pipeline over receiver ``segments`` ((receiver GPS time, UBX bytes) with ``ubx``, else
     (receiver GPS time, [decoded messages])) and an IMU ((N, 7): GPS time s, rate rad/s FRD, specific
     force m/s^2 FRD) as HIGHRES_IMU + SYSTEM_TIME, optionally ATTITUDE from ``attitude_deg`` ((M, 4):
-    GPS time s, roll, pitch, yaw deg) as an autopilot would send it.  Fills and returns ``res``."""
+    GPS time s, roll, pitch, yaw deg) as an autopilot would send it; ``klobuchar``: a RINEX
+    navigation header's (the UBX stream brings its own).  Fills and returns ``res``."""
     from .io.dataflash import AdapterOptions, DataFlashLog, TimeBase, iter_mavlink_messages
     from .nav.earth import ecef_to_geodetic
     from .nav.smoother import SmootherRecorder
@@ -186,6 +217,7 @@ def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", ubx:
     mav_stream = ((t_us, 0, msg) for t_us, msg in iter_mavlink_messages(dlog, opts, tb))
     ubx_stream = (((t - t0 + ubx_latency_s) * 1e6, 1, data) for t, data in segments)
     pipe = NavPipeline(cfg)
+    pipe.adopt_klobuchar(klobuchar, "the RINEX navigation header")
     recorder = SmootherRecorder.attached_to(pipe.engine) if smooth else None
     prog = _Progress(len(imu), progress)
     for t_us, kind, item in heapq.merge(mav_stream, ubx_stream, key=lambda x: (x[0], x[1])):
@@ -215,4 +247,4 @@ def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", ubx:
     return res
 
 
-__all__ = ["replay_receiver", "replay_segments", "ubx_segments"]
+__all__ = ["replay_receiver", "replay_segments", "ubx_segments", "read_nav", "read_base", "nav_klobuchar"]

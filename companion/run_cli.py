@@ -95,8 +95,10 @@ def register(subparsers) -> None:
     r.add_argument("--accel-unit", choices=("m/s2", "g"), default="m/s2")
     r.add_argument("--imu-rotation", help="IMU CSV: the body FRD axis of each sensor axis, e.g. x,-y,-z for a "
                    "sensor in FLU (default x,y,z)")
-    r.add_argument("--nav", help="with --imu-csv and RINEX observations: the RINEX navigation file")
-    r.add_argument("--base", help="with --imu-csv and RINEX observations: a base station's RINEX observations (DGPS)")
+    r.add_argument("--nav", help="the RINEX navigation file (the day's broadcast ephemerides, e.g. IGS BRDC): with "
+                   "--imu-csv and RINEX observations, or a DataFlash .BIN whose u-blox raw observations ArduPilot "
+                   "logged (GPS_RAW_DATA 1: GRXH/GRXS), which are then used tightly coupled")
+    r.add_argument("--base", help="with --nav: a base station's RINEX observations (DGPS)")
     r.add_argument("--ubx-latency-ms", type=float, default=50.0,
                    help=".ubx: receiver output latency after each epoch's time (default 50)")
     r.set_defaults(func=cmd_replay)

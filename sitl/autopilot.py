@@ -54,7 +54,6 @@ import math
 import os
 import random
 import socket
-import struct
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -64,6 +63,7 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
+from companion.io.ubx import RAWX_HEAD, RAWX_MEAS, ubx_frame  # noqa: E402
 from companion.messages import SECONDS_PER_WEEK, SPEED_OF_LIGHT_MPS, gps_week_tow  # noqa: E402
 from companion.nav.earth import C_n_e, dcm_to_euler, ecef_to_geodetic  # noqa: E402
 from .sky import light_time_range  # noqa: E402
@@ -145,10 +145,6 @@ def _rawx_sv_id(sat: str) -> int:
     return int(sat[1:]) + (192 if sat[0] == "J" else 0)
 
 
-_RAWX_HEAD = struct.Struct("<dHbBBB2x")
-_RAWX_MEAS = struct.Struct("<ddfBBBBHBBBBBx")
-
-
 def rawx_frame(epoch, leap_seconds: int) -> bytes:
     """UBX RXM-RAWX (version 1) for a rover GnssEpoch: every system of :data:`RAWX_SIG_ID` (GPS
     L1C/A, and L2 as L2C(L) when the scenario is dual frequency; Galileo, BeiDou, QZSS on their
@@ -169,21 +165,12 @@ def rawx_frame(epoch, leap_seconds: int) -> bytes:
         lock_ms = int(min(64500, max(0, round((o.lock_time_s if math.isfinite(o.lock_time_s) else 0) * 1000))))
         cno = int(max(0, min(255, round(o.cn0_dbhz if math.isfinite(o.cn0_dbhz) else 0))))
         trk = int(pr_ok) | int(cp_ok) << 1 | int(cp_ok and not o.half_cycle_ambiguous) << 2
-        meas.append(_RAWX_MEAS.pack(o.pseudorange_m if pr_ok else 0.0, o.carrier_cycles if cp_ok else 0.0,
+        meas.append(RAWX_MEAS.pack(o.pseudorange_m if pr_ok else 0.0, o.carrier_cycles if cp_ok else 0.0,
                                     o.doppler_hz if math.isfinite(o.doppler_hz) else 0.0,
                                     RAWX_GNSS_ID[o.sat[0]], _rawx_sv_id(o.sat), sig, 0, lock_ms, cno,
                                     0, 0, 0, trk))      # prStdev, cpStdev, doStdev 0, trkStat
-    payload = _RAWX_HEAD.pack(tow, week, leap_seconds, len(meas), 0x01, 0) + b"".join(meas)   # recStat: leapSec
-    return _ubx_frame(0x02, 0x15, payload)
-
-
-def _ubx_frame(cls: int, mid: int, payload: bytes) -> bytes:
-    body = bytes([cls, mid]) + struct.pack("<H", len(payload)) + payload
-    a = b = 0
-    for x in body:
-        a = (a + x) & 0xFF
-        b = (b + a) & 0xFF
-    return b"\xb5\x62" + body + bytes([a, b])
+    payload = RAWX_HEAD.pack(tow, week, leap_seconds, len(meas), 0x01, 0) + b"".join(meas)   # recStat: leapSec
+    return ubx_frame(0x02, 0x15, payload)
 
 
 @dataclass

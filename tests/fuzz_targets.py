@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from companion.io.ubx import ubx_frame
 from tests._data import data_path
 
 RTCM_FILE = "qzsl6tool-hiroshima-rtcm3-ubx/20221213-010900.rtcm"
@@ -142,13 +143,6 @@ def run_rtcm(data: bytes) -> None:
 @functools.lru_cache(maxsize=None)
 def _ubx_bytes() -> bytes:
     return data_path(UBX_FILE).read_bytes()
-
-
-def ubx_frame(cls: int, mid: int, payload: bytes) -> bytes:
-    from companion.io.ubx import ubx_checksum
-    body = bytes([cls, mid]) + struct.pack("<H", len(payload)) + payload
-    a, b = ubx_checksum(body)
-    return b"\xb5\x62" + body + bytes([a, b])
 
 
 _UBX_IDS = ((0x02, 0x15), (0x02, 0x13), (0x01, 0x07), (0x01, 0x20), (0x01, 0x3C), (0x01, 0x35), (0x05, 0x01),
@@ -450,5 +444,5 @@ TARGETS: dict[str, Target] = {t.name: t for t in (
     Target("config", gen_config, run_config, "a TOML configuration file"),
 )}
 
-__all__ = ["TARGETS", "Target", "mutate", "rtcm_frame", "ubx_frame", "mavlink_frame"]
+__all__ = ["TARGETS", "Target", "mutate", "rtcm_frame", "mavlink_frame"]
 

@@ -21,8 +21,30 @@ needs_sitl_log = pytest.mark.skipif(not SITL_BIN.exists(),
 
 
 # ------------------------------------------------------------------ a minimal DataFlash writer
+#: ArduPilot's record layouts (format characters, columns) of the records written in the tests
+ARDUPILOT_FORMATS = {
+    "PARM": ("QNf", "TimeUS,Name,Value"),
+    "IMU": ("QBffffffBB", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,GH,AH"),
+    "GPS": ("QBBIHBcLLeeeff", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw"),
+    "GPA": ("QBCCCCf", "TimeUS,I,VDop,HAcc,VAcc,SAcc,AEl"),
+    "ATT": ("Qfff", "TimeUS,Roll,Pitch,Yaw"),
+    "SIM": ("QLLf", "TimeUS,Lat,Lng,Alt"),
+    "POS": ("QLLf", "TimeUS,Lat,Lng,Alt"),
+    "GRXH": ("QdHbBB", "TimeUS,rcvTime,week,leapS,numMeas,recStat"),
+    "GRXS": ("QddfBBBHBBBBB", "TimeUS,prMes,cpMes,doMes,gnss,sv,freq,lock,cno,prD,cpD,doD,trk"),
+}
+
+
 class DataFlashWriter:
     """Writes DataFlash records (0xA3 0x95, type, payload) with their FMT records, as ArduPilot does."""
+
+    @classmethod
+    def with_formats(cls, *names: str) -> "DataFlashWriter":
+        """A writer with the FMT records of ``names`` (:data:`ARDUPILOT_FORMATS`) written."""
+        w = cls()
+        for name in names:
+            w.fmt(name, *ARDUPILOT_FORMATS[name])
+        return w
 
     def __init__(self):
         self.buf = bytearray()
@@ -61,14 +83,7 @@ def synthetic_bin(path: Path, imu_hz: float, duration_s: float = 20.0, drift_n_m
     IMU, GPS/GPA at 5 Hz on GPS time, ATT, and a SIM truth plus a POS 'EKF' 0.111 m north of it."""
     lat0, lon0, h0 = -35.3632613, 149.1652297, 584.09
     lat_r = math.radians(lat0)
-    w = DataFlashWriter()
-    w.fmt("PARM", "QNf", "TimeUS,Name,Value")
-    w.fmt("IMU", "QBffffffBB", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,GH,AH")
-    w.fmt("GPS", "QBBIHBcLLeeeff", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw")
-    w.fmt("GPA", "QBCCCCf", "TimeUS,I,VDop,HAcc,VAcc,SAcc,AEl")
-    w.fmt("ATT", "Qfff", "TimeUS,Roll,Pitch,Yaw")
-    w.fmt("SIM", "QLLf", "TimeUS,Lat,Lng,Alt")
-    w.fmt("POS", "QLLf", "TimeUS,Lat,Lng,Alt")
+    w = DataFlashWriter.with_formats("PARM", "IMU", "GPS", "GPA", "ATT", "SIM", "POS")
     t0_us = 30_000_000
     w.write("PARM", t0_us, "GPS_POS1_X", 0.0)
     g = normal_gravity_mps2(lat_r, h0)

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from companion.io.serial_control import (MIN_RAW_MEASUREMENTS, PortClaim, SerialControlTunnel, UbxFrameScanner,
-                                         cfg_msg_current_port, rawx_measurements, ubx_frame)
-from companion.io.ubx import UbxDecoder
+                                         cfg_msg_current_port, rawx_measurements)
+from companion.io.ubx import UbxDecoder, ubx_frame
 from companion.messages import GnssEpoch
 from tests._data import data_path
 from tests._fake_ardupilot import FakeArduPilot, mav, nav_pvt, start_pair, wait_for

@@ -23,6 +23,9 @@ Record -> message
   ``SAcc``), ellipsoidal height from ``GPA.AEl``.  GPS_RAW_INT has no vertical velocity (the
   pipeline takes the climb rate as zero with ``vel_acc``): ``gps_velocity`` chooses whether the
   velocity is passed on at all.
+* ``GRXH``/``GRXS`` (``GPS_RAW_DATA = 1`` with a u-blox) -> its RXM-RAWX frames again
+  (:mod:`companion.io.dataflash_raw`), which ``companion replay LOG.BIN --nav NAV`` feeds as the
+  receiver's stream at their ``TimeUS`` (tightly coupled; the ephemerides from the RINEX file).
 * ``ATT`` -> ATTITUDE (the initial attitude); ``ARM`` (and the log starting armed, as it does with
   ``LOG_DISARMED = 0``) -> HEARTBEAT at 1 Hz with STANDBY/ACTIVE and the vehicle type from the
   firmware name in ``MSG`` (a rover or boat puts the pipeline in ground mode).
@@ -51,6 +54,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
 
 from ..messages import SECONDS_PER_WEEK  # noqa: E402
+from .dataflash_raw import RawEpoch  # noqa: E402
 from .mavlink_time import gps_to_unix_s  # noqa: E402
 
 m = mavlink2
@@ -84,7 +88,10 @@ class DataFlashLog:
     sim: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))   # t_us, lat, lng (deg), alt (m)
     pos: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))   # t_us, lat, lng (deg), alt (m)
     arm: list = field(default_factory=list)                             # (t_us, armed)
-    raw_gnss_records: int = 0                                           # GRXH/GRXS (not decoded yet)
+    raw_gnss_records: int = 0                                           # GRXH/GRXS records
+    # a u-blox's RXM-RAWX as ArduPilot logs it with GPS_RAW_DATA (companion.io.dataflash_raw)
+    raw_epochs: list = field(default_factory=list)                      # RawEpoch, in log order
+    raw_orphans: int = 0                                                # GRXS without its GRXH, or unreadable
     firmware: str = ""                                                  # first MSG naming the firmware
 
     @property
@@ -158,6 +165,10 @@ def read_dataflash(path, t_start_s: float | None = None, t_end_s: float | None =
             out.arm.append((tu, bool(r.ArmState)))
         elif t in ("GRXH", "GRXS"):
             out.raw_gnss_records += 1
+            try:
+                _raw_record(out, t, int(tu), r)
+            except (AttributeError, TypeError, ValueError, OverflowError):
+                out.raw_orphans += 1         # a record of another layout than ArduPilot's
     out.imu = {i: _by_time(v) for i, v in imu.items()}
     out.gps = {i: _by_time(v) for i, v in gps.items()}
     out.gpa = {i: _by_time(v) for i, v in gpa.items()}
@@ -165,6 +176,21 @@ def read_dataflash(path, t_start_s: float | None = None, t_end_s: float | None =
         if rows:
             setattr(out, name, _by_time(rows))
     return out
+
+
+def _raw_record(out: DataFlashLog, t: str, tu: int, r) -> None:
+    """One GRXH (a new epoch) or GRXS (a measurement of the last epoch: the same TimeUS, no more
+    than its numMeas; else counted as an orphan, its header lost from a full log buffer)."""
+    if t == "GRXH":
+        out.raw_epochs.append(RawEpoch(tu, float(r.rcvTime), int(r.week), int(r.leapS), int(r.numMeas),
+                                       int(r.recStat)))
+        return
+    ep = out.raw_epochs[-1] if out.raw_epochs else None
+    if ep is None or ep.t_us != tu or len(ep.meas) >= ep.num_meas:
+        out.raw_orphans += 1
+        return
+    ep.meas.append((float(r.prMes), float(r.cpMes), float(r.doMes), int(r.gnss), int(r.sv), int(r.freq),
+                    int(r.lock), int(r.cno), int(r.prD), int(r.cpD), int(r.doD), int(r.trk)))
 
 
 def _by_time(rows) -> np.ndarray:

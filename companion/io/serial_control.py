@@ -64,7 +64,7 @@ from typing import TYPE_CHECKING, Callable
 
 from .mavlink_codec import m
 from .mavlink_encode import serial_control_request
-from .ubx import ubx_checksum
+from .ubx import ubx_checksum, ubx_frame
 
 if TYPE_CHECKING:
     from .mavlink import MavlinkLink
@@ -144,11 +144,6 @@ async def run_every(fn: Callable[[], object], delay_s: Callable[[], float], link
             handle.cancel()
         if link is not None and on_rx in link.rx_hooks:
             link.rx_hooks.remove(on_rx)
-
-
-def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
-    body = bytes([msg_class, msg_id, len(payload) & 0xFF, len(payload) >> 8]) + bytes(payload)
-    return UBX_SYNC + body + bytes(ubx_checksum(body))
 
 
 def cfg_msg_current_port(msg_class: int, msg_id: int, rate: int) -> bytes:
@@ -587,4 +582,4 @@ class PortClaim:
 
 
 __all__ = ["SerialControlTunnel", "PortClaim", "UbxFrameScanner", "rawx_measurements", "cfg_msg_current_port",
-           "ubx_frame", "MIN_RAW_MEASUREMENTS", "SERIAL_CONTROL_DATA_LEN"]
+           "MIN_RAW_MEASUREMENTS", "SERIAL_CONTROL_DATA_LEN"]

@@ -104,7 +104,7 @@ def wavelength_m(sat: str, signal: str, glo_channel: int | None = None) -> float
 _GNSS_LETTER = {0: "G", 1: "S", 2: "E", 3: "C", 5: "J", 6: "R", 7: "I"}
 
 # (gnssId, sigId) -> RINEX 3 signal code (u-blox F9 interface description, "Signal identifiers")
-_UBX_SIGNAL = {
+UBX_SIGNAL = {
     (0, 0): "L1C", (0, 3): "L2L", (0, 4): "L2S", (0, 6): "L5I", (0, 7): "L5Q",
     (1, 0): "L1C",
     (2, 0): "L1C", (2, 1): "L1B", (2, 3): "L5I", (2, 4): "L5Q", (2, 5): "L7I", (2, 6): "L7Q",
@@ -209,8 +209,14 @@ def ubx_checksum(body: bytes | bytearray | memoryview) -> tuple[int, int]:
     return ck_a, ck_b
 
 
-_RAWX_HEAD = struct.Struct("<dHbBBB2x")
-_RAWX_MEAS = struct.Struct("<ddfBBBBHBBBBBx")
+def ubx_frame(msg_class: int, msg_id: int, payload: bytes) -> bytes:
+    """A whole UBX frame: sync, class, id, length, payload, checksum."""
+    body = bytes([msg_class, msg_id, len(payload) & 0xFF, len(payload) >> 8]) + bytes(payload)
+    return b"\xb5\x62" + body + bytes(ubx_checksum(body))
+
+
+RAWX_HEAD = struct.Struct("<dHbBBB2x")
+RAWX_MEAS = struct.Struct("<ddfBBBBHBBBBBx")
 _SFRBX_HEAD = struct.Struct("<BBBBBBBx")
 _PVT = struct.Struct("<IHBBBBBBIiBBBBiiiiIIiiiiiIIH")
 _TIMEGPS = struct.Struct("<IihbBI")
@@ -349,7 +355,7 @@ class UbxDecoder:
         if len(p) < 16:
             self._reject("bad_payload", "RXM-RAWX too short")
             return None
-        rcv_tow, week, leap_s, num_meas, rec_stat, _version = _RAWX_HEAD.unpack_from(p, 0)
+        rcv_tow, week, leap_s, num_meas, rec_stat, _version = RAWX_HEAD.unpack_from(p, 0)
         if len(p) != 16 + 32 * num_meas:
             self._reject("bad_payload", f"RXM-RAWX length {len(p)} for {num_meas} measurements")
             return None
@@ -364,9 +370,9 @@ class UbxDecoder:
         obs: list[SatObservation] = []
         for k in range(num_meas):
             (pr, cp, do, gnss_id, sv_id, sig_id, freq_id, lock_ms, cno, _prs, _cps, _dos,
-             trk) = _RAWX_MEAS.unpack_from(p, 16 + 32 * k)
+             trk) = RAWX_MEAS.unpack_from(p, 16 + 32 * k)
             sat = ubx_sat_id(gnss_id, sv_id)
-            signal = _UBX_SIGNAL.get((gnss_id, sig_id))
+            signal = UBX_SIGNAL.get((gnss_id, sig_id))
             if sat is None or signal is None:
                 self._count("rawx_unknown_signal")
                 continue
