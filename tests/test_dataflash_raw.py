@@ -3,8 +3,11 @@ a real ZED-F9P capture logged as ArduPilot logs it, and the band recovered witho
 from __future__ import annotations
 
 import math
+import shutil
+import subprocess
 
 import numpy as np
+import pytest
 
 from companion.io.dataflash import read_dataflash
 from companion.io.dataflash_raw import MAX_FREQUENCY_ERROR, band_of, rawx_frames
@@ -213,3 +216,27 @@ def test_a_flight_log_with_raw_observations_is_tightly_coupled(tmp_path):
     assert tight.log_stats["raw_gnss"] == {"raw epochs rebuilt as RXM-RAWX": len(sim.rover_epochs)}
     assert tight.pipeline_health["pipeline"]["klobuchar from the RINEX navigation header"] == 1
     assert h_tight["rms_m"] < min(2.5, 0.5 * h_loose["rms_m"]) and h_tight["n"] >= 0.8 * h_loose["n"]
+
+
+@pytest.mark.skipif(shutil.which("convbin") is None, reason="RTKLIB's convbin (Debian rtklib) is not installed")
+def test_a_flight_log_with_raw_observations_and_a_base_file_is_dgps(tmp_path):
+    """The same log with the base station's RINEX observations (its capture converted by RTKLIB's
+    convbin, the position in the header): the corrections reach the filter and the track comes
+    to DGPS grade."""
+    from companion.replay import replay
+    from sitl.autopilot import rawx_frame
+    from sitl.fly import load_sim
+    from sitl.sky import GEONET_NAV
+    sim = load_sim("uav", 0, 70.0)
+    log = _sim_flight_bin(sim, tmp_path / "flight.BIN", gps_east_bias_m=6.0)
+    (tmp_path / "base.ubx").write_bytes(b"".join(rawx_frame(ep, 13) for ep in sim.base_epochs))
+    subprocess.run(["convbin", "-r", "ubx", "-od", "-os", "-o", str(tmp_path / "base.obs"),
+                    "-hp", "/".join(f"{x:.4f}" for x in sim.base.r_e), str(tmp_path / "base.ubx")],
+                   check=True, capture_output=True)
+    alone = replay(log, nav_path=str(GEONET_NAV))
+    dgps = replay(log, nav_path=str(GEONET_NAV), base_path=str(tmp_path / "base.obs"))
+    h_alone, h_dgps = (r.truth_score["ours"]["horizontal"] for r in (alone, dgps))
+    print(f"standalone RMS {h_alone['rms_m']:.2f} m, with the base {h_dgps['rms_m']:.2f} m; {dgps.notes[-1]}")
+    assert dgps.pipeline_health["filter"]["mode"] == "tight"
+    assert dgps.pipeline_health["engine"].get("base epochs", 0) >= 0.9 * len(sim.rover_epochs)
+    assert h_dgps["rms_m"] < 0.5 * h_alone["rms_m"]
