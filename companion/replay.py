@@ -30,9 +30,9 @@ the same pipeline.  Without ``--config`` the configuration is the default one ad
 log holds (:func:`dataflash_config`: loose coupling on the GPS fixes, the IMU rate found, the lever
 arm from ``GPS_POS``/``INS_POS``, SITL's simulated gyro drift).  A log with its u-blox's raw
 observations (``GPS_RAW_DATA = 1``: ``GRXH``/``GRXS``) and ``--nav`` RINEX ephemerides is tightly
-coupled instead: the rebuilt RXM-RAWX frames (:mod:`companion.io.dataflash_raw`) are the receiver's
-stream at their ``TimeUS``; ``--base`` adds a base station's RINEX observations.  When the log has the simulator's
-truth (``SIM``) the trajectory is scored against it beside the autopilot EKF's ``POS`` over the
+coupled instead: the rebuilt RXM-RAWX frames (:mod:`companion.io.dataflash_raw`) are the
+receiver's stream at their ``TimeUS``; ``--base`` adds a base station's RINEX observations.
+When the log has the simulator's truth (``SIM``) the trajectory is scored against it beside the autopilot EKF's ``POS`` over the
 same span (:mod:`companion.post_report`).  With ``smooth`` (``--smooth``) the solutions are the
 RTS-smoothed ones (:mod:`companion.nav.smoother`) and the forward pass is scored beside them.
 """
@@ -430,7 +430,8 @@ def _logged_raw(dlog, nav_path, base_path) -> dict:
     from .io.dataflash_raw import rawx_frames
     from .replay_receiver import nav_klobuchar, read_base, read_nav
     if not dlog.raw_epochs:
-        return {"reason": "", "notes": []}
+        return {"reason": "", "notes": [] if nav_path is None else [
+            "--nav given, but the log has no raw observations (GRXH/GRXS: GPS_RAW_DATA 1 with a u-blox)"]}
     frames, counters = rawx_frames(dlog.raw_epochs)
     if dlog.raw_orphans:
         counters["GRXS records without their GRXH (not used)"] = dlog.raw_orphans
@@ -443,14 +444,16 @@ def _logged_raw(dlog, nav_path, base_path) -> dict:
         return {"reason": f"{n} raw GNSS epochs (GRXH/GRXS), none with a usable measurement", "notes": [],
                 "counters": counters}
     t_first = dlog.raw_epochs[0].week * 604800.0 + dlog.raw_epochs[0].rcv_tow_s
-    first, shifted, channels = read_nav(nav_path, t_first)
+    try:
+        first, shifted, channels = read_nav(nav_path, t_first)
+        position, base = read_base(base_path, channels) if base_path is not None else (None, [])
+    except (OSError, ValueError, IndexError) as exc:
+        return {"refusal": f"cannot read the RINEX input: {exc}", "reason": "", "notes": []}
     notes = [f"raw observations: {len(frames)} u-blox epochs from the log's GRXH/GRXS records (RXM-RAWX rebuilt, "
              f"companion.io.dataflash_raw), ephemerides from {nav_path}: tightly coupled"]
     if shifted:
         notes.append(f"{shifted} ephemerides of {nav_path} were 1024 weeks off the observations: moved back")
-    base = []
-    if base_path is not None:
-        position, base = read_base(base_path, channels)
+    if position is not None:
         first.append(position)
         notes.append(f"base station from {base_path} ({len(base)} epochs)")
     return {"reason": "", "frames": frames, "first": first, "base": base, "notes": notes, "counters": counters,
@@ -495,6 +498,10 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
         res.elapsed_s = time.perf_counter() - t0
         return res
     raw = raw or {"reason": "", "notes": []}
+    if raw.get("refusal"):
+        res.refusal = raw["refusal"]
+        res.elapsed_s = time.perf_counter() - t0
+        return res
     cfg, res.notes = dataflash_config(dlog, res.imu_check["rate_hz"], config, raw_observations=bool(raw.get("frames")))
     res.notes += list(notes or ()) + raw["notes"] + ([raw["reason"]] if raw["reason"] else [])
     if raw.get("counters"):
@@ -759,7 +766,7 @@ def _print_summary(res: ReplayResult, c: dict) -> None:
         ic = res.imu_check
         print(f"read {res.records} records in {res.elapsed_s:.2f} s: not replayed"
               + (f" (IMU {ic['stream'] or 'none'} at {ic['rate_hz']:.1f} Hz, needed {ic['needed_hz']:.0f} Hz)"
-                 if ic else ""))
+                 if ic and ic.get("reason") else ""))
         return
     print(f"replayed {res.records} records in {res.elapsed_s:.2f} s ({rate:,.0f} records/s); "
           f"config from {res.config_from or 'nowhere (no config event: nothing replayed)'}")

@@ -240,3 +240,17 @@ def test_a_flight_log_with_raw_observations_and_a_base_file_is_dgps(tmp_path):
     assert dgps.pipeline_health["filter"]["mode"] == "tight"
     assert dgps.pipeline_health["engine"].get("base epochs", 0) >= 0.9 * len(sim.rover_epochs)
     assert h_dgps["rms_m"] < 0.5 * h_alone["rms_m"]
+
+
+def test_nav_file_problems_are_said(tmp_path):
+    """--nav for a log without raw observations is said, not silently ignored; a navigation file
+    that cannot be read refuses the replay (exit 3) instead of falling back to loose coupling."""
+    from companion.replay import replay
+    from tests.test_dataflash import synthetic_bin
+    plain = synthetic_bin(tmp_path / "plain.BIN", imu_hz=50.0, duration_s=10.0)
+    res = replay(plain, nav_path=str(tmp_path / "any.nav"))
+    assert any("--nav given, but the log has no raw observations" in n for n in res.notes)
+    from sitl.fly import load_sim
+    flight = _sim_flight_bin(load_sim("uav", 0, 70.0), tmp_path / "flight.BIN", gps_east_bias_m=0.0)
+    res = replay(flight, nav_path=str(tmp_path / "missing.nav"))
+    assert res.refusal.startswith("cannot read the RINEX input") and not res.solutions
