@@ -446,7 +446,7 @@ def _logged_raw(dlog, nav_path, base_path) -> dict:
     t_first = dlog.raw_epochs[0].week * 604800.0 + dlog.raw_epochs[0].rcv_tow_s
     try:
         first, shifted, channels = read_nav(nav_path, t_first)
-        position, base = read_base(base_path, channels) if base_path is not None else (None, [])
+        position, base = read_base(base_path, channels, t_first) if base_path is not None else (None, [])
     except (OSError, ValueError, IndexError) as exc:
         return {"refusal": f"cannot read the RINEX input: {exc}", "reason": "", "notes": []}
     notes = [f"raw observations: {len(frames)} u-blox epochs from the log's GRXH/GRXS records (RXM-RAWX rebuilt, "

@@ -1,7 +1,7 @@
 """Post-process a receiver's recording with an IMU recorded beside it (CSV,
 :mod:`companion.io.imu_csv`) through the same pipeline as the live service: ``companion replay
-ROVER.ubx --imu-csv IMU.csv``, or RINEX: ``companion replay ROVER.obs --nav NAV --imu-csv IMU.csv
-[--base BASE.obs]``.
+ROVER.ubx --imu-csv IMU.csv [--base BASE]``, or RINEX: ``companion replay ROVER.obs --nav NAV
+--imu-csv IMU.csv [--base BASE]``; BASE is a base station's RINEX observations or RTCM 3 capture.
 
 The IMU samples become the HIGHRES_IMU and SYSTEM_TIME messages an autopilot would have sent (the
 DataFlash adapter, :mod:`companion.io.dataflash`, with the boot clock starting at the first IMU
@@ -13,8 +13,9 @@ solution is standalone (tightly coupled pseudoranges and TDCP).
 
 RINEX observations (GPS, Galileo, BeiDou, QZSS: the filter uses its ``filter.systems``) go in as the epochs the decoders would produce
 (:meth:`~companion.pipeline.NavPipeline.feed_decoded`), each ``ubx_latency_s`` after its time; the
-navigation file's ephemerides at the start; a base observation file's epochs the same way, with
-the station at its header position plus ``ANTENNA: DELTA H/E/N``, which makes the solution DGPS.
+navigation file's ephemerides at the start.  A base station's epochs (beside either) go in the
+same way, with the station at its RINEX header position plus ``ANTENNA: DELTA H/E/N`` or at an
+RTCM capture's last 1005/1006, which makes the solution DGPS.
 """
 from __future__ import annotations
 
@@ -91,9 +92,14 @@ def read_nav(nav_path, t_gps_obs: float):
     return moved, sum(1 for a, b in zip(ephs, moved) if a is not b), frequency_channels(ephs)
 
 
-def read_base(base_path, channels):
+def read_base(base_path, channels, t_gps_obs: float = 0.0):
     """(the base station's position message, its epochs as base epochs) from a RINEX observation
-    file: the header position plus ``ANTENNA: DELTA H/E/N``."""
+    file (the header position plus ``ANTENNA: DELTA H/E/N``) or an RTCM 3 capture (its last
+    1005/1006; MSM4-7 or 1004/1012 observations, decoded as the service decodes its NTRIP stream,
+    their week from ``t_gps_obs``: MSM carries the time of week only)."""
+    from .io.capture_format import is_rtcm_capture
+    if is_rtcm_capture(base_path):
+        return _read_rtcm_base(base_path, t_gps_obs)
     from .gnss.glonass import with_fdma_wavelengths
     from .gnss.rinex_obs import read_rinex_obs
     from .gnss.rtk_post import antenna_delta_e
@@ -107,6 +113,19 @@ def read_base(base_path, channels):
     r_b = np.asarray(r_b, float)
     position = BaseStationPosition(station_id=0, r_e=r_b + antenna_delta_e(r_b, hdr.get("antenna_delta_hen_m")))
     return position, [dataclasses.replace(e, source="base") for e in base]
+
+
+def _read_rtcm_base(path, t_gps_obs: float):
+    from .io.rtcm import decode_rtcm_file
+    from .messages import BaseStationPosition, GnssEpoch
+    msgs, _ = decode_rtcm_file(str(path), week_hint=int(t_gps_obs // SECONDS_PER_WEEK))
+    positions = [m for m in msgs if isinstance(m, BaseStationPosition)]
+    epochs = [dataclasses.replace(m, source="base") for m in msgs if isinstance(m, GnssEpoch)]
+    if not positions:
+        raise ValueError(f"{path}: no RTCM 1005/1006 in the capture: the base position is unknown")
+    if not epochs:
+        raise ValueError(f"{path}: no base observations in the capture (MSM4-7 or 1004/1012 expected)")
+    return positions[-1], epochs
 
 
 def _rinex_stream(obs_path, nav_path, base_path):
@@ -124,7 +143,7 @@ def _rinex_stream(obs_path, nav_path, base_path):
         first, shifted = [], 0
     items = [(e.t_gps, [e]) for e in rover]
     if base_path is not None:
-        position, base = read_base(base_path, channels)
+        position, base = read_base(base_path, channels, rover[0].t_gps if rover else 0.0)
         first.append(position)
         items += [(e.t_gps - 1e-6, [e]) for e in base]   # base before rover
     items.sort(key=lambda x: x[0])
@@ -152,6 +171,14 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
     if ubx:
         segments = ubx_segments(open(obs_path, "rb").read())
         n_epochs = len(segments)
+        if base_path is not None and segments:
+            try:                             # the base's epochs beside the capture's frames
+                position, base = read_base(base_path, {}, segments[0][0])
+            except (ValueError, IndexError, OSError) as exc:
+                res.refusal = f"cannot read the base station's file: {exc}"
+                return res
+            segments = sorted(segments + [(segments[0][0] - 1e-6, [position])]
+                              + [(e.t_gps - 1e-6, [e]) for e in base], key=lambda x: x[0])
     else:
         try:
             segments, n_epochs, shifted = _rinex_stream(obs_path, nav_path, base_path)
@@ -185,17 +212,16 @@ def replay_receiver(obs_path, imu_csv, config=None, *, nav_path=None, base_path=
                          "no ATTITUDE (heading from motion)" + (", base station from " + str(base_path) if base_path
                                                                  else ", no base station: standalone"))
     res.config_from = "--config" if config is not None else "defaults adapted to a receiver recording + IMU CSV"
-    return replay_segments(segments, imu, cfg, res, name=str(obs_path), ubx=ubx, smooth=smooth, progress=progress,
+    return replay_segments(segments, imu, cfg, res, name=str(obs_path), smooth=smooth, progress=progress,
                            t_start=t_start, ubx_latency_s=ubx_latency_s,
                            klobuchar=None if ubx or nav_path is None else nav_klobuchar(nav_path))
 
 
-def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", ubx: bool = False, smooth: bool = False,
+def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", smooth: bool = False,
                     progress: bool = False, t_start: float | None = None, attitude_deg: np.ndarray | None = None,
                     ubx_latency_s: float = 0.05, klobuchar=None):
-    """The pipeline over receiver ``segments`` ((receiver GPS time, UBX bytes) with ``ubx``, else
-    (receiver GPS time, [decoded messages])) and an IMU ((N, 7): GPS time s, rate rad/s FRD, specific
-    force m/s^2 FRD) as HIGHRES_IMU + SYSTEM_TIME, optionally ATTITUDE from ``attitude_deg`` ((M, 4):
+    """The pipeline over receiver ``segments`` ((receiver GPS time, UBX bytes or [decoded
+    messages])) and an IMU ((N, 7): GPS time s, rate rad/s FRD, specific force m/s^2 FRD) as HIGHRES_IMU + SYSTEM_TIME, optionally ATTITUDE from ``attitude_deg`` ((M, 4):
     GPS time s, roll, pitch, yaw deg) as an autopilot would send it; ``klobuchar``: a RINEX
     navigation header's (the UBX stream brings its own).  Fills and returns ``res``."""
     from .io.dataflash import AdapterOptions, DataFlashLog, TimeBase, iter_mavlink_messages
@@ -227,7 +253,7 @@ def replay_segments(segments, imu: np.ndarray, cfg, res, *, name: str = "", ubx:
         t_ns = int(t_us * 1000)
         if kind == 0:
             sols = pipe.feed_mavlink_record(t_ns, item)
-        elif ubx:
+        elif isinstance(item, (bytes, bytearray)):
             sols = pipe.feed("ubx", t_ns, item)
         else:
             sols = pipe.feed_decoded(t_ns, item)

@@ -254,3 +254,23 @@ def test_nav_file_problems_are_said(tmp_path):
     flight = _sim_flight_bin(load_sim("uav", 0, 70.0), tmp_path / "flight.BIN", gps_east_bias_m=0.0)
     res = replay(flight, nav_path=str(tmp_path / "missing.nav"))
     assert res.refusal.startswith("cannot read the RINEX input") and not res.solutions
+
+
+def test_a_flight_log_with_a_base_stations_rtcm_capture_is_dgps(tmp_path):
+    """The base station as an RTCM 3 capture (1005 + MSM4, as a caster sends it) in place of RINEX."""
+    from companion.replay import replay
+    from sitl.caster import encode_1005
+    from sitl.fly import load_sim
+    from sitl.rtcm_msm import Msm4Encoder
+    from sitl.sky import GEONET_NAV
+    sim = load_sim("uav", 0, 70.0)
+    log = _sim_flight_bin(sim, tmp_path / "flight.BIN", gps_east_bias_m=6.0)
+    msm = Msm4Encoder(station_id=7)
+    rtcm = tmp_path / "base.rtcm3"
+    rtcm.write_bytes(b"".join((encode_1005(7, sim.base.r_e) if k % 10 == 0 else b"") + msm.encode(ep)
+                              for k, ep in enumerate(sim.base_epochs)))
+    dgps = replay(log, nav_path=str(GEONET_NAV), base_path=str(rtcm))
+    h = dgps.truth_score["ours"]["horizontal"]
+    print(f"with the RTCM base {h['rms_m']:.2f} m")
+    assert dgps.pipeline_health["engine"].get("base epochs", 0) >= 0.9 * len(sim.rover_epochs)
+    assert h["rms_m"] < 0.8

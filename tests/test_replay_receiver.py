@@ -51,6 +51,13 @@ def flight(tmp_path_factory):
     (d / "base.ubx").write_bytes(b"".join(rawx_frame(ep, LEAP_S) for ep in sim.base_epochs
                                           if ep.t_gps <= t0 + DURATION_S))
     (d / "base_xyz").write_text("/".join(f"{x:.4f}" for x in sim.base.r_e))
+    # ... and as an RTCM 3 capture (1005 every 10 s, MSM4 1074 per epoch), as a caster sends it
+    from sitl.caster import encode_1005
+    from sitl.rtcm_msm import Msm4Encoder
+    msm = Msm4Encoder(station_id=7)
+    (d / "base.rtcm3").write_bytes(b"".join((encode_1005(7, sim.base.r_e) if k % 10 == 0 else b"") + msm.encode(ep)
+                                            for k, ep in enumerate(e for e in sim.base_epochs
+                                                                   if e.t_gps <= t0 + DURATION_S)))
     with open(d / "imu.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["unix_s", "wx_dps", "wy_dps", "wz_dps", "fx_g", "fy_g", "fz_g"])
@@ -116,6 +123,23 @@ def test_capture_and_imu_give_a_tightly_coupled_solution_on_truth(flight):
     sig_h = float(np.median([math.hypot(*s.sigma_r_n_m[:2]) for s in sols]))
     print(f"\nubx + IMU CSV, standalone: {len(sols)} solutions in nav, horizontal RMS {rms:.2f} m, median sigma_h {sig_h:.2f} m")
     assert rms < 5.0                       # standalone GPS L1 with broadcast orbits: metres, not tens
+
+
+def test_a_capture_with_a_base_stations_rtcm_file_gives_dgps(flight):
+    """The .ubx capture with the base station's RTCM 3 capture (`--base BASE.rtcm3`): its epochs
+    reach the filter beside the receiver's frames and the track comes to DGPS grade."""
+    sim, d = flight
+    alone = replay_receiver(d / "rover.ubx", d / "imu.csv", csv_options=CSV_OPTIONS)
+    dgps = replay_receiver(d / "rover.ubx", d / "imu.csv", base_path=d / "base.rtcm3", csv_options=CSV_OPTIONS)
+    assert not dgps.refusal, dgps.refusal
+    nav_a = [s for s in alone.solutions if s.status == "nav"]
+    nav_d = [s for s in dgps.solutions if s.status == "nav"]
+    rms_a, rms_d = _horizontal_rms(sim, nav_a), _horizontal_rms(sim, nav_d)
+    print(f"\nubx + IMU CSV + RTCM base: standalone RMS_h {rms_a:.2f} m, with the base {rms_d:.2f} m")
+    assert dgps.pipeline_health["engine"].get("base epochs", 0) > 60 and len(nav_d) > 400
+    assert rms_d < 0.5 * rms_a
+    bad = replay_receiver(d / "rover.ubx", d / "imu.csv", base_path=d / "imu.csv", csv_options=CSV_OPTIONS)
+    assert bad.refusal.startswith("cannot read the base station's file")
 
 
 def test_a_capture_that_starts_mid_frame_is_still_a_capture(flight, tmp_path):
