@@ -19,8 +19,9 @@ def _add_gnss(sub) -> None:
     # --rover/--nav are checked in _run_gnss, not by argparse: 'companion gnss configure' has neither
     p.add_argument("--rover", nargs="+", metavar="ROVER",
                    help="rover RINEX observation file(s) (2.x or 3.x), or a u-blox capture (.ubx with RXM-RAWX and "
-                        "RXM-SFRBX); required.  Several RINEX files of one receiver (hourly files, a logger "
-                        "restarted) are read as one")
+                        "RXM-SFRBX), or an ArduPilot DataFlash log with its u-blox's raw observations (.BIN, "
+                        "GPS_RAW_DATA 1: GRXH/GRXS; with --nav); required.  Several RINEX files of one receiver "
+                        "(hourly files, a logger restarted) are read as one")
     p.add_argument("--nav", action="extend", nargs="+", metavar="NAV",
                    help="RINEX navigation file(s) (GPS, Galileo, BeiDou, QZSS broadcast ephemerides; GLONASS's for "
                         "--mode rtk --sys with R): several after one --nav (--nav N/*.rnx) or --nav repeated; "

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.capture_format import is_rtcm_capture, is_ubx_capture
+from ..io.capture_format import is_receiver_capture, is_rtcm_capture, is_ubx_capture
 from ..messages import BaseStationPosition
 from ..nav.earth import ecef_to_geodetic, ecef_to_ned
 from .dgps import DgpsCorrector
@@ -186,11 +186,19 @@ def load_ubx_capture(path: str, wanted: str | None, store: EphemerisStore, sourc
     decoded as the service decodes its receiver's stream; the epochs tagged as ``source`` ('rover'
     or 'base').  Returns (header-like dict without a marker position or antenna delta, with the
     receiver's model when the capture has UBX-MON-VER, epochs, Klobuchar)."""
-    from ..io.ubx import decode_ubx_file
+    from ..io.capture_format import is_dataflash_log
+    from ..io.ubx import UbxDecoder, decode_ubx_file
     from ..messages import GpsEphemeris
     from .glonass import GlonassEphemeris
     try:
-        msgs, dec = decode_ubx_file(str(path))
+        if is_dataflash_log(path):       # an ArduPilot log's RXM-RAWX (GRXH/GRXS), rebuilt
+            from ..io.dataflash_raw import capture_bytes
+            data, counters = capture_bytes(path)
+            dec = UbxDecoder()
+            msgs = dec.feed(data)
+            log.info("%s: RXM-RAWX rebuilt from GRXH/GRXS: %s", path, dict(counters))
+        else:
+            msgs, dec = decode_ubx_file(str(path))
     except (ValueError, IndexError, struct_error) as exc:
         raise GnssProcessingError(f"cannot decode the u-blox capture {path}: {exc}") from exc
     keep = wanted or SUPPORTED_SYSTEMS
@@ -263,7 +271,7 @@ def observation_files(args, who: str = "base") -> list[str]:
     capture."""
     given = getattr(args, who, None)
     files = [given] if isinstance(given, str) else list(given or [])
-    if len(files) > 1 and any(is_ubx_capture(p) or is_rtcm_capture(p) for p in files):
+    if len(files) > 1 and any(is_receiver_capture(p) or is_rtcm_capture(p) for p in files):
         raise GnssProcessingError(f"--{who}: several files only as RINEX observation files of one "
                                   f"{'station' if who == 'base' else 'receiver'}; a u-blox or RTCM capture is "
                                   "given alone")
@@ -297,7 +305,7 @@ def _load(args):
     ubx_rover = ubx_base = None
     base_is_ubx = args.mode == "dgps" and len(bases) == 1 and is_ubx_capture(bases[0])
     window = time_window(args)
-    if is_ubx_capture(rovers[0]):
+    if is_receiver_capture(rovers[0]):
         ubx_rover = load_ubx_capture(rovers[0], wanted, store)
         klob = ubx_rover[2]
     elif not args.nav and not base_is_ubx:

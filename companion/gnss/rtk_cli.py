@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.capture_format import is_rtcm_capture, is_ubx_capture
+from ..io.capture_format import is_receiver_capture, is_rtcm_capture, is_ubx_capture
 from ..messages import SECONDS_PER_WEEK, BaseStationPosition, GpsEphemeris
 from ..nav.earth import C_n_e, ecef_to_geodetic, ecef_to_ned
 from .ephemeris_store import EphemerisStore
@@ -66,7 +66,7 @@ def _rtk_rover(paths: list[str], systems: str, window: tuple[float, float] | Non
     """(header, epochs, ephemerides, Klobuchar or None) of an RTK rover: RINEX observation files of
     one receiver (read as one), or a u-blox capture; ``window`` (GPS s): ``--start`` / ``--end``."""
     name = " ".join(map(str, paths))
-    if not is_ubx_capture(paths[0]):
+    if not is_receiver_capture(paths[0]):
         hdr, epochs = read_rinex_obs_files(paths, systems, window, moving=True)
         return hdr, in_window(epochs, window, name, hdr), [], None
     hdr, epochs, ephs, klob = _ubx_epochs(paths[0], systems, "rover")
@@ -108,7 +108,7 @@ def _check_demo5_inputs(args) -> None:
     """``--against-demo5`` before any processing: demo5 installed, and RINEX files for it to read."""
     from .demo5_reference import require_demo5
     require_demo5()
-    captures = [p for p in (*rover_files(args), *base_files(args)) if is_ubx_capture(p) or is_rtcm_capture(p)]
+    captures = [p for p in (*rover_files(args), *base_files(args)) if is_receiver_capture(p) or is_rtcm_capture(p)]
     if captures or not args.nav:
         raise GnssProcessingError("--against-demo5 needs RINEX rover and base files and --nav (demo5 is given the "
                                   "same files; " + (f"{', '.join(captures)} is a capture" if captures

@@ -66,4 +66,15 @@ def is_ubx_capture(path) -> bool:
     return _holds(path, _ubx_frame_end, _UBX_SYNC)
 
 
-__all__ = ["is_rtcm_capture", "is_ubx_capture", "SCAN_BYTES"]
+def is_dataflash_log(path) -> bool:
+    """An ArduPilot DataFlash log: it starts with a FMT record (0xA3 0x95, type 128)."""
+    return _head(path, 3) == b"\xa3\x95\x80"
+
+
+def is_receiver_capture(path) -> bool:
+    """A u-blox's RXM-RAWX stream: a UBX capture, or a DataFlash log whose GRXH/GRXS records are
+    one (:mod:`companion.io.dataflash_raw`)."""
+    return is_ubx_capture(path) or is_dataflash_log(path)
+
+
+__all__ = ["is_rtcm_capture", "is_ubx_capture", "is_dataflash_log", "is_receiver_capture", "SCAN_BYTES"]

@@ -150,4 +150,19 @@ def rawx_frames(epochs: list[RawEpoch]) -> tuple[list[tuple[int, bytes]], Counte
     return out, counters
 
 
-__all__ = ["RawEpoch", "band_of", "rawx_frame", "rawx_frames", "SIG_ID_BY_BAND", "MAX_FREQUENCY_ERROR"]
+def capture_bytes(path) -> tuple[bytes, Counter]:
+    """The RXM-RAWX stream of a DataFlash log's GRXH/GRXS records, as a u-blox capture's bytes (a
+    ValueError saying so when the log has none: ``GPS_RAW_DATA`` was 0, or the GPS no u-blox)."""
+    from .dataflash import read_dataflash
+    log = read_dataflash(path)
+    if not log.raw_epochs:
+        raise ValueError(f"{path}: no raw observations in the DataFlash log (GRXH/GRXS records: ArduPilot "
+                         f"writes them with GPS_RAW_DATA 1 and a u-blox receiver)")
+    frames, counters = rawx_frames(log.raw_epochs)
+    if log.raw_orphans:
+        counters["GRXS records without their GRXH (not used)"] = log.raw_orphans
+    return b"".join(frame for _, frame in frames), counters
+
+
+__all__ = ["RawEpoch", "band_of", "capture_bytes", "rawx_frame", "rawx_frames", "SIG_ID_BY_BAND",
+           "MAX_FREQUENCY_ERROR"]
