@@ -156,8 +156,8 @@ def capture_bytes(path) -> tuple[bytes, Counter]:
     from .dataflash import read_dataflash
     log = read_dataflash(path)
     if not log.raw_epochs:
-        raise ValueError(f"{path}: no raw observations in the DataFlash log (GRXH/GRXS records: ArduPilot "
-                         f"writes them with GPS_RAW_DATA 1 and a u-blox receiver)")
+        raise ValueError("no raw observations in the DataFlash log (GRXH/GRXS records: ArduPilot writes them "
+                         "with GPS_RAW_DATA 1 and a u-blox receiver)")
     frames, counters = rawx_frames(log.raw_epochs)
     if log.raw_orphans:
         counters["GRXS records without their GRXH (not used)"] = log.raw_orphans
