@@ -3,7 +3,6 @@ error is the same from one reading to the next, so the heading follows the lates
 the reading's sigma instead of averaging the readings into a false certainty."""
 import math
 
-import numpy as np
 import pytest
 
 from companion.messages import GnssAttitude
