@@ -53,6 +53,7 @@ from .aid_status_record import KIND as AID_KIND
 from .aid_status_record import AidStatusPacer
 from .nav.smoother import SmootherRecorder
 from .pipeline import NavPipeline
+from .replay_raw import logged_raw, raw_records
 from .log_records import encode_solution, solution_records_equal
 
 log = logging.getLogger(__name__)
@@ -393,14 +394,16 @@ def replay_dataflash(path, config=None, progress: bool = False, t_start_s: float
     t0 = time.perf_counter()
     dlog = read_dataflash(path, t_start_s, t_end_s)
     return _replay_autopilot_log(dlog, "dataflash", t0, config, progress, options, needed_imu_hz, smooth=smooth,
-                                 raw=_logged_raw(dlog, nav_path, base_path))
+                                 raw=logged_raw(dlog, nav_path, base_path))
 
 
 def replay_ulog(path, config=None, progress: bool = False, t_start_s: float | None = None,
                 t_end_s: float | None = None, options=None,
-                needed_imu_hz: float = IMU_RATE_NEEDED_HZ, smooth: bool = False) -> ReplayResult:
+                needed_imu_hz: float = IMU_RATE_NEEDED_HZ, smooth: bool = False, nav_path=None,
+                base_path=None) -> ReplayResult:
     """Post-process a PX4 ULog through the pipeline (:mod:`companion.io.ulog`: the same adapter as
-    DataFlash after reading; SIH truth scored beside EKF2's vehicle_global_position)."""
+    DataFlash after reading; SIH truth scored beside EKF2's vehicle_global_position); its
+    receiver's bytes (``gps_dump``) tightly coupled (:mod:`companion.replay_raw`)."""
     import dataclasses
     from .io.dataflash import AdapterOptions
     from .io.ulog import is_sih, read_ulog
@@ -409,7 +412,8 @@ def replay_ulog(path, config=None, progress: bool = False, t_start_s: float | No
     opts = options or AdapterOptions()
     if opts.earth_rate is None:
         opts = dataclasses.replace(opts, earth_rate=is_sih(dlog))
-    return _replay_autopilot_log(dlog, "ulog", t0, config, progress, opts, needed_imu_hz, notes, smooth=smooth)
+    return _replay_autopilot_log(dlog, "ulog", t0, config, progress, opts, needed_imu_hz, notes, smooth=smooth,
+                                 raw=logged_raw(dlog, nav_path, base_path))
 
 
 _AUTOPILOT_LOG = {"dataflash": {"imu": "IMU", "estimate": "EKF3 POS", "truth": "SIM truth",
@@ -422,61 +426,10 @@ _AUTOPILOT_LOG = {"dataflash": {"imu": "IMU", "estimate": "EKF3 POS", "truth": "
                            "no_time": "no GPS fix in the log (vehicle_gps_position)"}}
 
 
-def _logged_raw(dlog, nav_path, base_path) -> dict:
-    """What the log's GRXH/GRXS records give (companion.io.dataflash_raw) with ``nav_path``'s
-    ephemerides and ``base_path``'s base station: ``frames`` ((TimeUS, RXM-RAWX) list), ``first``
-    (the messages to feed before them), ``base`` (base epochs), ``notes``, ``counters``; or why not
-    (``reason``)."""
-    from .io.dataflash_raw import rawx_frames
-    from .replay_receiver import nav_klobuchar, read_base, read_nav
-    if not dlog.raw_epochs:
-        return {"reason": "", "notes": [] if nav_path is None else [
-            "--nav given, but the log has no raw observations (GRXH/GRXS: GPS_RAW_DATA 1 with a u-blox)"]}
-    frames, counters = rawx_frames(dlog.raw_epochs)
-    if dlog.raw_orphans:
-        counters["GRXS records without their GRXH (not used)"] = dlog.raw_orphans
-    n = len(dlog.raw_epochs)
-    if nav_path is None:
-        return {"reason": f"{n} raw GNSS epochs (GRXH/GRXS) in the log, not used: give --nav (a RINEX navigation "
-                          f"file of the day, e.g. IGS BRDC) to use them tightly coupled", "notes": [],
-                "counters": counters}
-    if not frames:
-        return {"reason": f"{n} raw GNSS epochs (GRXH/GRXS), none with a usable measurement", "notes": [],
-                "counters": counters}
-    t_first = dlog.raw_epochs[0].week * 604800.0 + dlog.raw_epochs[0].rcv_tow_s
-    try:
-        first, shifted, channels = read_nav(nav_path, t_first)
-        position, base = read_base(base_path, channels, t_first) if base_path is not None else (None, [])
-    except (OSError, ValueError, IndexError) as exc:
-        return {"refusal": f"cannot read the RINEX input: {exc}", "reason": "", "notes": []}
-    notes = [f"raw observations: {len(frames)} u-blox epochs from the log's GRXH/GRXS records (RXM-RAWX rebuilt, "
-             f"companion.io.dataflash_raw), ephemerides from {nav_path}: tightly coupled"]
-    if shifted:
-        notes.append(f"{shifted} ephemerides of {nav_path} were 1024 weeks off the observations: moved back")
-    if position is not None:
-        first.append(position)
-        notes.append(f"base station from {base_path} ({len(base)} epochs)")
-    return {"reason": "", "frames": frames, "first": first, "base": base, "notes": notes, "counters": counters,
-            "klobuchar": nav_klobuchar(nav_path)}
-
-
-def _raw_records(raw: dict, tb):
-    """(t_boot_us, order, kind, item) of the logged raw stream for the merge with the MAVLink
-    messages: the ephemerides (and base position) just before the first frame, each frame at its
-    TimeUS, each base epoch at its GPS time on the log's boot clock."""
-    frames = raw.get("frames") or []
-    if not frames:
-        return []
-    out = [(frames[0][0] - 1, 1, "decoded", raw["first"])]
-    out += [(t_us, 1, "ubx", frame) for t_us, frame in frames]
-    out += [(tb.to_boot(e.t_gps) * 1e6, 1, "decoded", [e]) for e in raw["base"]]
-    return sorted(out, key=lambda x: x[0])
-
-
 def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options, needed_imu_hz,
                           notes: list | None = None, smooth: bool = False, raw: dict | None = None) -> ReplayResult:
     """An autopilot's own log (DataFlash or ULog, read into a DataFlashLog) through the pipeline;
-    ``raw``: :func:`_logged_raw`'s answer."""
+    ``raw``: :func:`companion.replay_raw.logged_raw`'s answer."""
     import dataclasses
     from .io.dataflash import AdapterOptions, iter_mavlink_messages, time_base
     from .nav.earth import ecef_to_geodetic
@@ -502,7 +455,7 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
         res.refusal = raw["refusal"]
         res.elapsed_s = time.perf_counter() - t0
         return res
-    cfg, res.notes = dataflash_config(dlog, res.imu_check["rate_hz"], config, raw_observations=bool(raw.get("frames")))
+    cfg, res.notes = dataflash_config(dlog, res.imu_check["rate_hz"], config, raw_observations=bool(raw.get("items")))
     res.notes += list(notes or ()) + raw["notes"] + ([raw["reason"]] if raw["reason"] else [])
     if raw.get("counters"):
         res.log_stats["raw_gnss"] = dict(raw["counters"])
@@ -529,7 +482,7 @@ def _replay_autopilot_log(dlog, kind: str, t0: float, config, progress, options,
     prog = _Progress(len(imu), progress)          # about one message per IMU sample
     mav = ((t_us, 0, "mavlink", msg)
            for t_us, msg in iter_mavlink_messages(dlog, dataclasses.replace(opts, earth_rate=earth), tb))
-    for t_us, _, what, item in heapq.merge(mav, _raw_records(raw, tb), key=lambda x: (x[0], x[1])):
+    for t_us, _, what, item in heapq.merge(mav, raw_records(raw, tb), key=lambda x: (x[0], x[1])):
         res.records += 1
         if not res.records & 1023:
             prog.update(res.records)
@@ -580,7 +533,8 @@ def replay(path, config=None, progress: bool = False, *, needed_imu_hz: float = 
         return replay_dataflash(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth,
                                 nav_path, base_path)
     if Path(p).is_file() and (p.lower().endswith((".ulg", ".ulg.xz", ".ulg.gz")) or _is_ulog(p)):
-        return replay_ulog(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth)
+        return replay_ulog(path, config, progress, t_start_s, t_end_s, dataflash_options, needed_imu_hz, smooth,
+                           nav_path, base_path)
     if p.endswith(".tlog") or p.endswith(".mavlink"):
         if smooth:
             raise ValueError("smoothing is implemented for field logs, DataFlash and ULog replays")

@@ -96,10 +96,11 @@ def register(subparsers) -> None:
     r.add_argument("--imu-rotation", help="IMU CSV: the body FRD axis of each sensor axis, e.g. x,-y,-z for a "
                    "sensor in FLU (default x,y,z)")
     r.add_argument("--nav", help="the RINEX navigation file (the day's broadcast ephemerides, e.g. IGS BRDC): with "
-                   "--imu-csv and RINEX observations, or a DataFlash .BIN whose u-blox raw observations ArduPilot "
-                   "logged (GPS_RAW_DATA 1: GRXH/GRXS), which are then used tightly coupled")
+                   "--imu-csv and RINEX observations, a DataFlash .BIN whose u-blox raw observations ArduPilot "
+                   "logged (GPS_RAW_DATA 1: GRXH/GRXS), or a PX4 .ulg whose receiver output RTCM (gps_dump, "
+                   "GPS_DUMP_COMM 2); the raw observations are then used tightly coupled")
     r.add_argument("--base", help="a base station's RINEX observations or RTCM 3 capture (1005/1006 + MSM4-7 or "
-                   "1004/1012), beside --imu-csv or a DataFlash .BIN with --nav: DGPS")
+                   "1004/1012), beside --imu-csv, a DataFlash .BIN or a PX4 .ulg with raw observations: DGPS")
     r.add_argument("--ubx-latency-ms", type=float, default=50.0,
                    help=".ubx: receiver output latency after each epoch's time (default 50)")
     r.set_defaults(func=cmd_replay)

@@ -24,29 +24,16 @@ LEAP_S = 18
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
     from sitl.autopilot import rawx_frame
-    from sitl.lnav_encode import ephemeris_subframe, klobuchar_subframe, quantised, sfrbx_frame, subframe_due
     from sitl.scenario import build_scenario
     from sitl.simulate import simulate
+    from tests._sim_streams import ubx_epochs
     sc = build_scenario("uav")
     sim = simulate(sc, 3)
     t0 = sim.truth.t_gps[0]
     d = tmp_path_factory.mktemp("ubx_imu")
-    ephs = {e.sat: quantised(e) for e in sim.ephemerides}
-    ubx = bytearray()
-    n_epochs = 0
-    for ep in sim.rover_epochs:
-        if ep.t_gps > t0 + DURATION_S:
-            break
-        ubx += rawx_frame(ep, LEAP_S)
-        n_epochs += 1
-        due = subframe_due(ep.t_gps)
-        if due is not None and due[0] != 5:
-            for ch, o in enumerate(ep.observations):
-                if o.sat in ephs and o.signal == "L1C":
-                    words = (klobuchar_subframe(sc.klobuchar_alpha, sc.klobuchar_beta, due[1]) if due[0] == 4
-                             else ephemeris_subframe(ephs[o.sat], due[0], due[1]))
-                    ubx += sfrbx_frame(int(o.sat[1:]), words, channel=ch)
-    (d / "rover.ubx").write_bytes(bytes(ubx))
+    epochs = ubx_epochs(sim, sc, t0 + DURATION_S, LEAP_S)
+    n_epochs = len(epochs)
+    (d / "rover.ubx").write_bytes(b"".join(data for _, data in epochs))
     # the base station's epochs as a second capture, for a RINEX base file (convbin -hp)
     (d / "base.ubx").write_bytes(b"".join(rawx_frame(ep, LEAP_S) for ep in sim.base_epochs
                                           if ep.t_gps <= t0 + DURATION_S))

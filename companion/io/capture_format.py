@@ -46,7 +46,10 @@ def _ubx_frame_end(buf: bytes, i: int) -> int | None:
 
 def _holds(path, frame_end, sync: bytes) -> bool:
     buf = _head(path, SCAN_BYTES + 2048)
-    whole = len(buf) < SCAN_BYTES + 2048                # the file ends within the buffer
+    return _holds_bytes(buf, len(buf) < SCAN_BYTES + 2048, frame_end, sync)   # whole: the file ends within it
+
+
+def _holds_bytes(buf: bytes, whole: bool, frame_end, sync: bytes) -> bool:
     i = buf.find(sync[:1])
     while 0 <= i < SCAN_BYTES:
         end = frame_end(buf, i)
@@ -66,6 +69,18 @@ def is_ubx_capture(path) -> bool:
     return _holds(path, _ubx_frame_end, _UBX_SYNC)
 
 
+def stream_kind(buf: bytes) -> str:
+    """'ubx' or 'rtcm' when the start of a byte stream holds such frames (as :func:`is_ubx_capture`
+    and :func:`is_rtcm_capture` tell a file), else ''."""
+    head = bytes(buf[:SCAN_BYTES + 2048])
+    whole = len(buf) <= len(head)
+    if _holds_bytes(head, whole, _ubx_frame_end, _UBX_SYNC):
+        return "ubx"
+    if _holds_bytes(head, whole, _rtcm_frame_end, bytes([_RTCM_PREAMBLE])):
+        return "rtcm"
+    return ""
+
+
 def is_dataflash_log(path) -> bool:
     """An ArduPilot DataFlash log: it starts with a FMT record (0xA3 0x95, type 128)."""
     return _head(path, 3) == b"\xa3\x95\x80"
@@ -77,4 +92,5 @@ def is_receiver_capture(path) -> bool:
     return is_ubx_capture(path) or is_dataflash_log(path)
 
 
-__all__ = ["is_rtcm_capture", "is_ubx_capture", "is_dataflash_log", "is_receiver_capture", "SCAN_BYTES"]
+__all__ = ["is_rtcm_capture", "is_ubx_capture", "is_dataflash_log", "is_receiver_capture", "stream_kind",
+           "SCAN_BYTES"]

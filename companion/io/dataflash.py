@@ -92,6 +92,8 @@ class DataFlashLog:
     # a u-blox's RXM-RAWX as ArduPilot logs it with GPS_RAW_DATA (companion.io.dataflash_raw)
     raw_epochs: list = field(default_factory=list)                      # RawEpoch, in log order
     raw_orphans: int = 0                                                # GRXS without its GRXH, or unreadable
+    # a PX4 log's receiver bytes (gps_dump: UBX, or RTCM 3 in PPK mode) as (t_us, bytes) chunks
+    raw_stream: list = field(default_factory=list)
     firmware: str = ""                                                  # first MSG naming the firmware
 
     @property

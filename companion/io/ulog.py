@@ -16,6 +16,8 @@ Topic -> record
 * ``vehicle_attitude`` -> ATT (the initial attitude); ``vehicle_status.arming_state`` -> arming.
 * ``vehicle_global_position`` -> POS (EKF2's estimate), ``vehicle_global_position_groundtruth``
   (PX4's SIH simulator) -> SIM (truth).
+* ``gps_dump`` (``GPS_DUMP_COMM`` 1 or 2) -> ``raw_stream``: the first receiver's own bytes, in
+  log order (what PX4 sent it is left out); :mod:`companion.replay_raw` feeds them.
 
 GPS time.  A receiver's fix carries UTC (``time_utc_usec``), and the boot-to-GPS offset is the
 median over the log.  PX4's SIH simulator leaves ``time_utc_usec`` at 0: its log has no absolute
@@ -40,7 +42,8 @@ NO_UTC_EPOCH_GPS_S = 2399 * SECONDS_PER_WEEK
 GPS_EPOCH_UNIX_S = 315964800.0            # 1980-01-06 00:00:00 UTC
 ARMING_STATE_ARMED = 2                     # vehicle_status.arming_state (PX4 v1.14+)
 TOPICS = ["sensor_combined", "vehicle_gps_position", "vehicle_attitude", "vehicle_status",
-          "vehicle_global_position", "vehicle_global_position_groundtruth"]
+          "vehicle_global_position", "vehicle_global_position_groundtruth", "gps_dump"]
+GPS_DUMP_TO_DEVICE = 0x80                  # gps_dump.len's top bit: bytes sent to the receiver
 
 
 def _open(path):
@@ -158,6 +161,9 @@ def read_ulog(path, t_start_s: float | None = None, t_end_s: float | None = None
             sel = window(t)
             setattr(out, attr, np.column_stack([t, np.asarray(d["lat"], float), np.asarray(d["lon"], float),
                                                 np.asarray(d["alt"], float)])[sel])
+    dump = _first(ul, "gps_dump")
+    if dump is not None:
+        out.raw_stream = _receiver_bytes(dump, window)
     st = _first(ul, "vehicle_status")
     if st is not None:
         armed = np.asarray(st["arming_state"]) == ARMING_STATE_ARMED
@@ -168,6 +174,18 @@ def read_ulog(path, t_start_s: float | None = None, t_end_s: float | None = None
                 out.arm.append((float(t[k]), bool(armed[k])))
                 prev = armed[k]
     return out, notes
+
+
+def _receiver_bytes(dump: dict, window) -> list[tuple[int, bytes]]:
+    """(timestamp us, bytes) of what the first receiver sent (``gps_dump`` with ``GPS_DUMP_COMM``
+    1: its whole stream; 2: the RTCM it was set to output), in log order; the bytes sent to it
+    (``len``'s top bit) and other instances left out."""
+    t = np.asarray(dump["timestamp"], np.int64)
+    n = np.asarray(dump["len"], np.int64)
+    inst = np.asarray(dump["instance"], np.int64) if "instance" in dump else np.zeros(len(t), np.int64)
+    data = np.column_stack([np.asarray(dump[f"data[{k}]"], np.uint8) for k in range(79) if f"data[{k}]" in dump])
+    keep = (inst == 0) & ((n & GPS_DUMP_TO_DEVICE) == 0) & window(t)
+    return [(int(t[k]), bytes(data[k, :min(int(n[k]), data.shape[1])])) for k in np.flatnonzero(keep)]
 
 
 __all__ = ["is_ulog", "is_sih", "read_ulog", "ULOG_MAGIC", "NO_UTC_EPOCH_GPS_S"]
