@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from .messages import SECONDS_PER_WEEK
+
 NAV_HINT = "give --nav (a RINEX navigation file of the day, e.g. IGS BRDC)"
 
 
@@ -34,10 +36,8 @@ def logged_raw(dlog, nav_path, base_path) -> dict:
 
 
 def _ardupilot(dlog, nav_path, base_path) -> dict:
-    from .io.dataflash_raw import rawx_frames
-    frames, counters = rawx_frames(dlog.raw_epochs)
-    if dlog.raw_orphans:
-        counters["GRXS records without their GRXH (not used)"] = dlog.raw_orphans
+    from .io.dataflash_raw import log_frames
+    frames, counters = log_frames(dlog)
     n = len(dlog.raw_epochs)
     if nav_path is None:
         return {"reason": f"{n} raw GNSS epochs (GRXH/GRXS) in the log, not used: {NAV_HINT} to use them tightly "
@@ -45,7 +45,7 @@ def _ardupilot(dlog, nav_path, base_path) -> dict:
     if not frames:
         return {"reason": f"{n} raw GNSS epochs (GRXH/GRXS), none with a usable measurement", "notes": [],
                 "counters": counters}
-    t_first = dlog.raw_epochs[0].week * 604800.0 + dlog.raw_epochs[0].rcv_tow_s
+    t_first = dlog.raw_epochs[0].week * SECONDS_PER_WEEK + dlog.raw_epochs[0].rcv_tow_s
     out = _with_inputs(nav_path, base_path, t_first)
     if "refusal" not in out:
         out["notes"].insert(0, f"raw observations: {len(frames)} u-blox epochs from the log's GRXH/GRXS records "
@@ -91,7 +91,7 @@ def _rtcm_rover_items(chunks, t_gps_hint: float):
     from collections import Counter
     from .io.rtcm import RtcmDecoder
     from .messages import BaseStationPosition, GnssEpoch
-    dec = RtcmDecoder(week_hint=int(t_gps_hint // 604800))
+    dec = RtcmDecoder(week_hint=int(t_gps_hint // SECONDS_PER_WEEK))
     counters: Counter = Counter()
     items = []
     for t_us, chunk in chunks:
@@ -114,7 +114,7 @@ def _first_gps_time(dlog) -> float:
     for rows in dlog.gps.values():
         for r in rows:
             if r[3] > 0:
-                return float(r[3]) * 604800.0 + float(r[2]) * 1e-3
+                return float(r[3]) * SECONDS_PER_WEEK + float(r[2]) * 1e-3
     return 0.0
 
 

@@ -29,9 +29,9 @@ import numpy as np
 
 from .io.capture_format import is_ubx_capture
 from .io.ubx import ubx_checksum
+from .messages import SECONDS_PER_WEEK
 
 RAWX_HEADER = b"\xb5\x62\x02\x15"
-SECONDS_PER_WEEK = 604800.0
 
 
 def ubx_segments(data: bytes) -> list[tuple[float, bytes]]:

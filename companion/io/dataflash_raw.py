@@ -150,6 +150,15 @@ def rawx_frames(epochs: list[RawEpoch]) -> tuple[list[tuple[int, bytes]], Counte
     return out, counters
 
 
+def log_frames(log) -> tuple[list[tuple[int, bytes]], Counter]:
+    """:func:`rawx_frames` of a read DataFlash log (:class:`companion.io.dataflash.DataFlashLog`),
+    its GRXS records without a GRXH counted too."""
+    frames, counters = rawx_frames(log.raw_epochs)
+    if log.raw_orphans:
+        counters["GRXS records without their GRXH (not used)"] = log.raw_orphans
+    return frames, counters
+
+
 def capture_bytes(path) -> tuple[bytes, Counter]:
     """The RXM-RAWX stream of a DataFlash log's GRXH/GRXS records, as a u-blox capture's bytes (a
     ValueError saying so when the log has none: ``GPS_RAW_DATA`` was 0, or the GPS no u-blox)."""
@@ -158,11 +167,9 @@ def capture_bytes(path) -> tuple[bytes, Counter]:
     if not log.raw_epochs:
         raise ValueError("no raw observations in the DataFlash log (GRXH/GRXS records: ArduPilot writes them "
                          "with GPS_RAW_DATA 1 and a u-blox receiver)")
-    frames, counters = rawx_frames(log.raw_epochs)
-    if log.raw_orphans:
-        counters["GRXS records without their GRXH (not used)"] = log.raw_orphans
+    frames, counters = log_frames(log)
     return b"".join(frame for _, frame in frames), counters
 
 
-__all__ = ["RawEpoch", "band_of", "capture_bytes", "rawx_frame", "rawx_frames", "SIG_ID_BY_BAND",
+__all__ = ["RawEpoch", "band_of", "capture_bytes", "log_frames", "rawx_frame", "rawx_frames", "SIG_ID_BY_BAND",
            "MAX_FREQUENCY_ERROR"]
